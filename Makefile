@@ -1,0 +1,28 @@
+# Two entry points for a new user: `make run` (the paper's reference stack) and `make test`.
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+
+.PHONY: run test lint bench clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet -e '.[test]'
+	touch $(STAMP)
+
+# The furthest stage that exists yet is `packing`; this becomes `--to mesh` with the meshing stage.
+run: $(STAMP)
+	$(BIN)/pipeline run --to packing --out runs/paper-squares --seed 0 --overwrite
+
+test: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+	$(BIN)/pytest -q
+
+bench: $(STAMP)
+	$(BIN)/python benchmarks/bench_packing.py
+
+clean:
+	rm -rf $(VENV) runs

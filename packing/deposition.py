@@ -1,0 +1,210 @@
+"""Batch deposition (paper, section 2.3.3) with local settling.
+
+Each batch of chips is released at rest, at random positions over the target, random
+heights and random orientations, without overlapping one another or the pile. Gravity
+does the rest. A chip *settles* when every point of it has been slower than
+``settling.speed_mm_s`` for ``settling.hold_time_s`` of simulated time; it is then frozen
+(made static) so it no longer costs solver time or jitters. A frozen chip is woken again
+when a chip faster than ``settling.wake_speed_mm_s`` comes within 0.5 mm of it, so later
+impacts still push the pile around. A batch is settled when all its chips and all chips
+it woke have settled; the next batch is released then. A batch still moving at
+``settling.max_time_s`` is frozen where it is and recorded as a warning.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from packing.config import Scenario
+from packing.errors import InputError
+from packing.overlap import box_penetration_depth, floor_penetration_mm, penetrating_pairs
+from packing.presets import PRESETS
+from packing.shapes import ChipShape, make_shape
+from packing.stack import BatchResult, Stack
+from packing.world import ChipWorld
+
+__all__ = ["deposit", "release_poses"]
+
+log = logging.getLogger(__name__)
+
+WAKE_MARGIN_MM = 0.5
+CHECK_INTERVAL_S = 0.005  # how often speeds are read (simulated time)
+_MAX_PLACEMENT_TRIES = 2000
+
+
+def _random_rotations(scenario: Scenario, n: int, rng: np.random.Generator) -> Rotation:
+    d = scenario.deposition
+    if d.orientation == "uniform":
+        return Rotation.from_quat(_unit_quaternions(n, rng))
+    angles = np.column_stack(
+        [rng.uniform(*np.radians(r), size=n) for r in
+         (d.roll_range_deg, d.pitch_range_deg, d.yaw_range_deg)]
+    )
+    return Rotation.from_euler("xyz", angles)
+
+
+def _unit_quaternions(n: int, rng: np.random.Generator) -> np.ndarray:
+    """Uniform random rotations (normalised 4-D Gaussians), x, y, z, w."""
+    q = rng.normal(size=(n, 4))
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def release_poses(
+    scenario: Scenario,
+    shape: ChipShape,
+    n: int,
+    rng: np.random.Generator,
+    occupied: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Draw ``n`` non-overlapping release poses: positions (n, 3) mm, quaternions (n, 4).
+
+    Centres are uniform over the release square and the height range; a pose that
+    overlaps an already placed chip (or one in ``occupied``) is drawn again.
+    """
+    d = scenario.deposition
+    half = d.release_side_mm / 2
+    placed_pos = [] if occupied is None else list(occupied[0])
+    placed_rot = [] if occupied is None else list(Rotation.from_quat(occupied[1]).as_matrix())
+    positions, quaternions = np.empty((n, 3)), np.empty((n, 4))
+    reach = 2 * shape.circumradius_mm
+    for i in range(n):
+        for _ in range(_MAX_PLACEMENT_TRIES):
+            centre = np.array([*rng.uniform(-half, half, 2), rng.uniform(*d.release_height_mm)])
+            rotation = _random_rotations(scenario, 1, rng)
+            matrix = rotation.as_matrix()[0]
+            if placed_pos:
+                others = np.asarray(placed_pos)
+                near = np.flatnonzero(np.linalg.norm(others - centre, axis=1) < reach)
+                if near.size and box_penetration_depth(
+                    np.repeat(centre[None], near.size, 0),
+                    np.repeat(matrix[None], near.size, 0),
+                    shape.half_extents,
+                    others[near],
+                    np.asarray(placed_rot)[near],
+                    shape.half_extents,
+                ).max() > 0:
+                    continue
+            lowest = (matrix @ shape.vertices.T)[2].min() + centre[2]
+            if lowest <= 0:
+                continue
+            break
+        else:
+            raise InputError(
+                "deposition: cannot release "
+                f"{n} chips without overlap in a {d.release_side_mm:g} mm square between "
+                f"{d.release_height_mm[0]:g} and {d.release_height_mm[1]:g} mm; "
+                "widen release_height_mm or lower batch_size"
+            )
+        positions[i], quaternions[i] = centre, rotation.as_quat()[0]
+        placed_pos.append(centre)
+        placed_rot.append(matrix)
+    return positions, quaternions
+
+
+def deposit(
+    scenario: Scenario,
+    progress: Callable[[int, BatchResult], None] | None = None,
+) -> Stack:
+    """Run the batch deposition of ``scenario`` and return the settled :class:`Stack`.
+
+    ``progress`` is called after each batch with (batch number, its result).
+    All random draws come from ``numpy.random.default_rng(scenario.seed)``.
+    """
+    shape = make_shape(scenario.chip)
+    preset = PRESETS.get(scenario.physics.preset, key="physics.preset")
+    rng = np.random.default_rng(scenario.seed)
+    d, s = scenario.deposition, scenario.settling
+    check_steps = max(1, round(CHECK_INTERVAL_S / scenario.physics.time_step_s))
+    hold_checks = max(1, int(np.ceil(s.hold_time_s / (check_steps * scenario.physics.time_step_s))))
+    batch_of: list[int] = []
+    results: list[BatchResult] = []
+    warnings: list[str] = []
+
+    with ChipWorld(preset, scenario.physics) as world:
+        n_batches = -(-d.chips // d.batch_size)
+        for batch in range(1, n_batches + 1):
+            wall_start = time.perf_counter()
+            count = min(d.batch_size, d.chips - len(batch_of))
+            occupied = world.poses() if world.n_chips else None
+            positions, quaternions = release_poses(scenario, shape, count, rng, occupied)
+            new = [world.add_chip(shape, p, q) for p, q in zip(positions, quaternions)]
+            batch_of += [batch] * count
+            awake = dict.fromkeys(new, 0)  # chip -> consecutive checks at rest
+            start_time, steps, wakes = world.time_s, 0, 0
+            while awake and world.time_s - start_time < s.max_time_s:
+                world.step(check_steps)
+                steps += check_steps
+                fast = []
+                for chip in sorted(awake):
+                    speed = world.max_point_speed_mm_s(chip)
+                    if speed < s.speed_mm_s:
+                        awake[chip] += 1
+                        if awake[chip] >= hold_checks:
+                            world.freeze(chip)
+                            del awake[chip]
+                    else:
+                        awake[chip] = 0
+                        if speed > s.wake_speed_mm_s:
+                            fast.append(chip)
+                for chip in fast:
+                    for other in world.chips_near(chip, WAKE_MARGIN_MM):
+                        if other not in awake:
+                            world.wake(other)
+                            awake[other] = 0
+                            wakes += 1
+            settled = not awake
+            if not settled:
+                speeds = {c: world.max_point_speed_mm_s(c) for c in sorted(awake)}
+                message = (
+                    f"batch {batch} did not settle within {s.max_time_s:g} s of simulated time: "
+                    f"{len(speeds)} chips still moving (fastest {max(speeds.values()):.1f} mm/s, "
+                    f"chips {sorted(speeds)[:10]}); they were frozen where they were"
+                )
+                log.warning(message)
+                warnings.append(message)
+                for chip in speeds:
+                    world.freeze(chip)
+            result = _batch_result(world, scenario, shape, batch, start_time, steps, wakes,
+                                   settled, time.perf_counter() - wall_start)
+            results.append(result)
+            log.info("batch %d settled=%s in %.2f s simulated, %.2f s wall", batch, settled,
+                     result.sim_time_s, result.wall_time_s)
+            if progress is not None:
+                progress(batch, result)
+
+    return Stack(
+        shapes=(shape,),
+        shape_index=np.zeros(len(batch_of), dtype=int),
+        batch=np.asarray(batch_of),
+        batches=tuple(results),
+        target_size_mm=d.target_size_mm,
+        warnings=tuple(warnings),
+    )
+
+
+def _batch_result(world: ChipWorld, scenario: Scenario, shape: ChipShape, batch: int,
+                  start_time: float, steps: int, wakes: int, settled: bool,
+                  wall: float) -> BatchResult:
+    positions, quaternions = world.poses()
+    _, depth = penetrating_pairs(positions, quaternions, shape.half_extents)
+    floor = floor_penetration_mm(positions, quaternions, shape.vertices)
+    half = scenario.deposition.target_size_mm / 2
+    return BatchResult(
+        batch=batch,
+        positions=positions,
+        quaternions=quaternions,
+        contacts=world.contacts(scenario.output.contact_distance_mm),
+        sim_time_s=world.time_s - start_time,
+        wall_time_s=wall,
+        steps=steps,
+        settled=settled,
+        wakes=wakes,
+        max_floor_penetration_mm=float(floor.max(initial=0.0)),
+        max_chip_penetration_mm=float(depth.max(initial=0.0)),
+        outside_target=int((np.abs(positions[:, :2]) > half).any(axis=1).sum()),
+    )

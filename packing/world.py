@@ -1,0 +1,291 @@
+"""The PyBullet session: the only place that talks to the physics engine.
+
+PyBullet behaves best when bodies are about one unit across, so the engine runs in an
+internal world of ``MM_PER_UNIT`` millimetres per length unit, grams and seconds. That
+scale is applied here, on the way in and on the way out; every public method takes and
+returns millimetres.
+
+Choices that make a chip stack right before fast (measured; see the README):
+
+* bodies are plain rigid bodies (``useMaximalCoordinates``), not Featherstone
+  multibodies: ten times cheaper per body and they can sleep;
+* a 0.5 ms step: a chip at 2 m/s moves 1 mm (half its thickness) per step, so it cannot
+  pass through a floor or another chip between two collision checks;
+* contact ERP 0.5 (PyBullet: 0.2) removes residual interpenetration in the pile to a few
+  hundredths of a millimetre;
+* settled chips are frozen (made static) one by one and woken when a fast chip comes
+  near them; see :mod:`packing.deposition`.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def _import_pybullet_quietly():
+    # pybullet prints its build time from C on import; keep stdout for the user's output.
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        with open(os.devnull, "w") as devnull:
+            os.dup2(devnull.fileno(), 1)
+            import pybullet as module
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+    return module
+
+
+pybullet = _import_pybullet_quietly()
+
+from packing.config import PhysicsSpec
+from packing.errors import SimulationError
+from packing.presets import PhysicsPreset
+from packing.shapes import ChipShape
+
+__all__ = ["MM_PER_UNIT", "GRAVITY_MM_S2", "ChipWorld", "GROUND", "ContactRecord"]
+
+log = logging.getLogger(__name__)
+
+MM_PER_UNIT = 10.0  # the one place where the internal length scale lives
+GRAVITY_MM_S2 = 9810.0
+GROUND = -1  # chip index used for the floor in contact records
+_CONTACT_ERP = 0.5
+# Impacts slower than this do not bounce (PyBullet: 0.2 units/s = 2 mm/s here). Without it the
+# paper preset's restitution of 1 keeps chips resting on soft contacts vibrating for ever.
+RESTITUTION_THRESHOLD_MM_S = 20.0
+
+
+@dataclass(frozen=True)
+class ContactRecord:
+    """Closest-point contacts between chips (and the ground, index ``GROUND``).
+
+    Arrays of length m: chip_a, chip_b (chip indices; chip_b is GROUND for the floor),
+    point_a, point_b (m, 3) mm on each surface, normal (m, 3) unit vector on b pointing
+    towards a, distance (m,) mm (negative: interpenetration).
+    """
+
+    chip_a: np.ndarray
+    chip_b: np.ndarray
+    point_a: np.ndarray
+    point_b: np.ndarray
+    normal: np.ndarray
+    distance: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.chip_a)
+
+
+class ChipWorld:
+    """A PyBullet world holding a floor (the conveyor, z = 0) and chips.
+
+    Use as a context manager; the engine session is closed on exit, even after an error.
+    """
+
+    def __init__(self, preset: PhysicsPreset, numerics: PhysicsSpec) -> None:
+        self.preset = preset
+        self.numerics = numerics
+        self.time_step_s = numerics.time_step_s
+        self.friction = numerics.friction if numerics.friction >= 0 else preset.friction
+        self.restitution = numerics.restitution if numerics.restitution >= 0 else preset.restitution
+        self._client: int | None = None
+        self._bodies: list[int] = []  # chip index -> body id
+        self._index_of: dict[int, int] = {}
+        self._mass: list[float] = []
+        self._radius_units: list[float] = []
+        self._shape_ids: dict[int, int] = {}
+        self._floor = -1
+        self.time_s = 0.0
+
+    # -- session ---------------------------------------------------------------------------
+    def __enter__(self) -> ChipWorld:
+        self._client = pybullet.connect(pybullet.DIRECT)
+        c = self._client
+        pybullet.setGravity(0, 0, -GRAVITY_MM_S2 / MM_PER_UNIT, physicsClientId=c)
+        pybullet.setPhysicsEngineParameter(
+            fixedTimeStep=self.time_step_s,
+            numSolverIterations=self.numerics.solver_iterations,
+            deterministicOverlappingPairs=1,
+            contactERP=_CONTACT_ERP,
+            restitutionVelocityThreshold=RESTITUTION_THRESHOLD_MM_S / MM_PER_UNIT,
+            physicsClientId=c,
+        )
+        plane = pybullet.createCollisionShape(pybullet.GEOM_PLANE, physicsClientId=c)
+        self._floor = pybullet.createMultiBody(0, plane, physicsClientId=c)
+        self._apply_contact_model(self._floor)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._client is not None:
+            pybullet.disconnect(physicsClientId=self._client)
+            self._client = None
+
+    @property
+    def client(self) -> int:
+        if self._client is None:
+            raise RuntimeError("ChipWorld used outside its `with` block")
+        return self._client
+
+    def _apply_contact_model(self, body: int) -> None:
+        p = self.preset
+        kwargs: dict[str, float] = dict(
+            lateralFriction=self.friction,
+            restitution=self.restitution,
+            rollingFriction=p.rolling_friction,
+            spinningFriction=p.spinning_friction,
+            linearDamping=0.0,
+            angularDamping=0.0,
+        )
+        if p.contact_processing_threshold_mm is not None:
+            kwargs["contactProcessingThreshold"] = p.contact_processing_threshold_mm / MM_PER_UNIT
+        pybullet.changeDynamics(body, -1, physicsClientId=self.client, **kwargs)
+        if p.contact_stiffness_per_g is not None and body != self._floor:
+            mass = self._mass[self._index_of[body]]
+            pybullet.changeDynamics(
+                body,
+                -1,
+                contactStiffness=p.contact_stiffness_per_g * mass,
+                contactDamping=p.contact_damping_per_g * mass,
+                physicsClientId=self.client,
+            )
+
+    # -- chips -----------------------------------------------------------------------------
+    @property
+    def n_chips(self) -> int:
+        return len(self._bodies)
+
+    def add_chip(self, shape: ChipShape, position_mm: np.ndarray, quaternion: np.ndarray) -> int:
+        """Add a chip at rest; returns its chip index (0, 1, ... in order of addition)."""
+        c = self.client
+        key = id(shape)
+        if key not in self._shape_ids:
+            self._shape_ids[key] = pybullet.createCollisionShape(
+                pybullet.GEOM_BOX,
+                halfExtents=(shape.half_extents / MM_PER_UNIT).tolist(),
+                physicsClientId=c,
+            )
+        mass = self.preset.chip_mass_g(shape.volume_mm3)
+        body = pybullet.createMultiBody(
+            mass,
+            self._shape_ids[key],
+            -1,
+            (np.asarray(position_mm) / MM_PER_UNIT).tolist(),
+            np.asarray(quaternion).tolist(),
+            useMaximalCoordinates=True,
+            physicsClientId=c,
+        )
+        index = len(self._bodies)
+        self._bodies.append(body)
+        self._index_of[body] = index
+        self._mass.append(mass)
+        self._radius_units.append(shape.circumradius_mm / MM_PER_UNIT)
+        self._apply_contact_model(body)
+        pybullet.changeDynamics(
+            body, -1, activationState=pybullet.ACTIVATION_STATE_DISABLE_SLEEPING, physicsClientId=c
+        )
+        return index
+
+    def step(self, n: int = 1) -> None:
+        for _ in range(n):
+            pybullet.stepSimulation(physicsClientId=self.client)
+        self.time_s += n * self.time_step_s
+
+    def max_point_speed_mm_s(self, chip: int) -> float:
+        """Upper bound of the speed of any point of the chip: |v| + |w| r (mm/s)."""
+        v, w = pybullet.getBaseVelocity(self._bodies[chip], physicsClientId=self.client)
+        speed = (v[0] ** 2 + v[1] ** 2 + v[2] ** 2) ** 0.5
+        spin = (w[0] ** 2 + w[1] ** 2 + w[2] ** 2) ** 0.5
+        value = (speed + spin * self._radius_units[chip]) * MM_PER_UNIT
+        if value != value:  # NaN: the solver blew up
+            raise SimulationError(f"chip {chip}: velocity became NaN at t = {self.time_s:.4f} s")
+        return value
+
+    def velocity_mm_s(self, chip: int) -> np.ndarray:
+        v, _ = pybullet.getBaseVelocity(self._bodies[chip], physicsClientId=self.client)
+        return np.asarray(v) * MM_PER_UNIT
+
+    def freeze(self, chip: int) -> None:
+        """Make a chip at rest static and asleep: it supports others but costs nothing."""
+        body, c = self._bodies[chip], self.client
+        pybullet.changeDynamics(body, -1, mass=0.0, physicsClientId=c)
+        pybullet.resetBaseVelocity(body, [0, 0, 0], [0, 0, 0], physicsClientId=c)
+        pybullet.changeDynamics(
+            body, -1, activationState=pybullet.ACTIVATION_STATE_SLEEP, physicsClientId=c
+        )
+
+    def wake(self, chip: int) -> None:
+        """Give a frozen chip back its mass (at rest)."""
+        body, c = self._bodies[chip], self.client
+        pybullet.changeDynamics(
+            body,
+            -1,
+            mass=self._mass[chip],
+            activationState=pybullet.ACTIVATION_STATE_WAKE_UP,
+            physicsClientId=c,
+        )
+
+    def chips_near(self, chip: int, margin_mm: float) -> list[int]:
+        """Chips whose bounding boxes come within ``margin_mm`` of this chip's."""
+        c = self.client
+        lo, hi = pybullet.getAABB(self._bodies[chip], physicsClientId=c)
+        m = margin_mm / MM_PER_UNIT
+        found = pybullet.getOverlappingObjects(
+            [lo[0] - m, lo[1] - m, lo[2] - m], [hi[0] + m, hi[1] + m, hi[2] + m],
+            physicsClientId=c,
+        )
+        index = self._index_of
+        return sorted(index[b] for b, _ in (found or ()) if b in index and index[b] != chip)
+
+    def poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """Positions (n, 3) mm and quaternions (n, 4) x, y, z, w of all chips."""
+        c = self.client
+        states = [pybullet.getBasePositionAndOrientation(b, physicsClientId=c) for b in self._bodies]
+        if not states:
+            return np.empty((0, 3)), np.empty((0, 4))
+        positions = np.array([s[0] for s in states]) * MM_PER_UNIT
+        quaternions = np.array([s[1] for s in states])
+        if not np.isfinite(positions).all():
+            bad = np.flatnonzero(~np.isfinite(positions).all(axis=1))
+            raise SimulationError(f"chips {bad.tolist()[:10]}: NaN position at t = {self.time_s}")
+        return positions, quaternions
+
+    def contact_points(self, chip: int) -> list[tuple[int, float]]:
+        """Current solver contacts of one chip: (other chip index or GROUND, distance mm)."""
+        c = self.client
+        points = pybullet.getContactPoints(bodyA=self._bodies[chip], physicsClientId=c)
+        return [(self._index_of.get(p[2], GROUND), p[8] * MM_PER_UNIT) for p in points]
+
+    def contacts(self, distance_mm: float) -> ContactRecord:
+        """All chip-chip and chip-ground closest points within ``distance_mm``.
+
+        Computed from the geometry on demand (not the solver's cached manifolds, which do
+        not exist between frozen chips).
+        """
+        c = self.client
+        reach = distance_mm / MM_PER_UNIT
+        rows = []
+        for a, body in enumerate(self._bodies):
+            for b in self.chips_near(a, distance_mm):
+                if b <= a:
+                    continue
+                rows += [(a, b, pt) for pt in pybullet.getClosestPoints(
+                    body, self._bodies[b], reach, physicsClientId=c)]
+            rows += [(a, GROUND, pt) for pt in pybullet.getClosestPoints(
+                body, self._floor, reach, physicsClientId=c)]
+        if not rows:
+            empty3 = np.empty((0, 3))
+            return ContactRecord(np.empty(0, int), np.empty(0, int), empty3, empty3, empty3,
+                                 np.empty(0))
+        return ContactRecord(
+            chip_a=np.array([r[0] for r in rows], dtype=int),
+            chip_b=np.array([r[1] for r in rows], dtype=int),
+            point_a=np.array([r[2][5] for r in rows]) * MM_PER_UNIT,
+            point_b=np.array([r[2][6] for r in rows]) * MM_PER_UNIT,
+            normal=np.array([r[2][7] for r in rows]),
+            distance=np.array([r[2][8] for r in rows]) * MM_PER_UNIT,
+        )

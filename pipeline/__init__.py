@@ -1,0 +1,1 @@
+"""Pipeline: command line, scenario files, run directory and the wiring of the stages."""

@@ -1,0 +1,80 @@
+"""Reading scenario files (TOML) and writing the resolved scenario back."""
+
+from __future__ import annotations
+
+import json
+import tomllib
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from packing.config import Scenario, scenario_from_dict, scenario_to_dict
+from packing.errors import InputError
+
+__all__ = ["BUILTIN", "builtin_names", "load_scenario", "dumps_toml"]
+
+BUILTIN = "paper-squares"
+
+
+def builtin_names() -> list[str]:
+    folder = resources.files("pipeline") / "scenarios"
+    return sorted(p.name.removesuffix(".toml") for p in folder.iterdir()
+                  if p.name.endswith(".toml"))
+
+
+def load_scenario(source: str | Path | None) -> Scenario:
+    """A scenario from a TOML file, a built-in name, or (None) the paper's reference stack."""
+    if source is None:
+        source = BUILTIN
+    path = Path(source)
+    if not path.is_file():
+        if str(source) in builtin_names():
+            text = (resources.files("pipeline") / "scenarios" / f"{source}.toml").read_text()
+            return _parse(text, f"built-in scenario {source}")
+        if path.is_dir():
+            raise InputError(f"{source}: is a directory, not a scenario file")
+        raise InputError(
+            f"{source}: scenario file not found (built-in scenarios: {', '.join(builtin_names())})"
+        )
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{source}: cannot read scenario file ({exc})") from None
+    return _parse(text, str(source))
+
+
+def _parse(text: str, origin: str) -> Scenario:
+    if not text.strip():
+        raise InputError(f"{origin}: the scenario file is empty")
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"{origin}: malformed TOML: {exc}") from None
+    try:
+        return scenario_from_dict(data)
+    except InputError as exc:
+        raise InputError(f"{origin}: {exc}") from None
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value)  # JSON string escapes are valid TOML basic strings
+    if isinstance(value, list):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    raise TypeError(f"cannot write {type(value).__name__} to TOML")
+
+
+def dumps_toml(scenario: Scenario) -> str:
+    """The resolved scenario (every key, defaults filled in) as TOML that loads back equal."""
+    data = scenario_to_dict(scenario)
+    lines = [f"{k} = {_toml_value(v)}" for k, v in data.items() if not isinstance(v, dict)]
+    for section, table in data.items():
+        if isinstance(table, dict):
+            lines += ["", f"[{section}]"] + [f"{k} = {_toml_value(v)}" for k, v in table.items()]
+    return "\n".join(lines) + "\n"
