@@ -9,10 +9,33 @@ import numpy as np
 
 from packing.stack import BatchResult, Stack
 
-POSE_COLUMNS = ("chip", "batch", "shape", "x_mm", "y_mm", "z_mm", "qx", "qy", "qz", "qw",
-                "inside_target")
-CONTACT_COLUMNS = ("chip_a", "chip_b", "xa_mm", "ya_mm", "za_mm", "xb_mm", "yb_mm", "zb_mm",
-                   "nx", "ny", "nz", "distance_mm")
+POSE_COLUMNS = (
+    "chip",
+    "batch",
+    "shape",
+    "x_mm",
+    "y_mm",
+    "z_mm",
+    "qx",
+    "qy",
+    "qz",
+    "qw",
+    "inside_target",
+)
+CONTACT_COLUMNS = (
+    "chip_a",
+    "chip_b",
+    "xa_mm",
+    "ya_mm",
+    "za_mm",
+    "xb_mm",
+    "yb_mm",
+    "zb_mm",
+    "nx",
+    "ny",
+    "nz",
+    "distance_mm",
+)
 
 
 def write_poses_csv(path: Path, stack: Stack, result: BatchResult) -> None:
@@ -26,9 +49,21 @@ def write_poses_csv(path: Path, stack: Stack, result: BatchResult) -> None:
         for i in range(n):
             x, y, z = result.positions[i]
             qx, qy, qz, qw = result.quaternions[i]
-            writer.writerow([i, int(stack.batch[i]), stack.shapes[stack.shape_index[i]].name,
-                             f"{x:.6f}", f"{y:.6f}", f"{z:.6f}",
-                             f"{qx:.9f}", f"{qy:.9f}", f"{qz:.9f}", f"{qw:.9f}", int(inside[i])])
+            writer.writerow(
+                [
+                    i,
+                    int(stack.batch[i]),
+                    stack.shapes[stack.shape_index[i]].name,
+                    f"{x:.6f}",
+                    f"{y:.6f}",
+                    f"{z:.6f}",
+                    f"{qx:.9f}",
+                    f"{qy:.9f}",
+                    f"{qz:.9f}",
+                    f"{qw:.9f}",
+                    int(inside[i]),
+                ]
+            )
 
 
 def write_contacts_csv(path: Path, result: BatchResult) -> None:
@@ -38,8 +73,13 @@ def write_contacts_csv(path: Path, result: BatchResult) -> None:
         writer = csv.writer(f)
         writer.writerow(CONTACT_COLUMNS)
         for k in range(len(c)):
-            writer.writerow([int(c.chip_a[k]), int(c.chip_b[k]),
-                             *(f"{v:.6f}" for v in c.point_a[k]),
-                             *(f"{v:.6f}" for v in c.point_b[k]),
-                             *(f"{v:.9f}" for v in c.normal[k]),
-                             f"{c.distance[k]:.6f}"])
+            writer.writerow(
+                [
+                    int(c.chip_a[k]),
+                    int(c.chip_b[k]),
+                    *(f"{v:.6f}" for v in c.point_a[k]),
+                    *(f"{v:.6f}" for v in c.point_b[k]),
+                    *(f"{v:.9f}" for v in c.normal[k]),
+                    f"{c.distance[k]:.6f}",
+                ]
+            )

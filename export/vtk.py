@@ -34,7 +34,9 @@ def stack_polydata(
             faces.append([len(face), *(offset + v for v in face)])
             chip_ids.append(i)
         offset += len(shape.vertices)
-    mesh = pyvista.PolyData(np.vstack(points), np.concatenate(faces)) if points else pyvista.PolyData()
+    mesh = (
+        pyvista.PolyData(np.vstack(points), np.concatenate(faces)) if points else pyvista.PolyData()
+    )
     chip_ids = np.asarray(chip_ids, dtype=np.int32)
     mesh.cell_data["chip_id"] = chip_ids
     mesh.cell_data["batch"] = np.asarray(batch, dtype=np.int32)[chip_ids]
@@ -47,10 +49,14 @@ def write_stack_vtp(path: Path, mesh) -> None:
 
 def write_pvd(path: Path, entries: list[tuple[float, str]]) -> None:
     """A ParaView collection: (time value, file name relative to the .pvd) per step."""
-    lines = ['<?xml version="1.0"?>',
-             '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">',
-             "  <Collection>"]
-    lines += [f'    <DataSet timestep="{t:g}" group="" part="0" file={quoteattr(name)}/>'
-              for t, name in entries]
+    lines = [
+        '<?xml version="1.0"?>',
+        '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">',
+        "  <Collection>",
+    ]
+    lines += [
+        f'    <DataSet timestep="{t:g}" group="" part="0" file={quoteattr(name)}/>'
+        for t, name in entries
+    ]
     lines += ["  </Collection>", "</VTKFile>", ""]
     Path(path).write_text("\n".join(lines))

@@ -219,8 +219,10 @@ def _build(cls: type, table: Mapping[str, Any], prefix: str) -> Any:
         if key not in declared:
             where = f"[{prefix}]" if prefix else "the top level"
             valid = ", ".join(sorted(declared))
-            raise InputError(f"{prefix + '.' if prefix else ''}{key}: unknown key in {where}; "
-                             f"valid keys: {valid}")
+            raise InputError(
+                f"{prefix + '.' if prefix else ''}{key}: unknown key in {where}; "
+                f"valid keys: {valid}"
+            )
     values: dict[str, Any] = {}
     for name, f in declared.items():
         path = f"{prefix}.{name}" if prefix else name
@@ -298,8 +300,9 @@ def key_table() -> list[tuple[str, str, str, str]]:
         if f.name in _SECTIONS:
             for g in dataclasses.fields(_SECTIONS[f.name]):
                 default = g.default
-                rows.append((f"{f.name}.{g.name}", g.metadata["unit"], repr(default),
-                             g.metadata["doc"]))
+                rows.append(
+                    (f"{f.name}.{g.name}", g.metadata["unit"], repr(default), g.metadata["doc"])
+                )
         else:
             rows.append((f.name, f.metadata["unit"], repr(f.default), f.metadata["doc"]))
     return rows

@@ -42,8 +42,10 @@ def _random_rotations(scenario: Scenario, n: int, rng: np.random.Generator) -> R
     if d.orientation == "uniform":
         return Rotation.from_quat(_unit_quaternions(n, rng))
     angles = np.column_stack(
-        [rng.uniform(*np.radians(r), size=n) for r in
-         (d.roll_range_deg, d.pitch_range_deg, d.yaw_range_deg)]
+        [
+            rng.uniform(*np.radians(r), size=n)
+            for r in (d.roll_range_deg, d.pitch_range_deg, d.yaw_range_deg)
+        ]
     )
     return Rotation.from_euler("xyz", angles)
 
@@ -80,14 +82,18 @@ def release_poses(
             if placed_pos:
                 others = np.asarray(placed_pos)
                 near = np.flatnonzero(np.linalg.norm(others - centre, axis=1) < reach)
-                if near.size and box_penetration_depth(
-                    np.repeat(centre[None], near.size, 0),
-                    np.repeat(matrix[None], near.size, 0),
-                    shape.half_extents,
-                    others[near],
-                    np.asarray(placed_rot)[near],
-                    shape.half_extents,
-                ).max() > 0:
+                if (
+                    near.size
+                    and box_penetration_depth(
+                        np.repeat(centre[None], near.size, 0),
+                        np.repeat(matrix[None], near.size, 0),
+                        shape.half_extents,
+                        others[near],
+                        np.asarray(placed_rot)[near],
+                        shape.half_extents,
+                    ).max()
+                    > 0
+                ):
                     continue
             lowest = (matrix @ shape.vertices.T)[2].min() + centre[2]
             if lowest <= 0:
@@ -132,7 +138,7 @@ def deposit(
             count = min(d.batch_size, d.chips - len(batch_of))
             occupied = world.poses() if world.n_chips else None
             positions, quaternions = release_poses(scenario, shape, count, rng, occupied)
-            new = [world.add_chip(shape, p, q) for p, q in zip(positions, quaternions)]
+            new = [world.add_chip(shape, p, q) for p, q in zip(positions, quaternions, strict=True)]
             batch_of += [batch] * count
             awake = dict.fromkeys(new, 0)  # chip -> consecutive checks at rest
             start_time, steps, wakes = world.time_s, 0, 0
@@ -169,11 +175,25 @@ def deposit(
                 warnings.append(message)
                 for chip in speeds:
                     world.freeze(chip)
-            result = _batch_result(world, scenario, shape, batch, start_time, steps, wakes,
-                                   settled, time.perf_counter() - wall_start)
+            result = _batch_result(
+                world,
+                scenario,
+                shape,
+                batch,
+                start_time,
+                steps,
+                wakes,
+                settled,
+                time.perf_counter() - wall_start,
+            )
             results.append(result)
-            log.info("batch %d settled=%s in %.2f s simulated, %.2f s wall", batch, settled,
-                     result.sim_time_s, result.wall_time_s)
+            log.info(
+                "batch %d settled=%s in %.2f s simulated, %.2f s wall",
+                batch,
+                settled,
+                result.sim_time_s,
+                result.wall_time_s,
+            )
             if progress is not None:
                 progress(batch, result)
 
@@ -187,9 +207,17 @@ def deposit(
     )
 
 
-def _batch_result(world: ChipWorld, scenario: Scenario, shape: ChipShape, batch: int,
-                  start_time: float, steps: int, wakes: int, settled: bool,
-                  wall: float) -> BatchResult:
+def _batch_result(
+    world: ChipWorld,
+    scenario: Scenario,
+    shape: ChipShape,
+    batch: int,
+    start_time: float,
+    steps: int,
+    wakes: int,
+    settled: bool,
+    wall: float,
+) -> BatchResult:
     positions, quaternions = world.poses()
     _, depth = penetrating_pairs(positions, quaternions, shape.half_extents)
     floor = floor_penetration_mm(positions, quaternions, shape.vertices)

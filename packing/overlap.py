@@ -41,8 +41,9 @@ def box_penetration_depth(
     norms = np.linalg.norm(cross, axis=2, keepdims=True)
     parallel = norms[..., 0] < 1e-9
     cross = np.where(norms > 1e-9, cross / np.where(norms > 1e-9, norms, 1.0), 0.0)
-    axes = np.concatenate([np.broadcast_to(axes_a, (n, 3, 3)), np.broadcast_to(axes_b, (n, 3, 3)),
-                           cross], axis=1)  # (n, 15, 3)
+    axes = np.concatenate(
+        [np.broadcast_to(axes_a, (n, 3, 3)), np.broadcast_to(axes_b, (n, 3, 3)), cross], axis=1
+    )  # (n, 15, 3)
     radius_a = np.einsum("nk,nak->na", half_a, np.abs(np.einsum("nax,nkx->nak", axes, axes_a)))
     radius_b = np.einsum("nk,nak->na", half_b, np.abs(np.einsum("nax,nkx->nak", axes, axes_b)))
     distance = np.abs(np.einsum("nax,nx->na", axes, centre_b - centre_a))

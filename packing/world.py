@@ -19,6 +19,7 @@ Choices that make a chip stack right before fast (measured; see the README):
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import os
 import sys
@@ -26,27 +27,30 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from packing.config import PhysicsSpec
+from packing.errors import SimulationError
+from packing.presets import PhysicsPreset
+from packing.shapes import ChipShape
+
 
 def _import_pybullet_quietly():
-    # pybullet prints its build time from C on import; keep stdout for the user's output.
-    sys.stdout.flush()
-    saved = os.dup(1)
+    # pybullet prints its build time to stderr from C on import: noise in a one-line error.
+    sys.stderr.flush()
+    saved = os.dup(2)
     try:
         with open(os.devnull, "w") as devnull:
-            os.dup2(devnull.fileno(), 1)
+            os.dup2(devnull.fileno(), 2)
             import pybullet as module
+
+            ctypes.CDLL(None).fflush(None)  # the C buffer, before fd 2 is restored
     finally:
-        os.dup2(saved, 1)
+        os.dup2(saved, 2)
         os.close(saved)
     return module
 
 
 pybullet = _import_pybullet_quietly()
 
-from packing.config import PhysicsSpec
-from packing.errors import SimulationError
-from packing.presets import PhysicsPreset
-from packing.shapes import ChipShape
 
 __all__ = ["MM_PER_UNIT", "GRAVITY_MM_S2", "ChipWorld", "GROUND", "ContactRecord"]
 
@@ -235,7 +239,8 @@ class ChipWorld:
         lo, hi = pybullet.getAABB(self._bodies[chip], physicsClientId=c)
         m = margin_mm / MM_PER_UNIT
         found = pybullet.getOverlappingObjects(
-            [lo[0] - m, lo[1] - m, lo[2] - m], [hi[0] + m, hi[1] + m, hi[2] + m],
+            [lo[0] - m, lo[1] - m, lo[2] - m],
+            [hi[0] + m, hi[1] + m, hi[2] + m],
             physicsClientId=c,
         )
         index = self._index_of
@@ -244,7 +249,9 @@ class ChipWorld:
     def poses(self) -> tuple[np.ndarray, np.ndarray]:
         """Positions (n, 3) mm and quaternions (n, 4) x, y, z, w of all chips."""
         c = self.client
-        states = [pybullet.getBasePositionAndOrientation(b, physicsClientId=c) for b in self._bodies]
+        states = [
+            pybullet.getBasePositionAndOrientation(b, physicsClientId=c) for b in self._bodies
+        ]
         if not states:
             return np.empty((0, 3)), np.empty((0, 4))
         positions = np.array([s[0] for s in states]) * MM_PER_UNIT
@@ -273,14 +280,21 @@ class ChipWorld:
             for b in self.chips_near(a, distance_mm):
                 if b <= a:
                     continue
-                rows += [(a, b, pt) for pt in pybullet.getClosestPoints(
-                    body, self._bodies[b], reach, physicsClientId=c)]
-            rows += [(a, GROUND, pt) for pt in pybullet.getClosestPoints(
-                body, self._floor, reach, physicsClientId=c)]
+                rows += [
+                    (a, b, pt)
+                    for pt in pybullet.getClosestPoints(
+                        body, self._bodies[b], reach, physicsClientId=c
+                    )
+                ]
+            rows += [
+                (a, GROUND, pt)
+                for pt in pybullet.getClosestPoints(body, self._floor, reach, physicsClientId=c)
+            ]
         if not rows:
             empty3 = np.empty((0, 3))
-            return ContactRecord(np.empty(0, int), np.empty(0, int), empty3, empty3, empty3,
-                                 np.empty(0))
+            return ContactRecord(
+                np.empty(0, int), np.empty(0, int), empty3, empty3, empty3, np.empty(0)
+            )
         return ContactRecord(
             chip_a=np.array([r[0] for r in rows], dtype=int),
             chip_b=np.array([r[1] for r in rows], dtype=int),

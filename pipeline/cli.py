@@ -27,8 +27,12 @@ def _parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="pipeline", description="Chip-stack pipeline for composites recycling")
     commands = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     run = commands.add_parser("run", help="deposit a stack (and later describe and mesh it)")
-    run.add_argument("scenario", nargs="?", default=None,
-                     help="scenario TOML file or built-in name (default: paper-squares)")
+    run.add_argument(
+        "scenario",
+        nargs="?",
+        default=None,
+        help="scenario TOML file or built-in name (default: paper-squares)",
+    )
     run.add_argument("--to", default="packing", help="last stage to run (default: packing)")
     run.add_argument("--out", default=None, help="run directory (default: runs/<name>-seed<N>)")
     run.add_argument("--seed", type=int, default=None, help="seed of every random draw")
@@ -51,16 +55,18 @@ def _run(args: argparse.Namespace) -> None:
         scenario = scenario.with_seed(args.seed)
     out = args.out or f"runs/{scenario.name}-seed{scenario.seed}"
     n_batches = -(-scenario.deposition.chips // scenario.deposition.batch_size)
-    bar = tqdm(total=n_batches, desc="depositing", unit="batch", disable=args.quiet,
-               file=sys.stderr)
+    bar = tqdm(
+        total=n_batches, desc="depositing", unit="batch", disable=args.quiet, file=sys.stderr
+    )
 
     def progress(batch: int, result) -> None:
         bar.set_postfix(chips=len(result.positions), sim_s=f"{result.sim_time_s:.2f}")
         bar.update(1)
 
     try:
-        path, stack, manifest = run_pipeline(scenario, out, to=args.to, overwrite=args.overwrite,
-                                             progress=progress, command=sys.argv)
+        path, stack, manifest = run_pipeline(
+            scenario, out, to=args.to, overwrite=args.overwrite, progress=progress, command=sys.argv
+        )
     finally:
         bar.close()
     for warning in stack.warnings:
@@ -68,16 +74,20 @@ def _run(args: argparse.Namespace) -> None:
     if not args.quiet:
         summary = manifest["packing"]
         last = summary["batches"][-1]
-        print(f"{stack.n_chips} chips in {len(stack.batches)} batches, "
-              f"height {last['height_mm']:.1f} mm, {summary['outside_target']} outside the target, "
-              f"max interpenetration {last['max_chip_penetration_mm']:.3f} mm; "
-              f"deposition {manifest['wall_time_s']['packing']:.1f} s; written to {path}")
+        print(
+            f"{stack.n_chips} chips in {len(stack.batches)} batches, "
+            f"height {last['height_mm']:.1f} mm, {summary['outside_target']} outside the target, "
+            f"max interpenetration {last['max_chip_penetration_mm']:.3f} mm; "
+            f"deposition {manifest['wall_time_s']['packing']:.1f} s; written to {path}"
+        )
 
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO if getattr(args, "verbose", False) else logging.ERROR,
-                        format="%(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.INFO if getattr(args, "verbose", False) else logging.ERROR,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
     try:
         if args.command == "run":
             _run(args)

@@ -40,10 +40,15 @@ def run_pipeline(
     progress: Callable[[int, BatchResult], None] | None = None,
     command: list[str] | None = None,
 ) -> tuple[Path, Stack, dict[str, Any]]:
-    """Run the stages up to ``to`` into the run directory ``out``; returns (dir, stack, manifest)."""
+    """Run the stages up to ``to`` into the run directory ``out``.
+
+    Returns (run directory, stack, manifest).
+    """
     if to not in STAGES:
         if to in PLANNED:
-            raise InputError(f"--to {to}: stage not implemented yet; available: {', '.join(STAGES)}")
+            raise InputError(
+                f"--to {to}: stage not implemented yet; available: {', '.join(STAGES)}"
+            )
         raise InputError(f"--to {to}: unknown stage; valid stages: {', '.join(STAGES)}")
     run = RunDirectory(out, overwrite=overwrite)
     run.check()  # fail on a bad --out before minutes of simulation
@@ -66,8 +71,10 @@ def run_pipeline(
             "stages_completed": ["packing"],
             "started_utc": started.isoformat(timespec="seconds"),
             "finished_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-            "wall_time_s": {"packing": round(deposition_wall, 3),
-                            "total": round(time.perf_counter() - wall, 3)},
+            "wall_time_s": {
+                "packing": round(deposition_wall, 3),
+                "total": round(time.perf_counter() - wall, 3),
+            },
             "warnings": list(stack.warnings),
             "packing": _packing_summary(stack),
         }
@@ -76,8 +83,13 @@ def run_pipeline(
 
 
 def _write_packing(run: RunDirectory, stack: Stack) -> None:
-    from export import stack_polydata, write_contacts_csv, write_poses_csv, write_pvd
-    from export import write_stack_vtp
+    from export import (
+        stack_polydata,
+        write_contacts_csv,
+        write_poses_csv,
+        write_pvd,
+        write_stack_vtp,
+    )
 
     series = []
     for result in stack.batches:
@@ -85,8 +97,13 @@ def _write_packing(run: RunDirectory, stack: Stack) -> None:
         write_poses_csv(run.path(f"packing/poses_after_{tag}.csv"), stack, result)
         write_contacts_csv(run.path(f"packing/contacts_after_{tag}.csv"), result)
         n = len(result.positions)
-        mesh = stack_polydata(stack.shapes, stack.shape_index[:n], result.positions,
-                              result.quaternions, stack.batch[:n])
+        mesh = stack_polydata(
+            stack.shapes,
+            stack.shape_index[:n],
+            result.positions,
+            result.quaternions,
+            stack.batch[:n],
+        )
         write_stack_vtp(run.path(f"packing/stack_after_{tag}.vtp"), mesh)
         series.append((float(result.batch), f"stack_after_{tag}.vtp"))
     write_pvd(run.path("packing/stack.pvd"), series)
@@ -120,5 +137,3 @@ def _packing_summary(stack: Stack) -> dict[str, Any]:
 
 def _top(result: BatchResult) -> float:
     return float(result.positions[:, 2].max()) if len(result.positions) else 0.0
-
-

@@ -18,8 +18,9 @@ BUILTIN = "paper-squares"
 
 def builtin_names() -> list[str]:
     folder = resources.files("pipeline") / "scenarios"
-    return sorted(p.name.removesuffix(".toml") for p in folder.iterdir()
-                  if p.name.endswith(".toml"))
+    return sorted(
+        p.name.removesuffix(".toml") for p in folder.iterdir() if p.name.endswith(".toml")
+    )
 
 
 def load_scenario(source: str | Path | None) -> Scenario:

@@ -1,0 +1,204 @@
+"""The command line end to end: outputs read back by the libraries users use, bad input."""
+
+import csv
+import json
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pytest
+import pyvista
+from conftest import run_cli
+
+from pipeline.scenario_files import dumps_toml, load_scenario
+
+
+@pytest.fixture(scope="module")
+def small_run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("run")
+    scenario = root / "small.toml"
+    from conftest import SMALL_SCENARIO
+
+    scenario.write_text(SMALL_SCENARIO)
+    out = root / "out"
+    result = run_cli("run", str(scenario), "--to", "packing", "--out", str(out), "--seed", "7")
+    assert result.returncode == 0, result.stderr
+    return out, result
+
+
+def test_run_directory_holds_every_output(small_run):
+    out, _ = small_run
+    names = {p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()}
+    for batch in ("01", "02"):
+        for stem in ("poses", "contacts", "stack"):
+            ext = "vtp" if stem == "stack" else "csv"
+            assert f"packing/{stem}_after_batch_{batch}.{ext}" in names
+    assert {"scenario.toml", "manifest.json", "packing/stack.pvd"} <= names
+    assert not list(out.parent.glob(".out.partial-*"))
+
+
+def test_manifest_records_versions_seed_times_and_warnings(small_run):
+    manifest = json.loads((small_run[0] / "manifest.json").read_text())
+    assert manifest["seed"] == 7
+    assert manifest["versions"]["pybullet"] != "not installed"
+    assert manifest["wall_time_s"]["packing"] > 0
+    assert manifest["warnings"] == []
+    assert [b["chips"] for b in manifest["packing"]["batches"]] == [12, 24]
+
+
+def test_resolved_scenario_loads_back_to_the_same_scenario(small_run):
+    resolved = load_scenario(small_run[0] / "scenario.toml")
+    assert resolved.seed == 7 and resolved.deposition.chips == 24
+    assert dumps_toml(resolved) == (small_run[0] / "scenario.toml").read_text()
+
+
+def test_poses_csv_matches_the_vtk_series(small_run):
+    out, _ = small_run
+    with open(out / "packing/poses_after_batch_02.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 24
+    assert rows[0].keys() >= {
+        "chip",
+        "batch",
+        "shape",
+        "x_mm",
+        "y_mm",
+        "z_mm",
+        "qx",
+        "qy",
+        "qz",
+        "qw",
+    }
+    quaternions = np.array([[float(r[k]) for k in ("qx", "qy", "qz", "qw")] for r in rows])
+    assert np.allclose(np.linalg.norm(quaternions, axis=1), 1.0, atol=1e-6)
+    centres = np.array([[float(r[k]) for k in ("x_mm", "y_mm", "z_mm")] for r in rows])
+
+    pvd = ET.parse(out / "packing/stack.pvd").getroot()
+    files = [d.get("file") for d in pvd.iter("DataSet")]
+    assert files == ["stack_after_batch_01.vtp", "stack_after_batch_02.vtp"]
+    mesh = pyvista.read(out / "packing" / files[-1])
+    assert mesh.n_cells == 24 * 6
+    chip_id, batch = mesh.cell_data["chip_id"], mesh.cell_data["batch"]
+    assert sorted(set(chip_id.tolist())) == list(range(24))
+    assert set(batch.tolist()) == {1, 2}
+    # The mean of a chip's cell centres is its centre: the file and the CSV agree.
+    cell_centres = mesh.cell_centers().points
+    for chip in (0, 23):
+        assert np.allclose(cell_centres[chip_id == chip].mean(axis=0), centres[chip], atol=1e-3)
+
+
+def test_contacts_csv_has_pairs_points_normals_distances(small_run):
+    with open(small_run[0] / "packing/contacts_after_batch_02.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert rows, "a settled stack has contacts"
+    assert any(r["chip_b"] == "-1" for r in rows)  # the ground
+    normals = np.array([[float(r[k]) for k in ("nx", "ny", "nz")] for r in rows])
+    assert np.allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-6)
+    assert max(float(r["distance_mm"]) for r in rows) <= 0.05 + 1e-9
+
+
+def test_progress_bar_is_shown_and_quiet_silences_it(small_scenario, tmp_path):
+    loud = run_cli("run", str(small_scenario), "--out", str(tmp_path / "a"))
+    quiet = run_cli("run", str(small_scenario), "--out", str(tmp_path / "b"), "--quiet")
+    assert loud.returncode == quiet.returncode == 0
+    assert "depositing" in loud.stderr and "5/5" not in loud.stderr and "2/2" in loud.stderr
+    assert quiet.stderr == "" and quiet.stdout == ""
+
+
+def test_an_unsettled_batch_is_shown_to_the_user(small_scenario, tmp_path):
+    text = small_scenario.read_text() + "[settling]\nmax_time_s = 0.1\n"
+    small_scenario.write_text(text)
+    result = run_cli("run", str(small_scenario), "--out", str(tmp_path / "w"), "--quiet")
+    assert result.returncode == 0
+    assert "warning: batch 1 did not settle" in result.stderr
+    manifest = json.loads((tmp_path / "w/manifest.json").read_text())
+    assert manifest["warnings"] and not manifest["packing"]["all_settled"]
+
+
+def test_unknown_stage_and_occupied_output_are_refused(small_scenario, tmp_path):
+    result = run_cli("run", str(small_scenario), "--to", "mesh", "--out", str(tmp_path / "m"))
+    assert result.returncode == 2 and "--to mesh" in result.stderr
+    (tmp_path / "busy").mkdir()
+    (tmp_path / "busy" / "keep.txt").write_text("x")
+    result = run_cli("run", str(small_scenario), "--out", str(tmp_path / "busy"))
+    assert result.returncode == 2 and "--overwrite" in result.stderr
+    assert (tmp_path / "busy" / "keep.txt").exists()
+
+
+BAD_SCENARIOS = {
+    "unknown key": ("[deposition]\nchips = 10\nbatch_size = 5\ncolour = 3\n", "deposition.colour"),
+    "unknown section": ("[chips]\nn = 3\n", "chips"),
+    "wrong type": ('[deposition]\nchips = "many"\n', "deposition.chips"),
+    "float count": ("[deposition]\nchips = 10.5\n", "deposition.chips"),
+    "zero size": ("[chip]\nlength_mm = 0\n", "chip.length_mm"),
+    "negative size": ("[deposition]\ntarget_size_mm = -150\n", "deposition.target_size_mm"),
+    "zero count": ("[deposition]\nchips = 0\n", "deposition.chips"),
+    "batch above chips": ("[deposition]\nchips = 10\nbatch_size = 20\n", "deposition.batch_size"),
+    "nan": ("[settling]\nspeed_mm_s = nan\n", "settling.speed_mm_s"),
+    "inverted range": (
+        "[deposition]\nrelease_height_mm = [200.0, 100.0]\n",
+        "deposition.release_height_mm",
+    ),
+    "unknown preset": ('[physics]\npreset = "stiff"\n', "physics.preset"),
+    "unknown shape": ('[chip]\nshape = "blob"\n', "chip.shape"),
+    "malformed": ("[deposition\nchips = 3\n", "malformed TOML"),
+    "empty": ("", "empty"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_SCENARIOS))
+def test_bad_scenario_gives_one_line_exit_2_and_no_output(case, tmp_path):
+    text, named = BAD_SCENARIOS[case]
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    out = tmp_path / "out"
+    result = run_cli("run", str(path), "--out", str(out))
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    assert named in lines[0] and "Traceback" not in result.stderr
+    assert not out.exists()
+    assert [p.name for p in tmp_path.iterdir()] == ["bad.toml"]
+
+
+def test_unknown_preset_lists_the_valid_ones(tmp_path):
+    path = tmp_path / "bad.toml"
+    path.write_text('[physics]\npreset = "stiff"\n')
+    result = run_cli("run", str(path), "--out", str(tmp_path / "o"))
+    assert "default" in result.stderr and "paper" in result.stderr
+
+
+def test_missing_scenario_file_and_bad_flags(tmp_path):
+    result = run_cli("run", str(tmp_path / "nope.toml"), "--out", str(tmp_path / "o"))
+    assert result.returncode == 2 and "nope.toml" in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+    result = run_cli("run", "--seed", "abc", "--out", str(tmp_path / "o"))
+    assert result.returncode == 2 and "--seed" in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "o").exists()
+
+
+def test_builtin_scenarios_are_the_papers():
+    squares, rectangles = load_scenario(None), load_scenario("paper-rectangles")
+    for s in (squares, rectangles):
+        d = s.deposition
+        assert (d.chips, d.batch_size, d.target_size_mm, d.release_height_mm) == (
+            270,
+            54,
+            150.0,
+            (100.0, 200.0),
+        )
+    assert (squares.chip.length_mm, squares.chip.width_mm) == (20.0, 20.0)
+    assert (rectangles.chip.length_mm, rectangles.chip.width_mm) == (40.0, 10.0)
+    volume = [
+        s.chip.length_mm * s.chip.width_mm * s.chip.thickness_mm for s in (squares, rectangles)
+    ]
+    assert volume[0] == volume[1]
+
+
+def test_readme_documents_every_scenario_key():
+    from packing.config import key_table
+
+    readme = (Path(__file__).parents[1] / "README.md").read_text()
+    missing = [key for key, *_ in key_table() if f"`{key}`" not in readme]
+    assert not missing, f"README lacks scenario keys: {missing}"
