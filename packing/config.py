@@ -134,7 +134,11 @@ class SettlingSpec:
     """When a chip, and a batch, count as settled (see README: Settling)."""
 
     speed_mm_s: float = _key(
-        5.0, "mm/s", "a chip is at rest while every point of it is slower than this", _positive
+        5.0,
+        "mm/s",
+        "a chip is at rest while every point of it moves slower than this, "
+        "on average over the hold time",
+        _positive,
     )
     hold_time_s: float = _key(0.05, "s", "how long a chip must stay at rest to settle", _positive)
     wake_speed_mm_s: float = _key(

@@ -6,11 +6,10 @@ in :mod:`packing.world` and nowhere else.
 ``default`` — physically scaled chips (see the README, "Physics presets", for sources):
   * density 1.70 g/cm3: PA6 (1.14 g/cm3) with 60 wt % E-glass (2.54 g/cm3) by the rule of
     mixtures on volume, 1 / (0.6 / 2.54 + 0.4 / 1.14) = 1.70; a 20 x 20 x 2 mm chip is 1.36 g.
-  * rigid (non-penetrating) contacts, Coulomb friction 0.5 and restitution 0.3: engineering
-    estimates for dry, solid glass-fabric/PA6 laminate sliding on itself or on a conveyor
-    belt at room temperature, and for the low rebound of a thin plate (most impact energy
-    goes into rotation and plate vibration); both are uncertain to about +-0.1 and are what
-    ``pipeline diagnose`` is for.
+  * rigid (non-penetrating) contacts, Coulomb friction 0.5 (smooth nylon 6 is about 0.3 in
+    handbooks; the twill texture and sheared, glass-rich edges of a chip put it higher)
+    and restitution 0.3 (an estimate for a thin stiff plate; no measurement found). Both
+    are uncertain to about +-0.15; the README gives the sources.
 
 ``paper`` — Table 1 of the packing paper, read in the world the paper built: chip
 dimensions in millimetres with PyBullet's default gravity of 9.81 (so the paper's clock ran
