@@ -6,11 +6,12 @@ does the rest. A chip *settles* when, for ``settling.hold_time_s`` of simulated 
 point of it strays more than ``settling.speed_mm_s x settling.hold_time_s`` from where it
 was (its speed averaged over the hold time stays below the threshold) and it is never
 faster than ``settling.wake_speed_mm_s``; it is then frozen (made static) so it no longer
-costs solver time or trembles. A frozen chip is woken again
-when a chip faster than ``settling.wake_speed_mm_s`` comes within 0.5 mm of it, so later
-impacts still push the pile around. A batch is settled when all its chips and all chips
-it woke have settled; the next batch is released then. A batch still moving at
-``settling.max_time_s`` is frozen where it is and recorded as a warning.
+costs solver time or trembles. A frozen chip is woken again when a chip faster than
+``settling.wake_speed_mm_s`` could reach it before the next speed check (its surface is
+within 0.5 mm plus the distance that chip travels in a check interval), so later impacts
+push the pile instead of bouncing off static chips. A batch is settled when all its chips
+and all chips it woke have settled; the next batch is released then. A batch still
+moving at ``settling.max_time_s`` is frozen where it is and recorded as a warning.
 """
 
 from __future__ import annotations
@@ -137,8 +138,9 @@ class _RestTracker:
             self.awake[chip] = 0
             self._anchor[chip] = (positions[k], quaternions[k])
 
-    def update(self, wake_speed_mm_s: float) -> list[int]:
-        """Read every awake chip, freeze the settled ones; return those faster than wake."""
+    def update(self, wake_speed_mm_s: float) -> list[tuple[int, float]]:
+        """Read every awake chip, freeze the settled ones; return (chip, speed mm/s) of those
+        faster than ``wake_speed_mm_s``."""
         chips = sorted(self.awake)
         positions, quaternions, speed = self.world.states(chips)
         anchor_pos = np.array([self._anchor[c][0] for c in chips])
@@ -153,7 +155,7 @@ class _RestTracker:
                 self.awake[chip] = 0
                 self._anchor[chip] = (positions[k], quaternions[k])
                 if speed[k] > wake_speed_mm_s:
-                    fast.append(chip)
+                    fast.append((chip, float(speed[k])))
                 continue
             self.awake[chip] += 1
             if self.awake[chip] >= self.hold_checks:
@@ -196,11 +198,12 @@ def deposit(
             while tracker.awake and world.time_s - start_time < s.max_time_s:
                 world.step(check_steps)
                 steps += check_steps
-                fast = tracker.update(s.wake_speed_mm_s)
-                for chip in fast:
-                    woken = [
-                        c for c in world.chips_near(chip, WAKE_MARGIN_MM) if c not in tracker.awake
-                    ]
+                for chip, speed in tracker.update(s.wake_speed_mm_s):
+                    # Wake every frozen chip this one can reach before the next check, so
+                    # an impact pushes what it hits instead of bouncing off a static chip.
+                    reach = WAKE_MARGIN_MM + speed * check_steps * scenario.physics.time_step_s
+                    near = [c for c in world.chips_near(chip, reach) if c not in tracker.awake]
+                    woken = world.within(chip, near, reach)
                     for other in woken:
                         world.wake(other)
                     tracker.add(woken)

@@ -279,6 +279,15 @@ class ChipWorld:
         index = self._index_of
         return sorted(index[b] for b, _ in (found or ()) if b in index and index[b] != chip)
 
+    def within(self, chip: int, others: list[int], distance_mm: float) -> list[int]:
+        """The chips of ``others`` whose surface comes within ``distance_mm`` of ``chip``'s."""
+        c, body, reach = self.client, self._bodies[chip], distance_mm / MM_PER_UNIT
+        return [
+            other
+            for other in others
+            if pybullet.getClosestPoints(body, self._bodies[other], reach, physicsClientId=c)
+        ]
+
     def poses(self) -> tuple[np.ndarray, np.ndarray]:
         """Positions (n, 3) mm and quaternions (n, 4) x, y, z, w of all chips."""
         c = self.client
