@@ -240,10 +240,6 @@ class ChipWorld:
     def circumradius_mm(self, chips: list[int]) -> np.ndarray:
         return np.array([self._radius_units[i] for i in chips]) * MM_PER_UNIT
 
-    def velocity_mm_s(self, chip: int) -> np.ndarray:
-        v, _ = pybullet.getBaseVelocity(self._bodies[chip], physicsClientId=self.client)
-        return np.asarray(v) * MM_PER_UNIT
-
     def freeze(self, chip: int) -> None:
         """Make a chip at rest static and asleep: it supports others but costs nothing."""
         body, c = self._bodies[chip], self.client
