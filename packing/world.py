@@ -257,7 +257,9 @@ class ChipWorld:
             body,
             -1,
             mass=self._mass[chip],
-            activationState=pybullet.ACTIVATION_STATE_WAKE_UP,
+            # Awake and never put to sleep by Bullet (after 2 s at rest it would stop
+            # updating contacts); freezing is ours to decide.
+            activationState=pybullet.ACTIVATION_STATE_DISABLE_SLEEPING,
             physicsClientId=c,
         )
         self._set_group(body, moving=True)
