@@ -1,5 +1,7 @@
 """Packing stage: PyBullet batch deposition of chips into a settled :class:`Stack`."""
 
+import logging
+
 from packing.config import Scenario, scenario_from_dict, scenario_to_dict
 from packing.deposition import deposit
 from packing.errors import ChipstackError, InputError, SimulationError
@@ -28,3 +30,5 @@ __all__ = [
     "scenario_from_dict",
     "scenario_to_dict",
 ]
+
+logging.getLogger(__name__).addHandler(logging.NullHandler())  # the application decides

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -29,12 +30,39 @@ __all__ = [
 ]
 
 
+def printable(text: object) -> str:
+    """``text`` as is when it prints on one line, else its repr (messages stay one line)."""
+    text = str(text)
+    return text if text.isprintable() else repr(text)
+
+
 def _key(default: Any, unit: str, doc: str, check: Callable[[Any], str | None] | None = None):
     return field(default=default, metadata={"unit": unit, "doc": doc, "check": check})
 
 
+MAX_LENGTH_MM = 1e4  # 10 m: beyond any conveyor, and safely inside float arithmetic
+MAX_TIME_S = 1e4
+
+
 def _positive(value: Any) -> str | None:
     return None if value > 0 else "must be positive"
+
+
+def _length(value: float) -> str | None:
+    if value <= 0:
+        return "must be positive"
+    return None if value <= MAX_LENGTH_MM else f"must not exceed {MAX_LENGTH_MM:g} mm"
+
+
+def _duration(value: float) -> str | None:
+    if value <= 0:
+        return "must be positive"
+    return None if value <= MAX_TIME_S else f"must not exceed {MAX_TIME_S:g} s"
+
+
+def _name(value: str) -> str | None:
+    ok = value and len(value) <= 100 and re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]*", value)
+    return None if ok else "must be 1-100 letters, digits, '.', '_' or '-' (used in file names)"
 
 
 def _non_negative(value: Any) -> str | None:
@@ -76,9 +104,9 @@ class ChipSpec:
     """The chip: a flat plate. Lengths in mm, fibre directions in degrees in the chip plane."""
 
     shape: str = _key("box", "", "chip shape from the shape registry (`box`: square or rectangle)")
-    length_mm: float = _key(20.0, "mm", "in-plane length (local x)", _positive)
-    width_mm: float = _key(20.0, "mm", "in-plane width (local y)", _positive)
-    thickness_mm: float = _key(2.0, "mm", "thickness (local z)", _positive)
+    length_mm: float = _key(20.0, "mm", "in-plane length (local x)", _length)
+    width_mm: float = _key(20.0, "mm", "in-plane width (local y)", _length)
+    thickness_mm: float = _key(2.0, "mm", "thickness (local z)", _length)
     fibre_directions_deg: tuple[float, ...] = _key(
         (0.0, 90.0), "deg", "fibre directions in the chip plane from local x (twill: two)"
     )
@@ -90,12 +118,18 @@ class DepositionSpec:
 
     chips: int = _key(270, "", "number of chips in the stack", _positive)
     batch_size: int = _key(54, "", "chips released together; next batch once settled", _positive)
-    target_size_mm: float = _key(150.0, "mm", "side of the square deposition target", _positive)
+    target_size_mm: float = _key(150.0, "mm", "side of the square deposition target", _length)
     release_area_mm: float = _key(
-        0.0, "mm", "side of the square over which centres are drawn (0: the target)", _non_negative
+        0.0,
+        "mm",
+        "side of the square over which centres are drawn (0: the target)",
+        _between(0.0, MAX_LENGTH_MM),
     )
     release_height_mm: tuple[float, float] = _key(
-        (100.0, 200.0), "mm", "range of the chip centre's height above the target", _range(0.0)
+        (100.0, 200.0),
+        "mm",
+        "range of the chip centre's height above the target",
+        _range(0.0, MAX_LENGTH_MM),
     )
     orientation: str = _key(
         "uniform",
@@ -140,12 +174,15 @@ class SettlingSpec:
         "on average over the hold time",
         _positive,
     )
-    hold_time_s: float = _key(0.05, "s", "how long a chip must stay at rest to settle", _positive)
+    hold_time_s: float = _key(0.05, "s", "how long a chip must stay at rest to settle", _duration)
     wake_speed_mm_s: float = _key(
-        20.0, "mm/s", "a chip this fast wakes settled chips it touches", _positive
+        20.0,
+        "mm/s",
+        "a chip this fast wakes the settled chips it can reach before the next check",
+        _positive,
     )
     max_time_s: float = _key(
-        10.0, "s", "simulated-time cap per batch; hitting it is a warning", _positive
+        10.0, "s", "simulated-time cap per batch; hitting it is a warning", _duration
     )
 
 
@@ -162,7 +199,7 @@ class OutputSpec:
 class Scenario:
     """A complete, validated scenario."""
 
-    name: str = _key("scenario", "", "name used in outputs")
+    name: str = _key("scenario", "", "name used in outputs and file names", _name)
     kind: str = _key("stack", "", "scenario kind (`stack`: batch deposition)", _one_of("stack"))
     seed: int = _key(0, "", "seed of every random draw (the CLI's --seed overrides it)")
     chip: ChipSpec = field(default_factory=ChipSpec)
@@ -224,7 +261,7 @@ def _build(cls: type, table: Mapping[str, Any], prefix: str) -> Any:
             where = f"[{prefix}]" if prefix else "the top level"
             valid = ", ".join(sorted(declared))
             raise InputError(
-                f"{prefix + '.' if prefix else ''}{key}: unknown key in {where}; "
+                f"{prefix + '.' if prefix else ''}{printable(key)}: unknown key in {where}; "
                 f"valid keys: {valid}"
             )
     values: dict[str, Any] = {}
@@ -267,19 +304,27 @@ def _check_consistency(s: Scenario) -> None:
         )
     if s.seed < 0:
         raise InputError(f"seed: must not be negative (got {s.seed})")
-    if s.chip.thickness_mm > min(s.chip.length_mm, s.chip.width_mm):
+    if s.chip.thickness_mm >= min(s.chip.length_mm, s.chip.width_mm):
         raise InputError("chip.thickness_mm: a chip must be thinner than it is long and wide")
     if not s.chip.fibre_directions_deg:
         raise InputError("chip.fibre_directions_deg: give at least one fibre direction")
     for name in ("friction", "restitution"):
         value = getattr(s.physics, name)
-        if value != -1.0 and value < 0:
-            raise InputError(f"physics.{name}: must be >= 0 (or -1 to keep the preset's)")
-    if s.deposition.release_height_mm[0] <= s.chip.length_mm / 2:
+        if value != -1.0 and not 0 <= value <= 10:
+            raise InputError(
+                f"physics.{name}: must be between 0 and 10 (or -1 to keep the "
+                f"preset's), got {value!r}"
+            )
+    circumradius = 0.5 * math.dist(
+        (0, 0, 0), (s.chip.length_mm, s.chip.width_mm, s.chip.thickness_mm)
+    )
+    if d.release_height_mm[0] <= circumradius:
         raise InputError(
             "deposition.release_height_mm: the lowest release height must clear the chip's "
-            f"half-length ({s.chip.length_mm / 2} mm)"
+            f"circumradius ({circumradius:.1f} mm) so no release pose touches the floor"
         )
+    if s.settling.hold_time_s >= s.settling.max_time_s:
+        raise InputError("settling.hold_time_s: must be shorter than settling.max_time_s")
     if d.chips > 200_000:
         raise InputError(f"deposition.chips: {d.chips} is beyond what one run can hold (200000)")
 
@@ -303,10 +348,19 @@ def key_table() -> list[tuple[str, str, str, str]]:
     for f in dataclasses.fields(Scenario):
         if f.name in _SECTIONS:
             for g in dataclasses.fields(_SECTIONS[f.name]):
-                default = g.default
                 rows.append(
-                    (f"{f.name}.{g.name}", g.metadata["unit"], repr(default), g.metadata["doc"])
+                    (f"{f.name}.{g.name}", g.metadata["unit"], repr(g.default), g.metadata["doc"])
                 )
         else:
             rows.append((f.name, f.metadata["unit"], repr(f.default), f.metadata["doc"]))
     return rows
+
+
+def key_table_markdown() -> str:
+    """The README's table of scenario keys (a test checks the README holds it verbatim)."""
+    lines = ["| key | unit | default | meaning |", "|---|---|---|---|"]
+    lines += [
+        f"| `{key}` | {unit or '-'} | `{default}` | {doc} |"
+        for key, unit, default, doc in key_table()
+    ]
+    return "\n".join(lines)

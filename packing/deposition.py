@@ -6,12 +6,14 @@ does the rest. A chip *settles* when, for ``settling.hold_time_s`` of simulated 
 point of it strays more than ``settling.speed_mm_s x settling.hold_time_s`` from where it
 was (its speed averaged over the hold time stays below the threshold) and it is never
 faster than ``settling.wake_speed_mm_s``; it is then frozen (made static) so it no longer
-costs solver time or trembles. A frozen chip is woken again when a chip faster than
-``settling.wake_speed_mm_s`` could reach it before the next speed check (its surface is
-within 0.5 mm plus the distance that chip travels in a check interval), so later impacts
-push the pile instead of bouncing off static chips. A batch is settled when all its chips
-and all chips it woke have settled; the next batch is released then. A batch still
-moving at ``settling.max_time_s`` is frozen where it is and recorded as a warning.
+costs solver time or trembles. A frozen chip is woken again when a moving chip (faster
+than ``settling.wake_speed_mm_s``, or one that strayed out of its rest window) could
+reach it before the next speed check (surfaces within 0.5 mm plus the distance the mover
+travels in a check interval): impacts push the pile instead of bouncing off static chips,
+and a chip resting on one that slides away does not stay hanging in the air. A batch is
+settled when all its chips and all chips it woke have settled; the next batch is released
+then. A batch still moving at ``settling.max_time_s`` is frozen where it is and recorded
+as a warning.
 """
 
 from __future__ import annotations
@@ -139,8 +141,11 @@ class _RestTracker:
             self._anchor[chip] = (positions[k], quaternions[k])
 
     def update(self, wake_speed_mm_s: float) -> list[tuple[int, float]]:
-        """Read every awake chip, freeze the settled ones; return (chip, speed mm/s) of those
-        faster than ``wake_speed_mm_s``."""
+        """Read every awake chip and freeze the settled ones.
+
+        Returns (chip, speed mm/s) of the chips that moved since the last check: faster
+        than ``wake_speed_mm_s``, or strayed out of their rest window.
+        """
         chips = sorted(self.awake)
         positions, quaternions, speed = self.world.states(chips)
         anchor_pos = np.array([self._anchor[c][0] for c in chips])
@@ -149,19 +154,18 @@ class _RestTracker:
         turned = 2.0 * np.arccos(cos_half)
         stray = np.linalg.norm(positions - anchor_pos, axis=1)
         stray += turned * self.world.circumradius_mm(chips)
-        fast = []
+        moving = []
         for k, chip in enumerate(chips):
             if stray[k] > self.stray_mm or speed[k] > wake_speed_mm_s:
                 self.awake[chip] = 0
                 self._anchor[chip] = (positions[k], quaternions[k])
-                if speed[k] > wake_speed_mm_s:
-                    fast.append((chip, float(speed[k])))
+                moving.append((chip, float(speed[k])))
                 continue
             self.awake[chip] += 1
             if self.awake[chip] >= self.hold_checks:
                 self.world.freeze(chip)
                 del self.awake[chip], self._anchor[chip]
-        return fast
+        return moving
 
 
 def deposit(
@@ -199,8 +203,9 @@ def deposit(
                 world.step(check_steps)
                 steps += check_steps
                 for chip, speed in tracker.update(s.wake_speed_mm_s):
-                    # Wake every frozen chip this one can reach before the next check, so
-                    # an impact pushes what it hits instead of bouncing off a static chip.
+                    # Wake every frozen chip this one can reach before the next check, so an
+                    # impact pushes what it hits instead of bouncing off a static chip, and a
+                    # chip resting on one that slides away does not stay hanging in the air.
                     reach = WAKE_MARGIN_MM + speed * check_steps * scenario.physics.time_step_s
                     near = [c for c in world.chips_near(chip, reach) if c not in tracker.awake]
                     woken = world.within(chip, near, reach)

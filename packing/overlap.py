@@ -10,7 +10,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-__all__ = ["box_penetration_depth", "penetrating_pairs", "floor_penetration_mm"]
+__all__ = [
+    "box_penetration_depth",
+    "penetrating_pairs",
+    "floor_penetration_mm",
+    "vertex_heights_mm",
+]
 
 
 def box_penetration_depth(
@@ -77,6 +82,20 @@ def penetrating_pairs(
     return pairs[keep], depth[keep]
 
 
+def vertex_heights_mm(
+    positions: np.ndarray, quaternions: np.ndarray, vertices: np.ndarray
+) -> np.ndarray:
+    """Height z (mm) of every corner of every chip: (n, V).
+
+    positions (n, 3) mm, quaternions (n, 4) x, y, z, w; vertices (V, 3) mm in the chip
+    frame, shared by all chips.
+    """
+    if len(positions) == 0:
+        return np.empty((0, len(vertices)))
+    rotations = Rotation.from_quat(quaternions).as_matrix()
+    return np.einsum("nij,vj->nvi", rotations, vertices)[..., 2] + np.asarray(positions)[:, None, 2]
+
+
 def floor_penetration_mm(
     positions: np.ndarray, quaternions: np.ndarray, vertices: np.ndarray
 ) -> np.ndarray:
@@ -84,6 +103,4 @@ def floor_penetration_mm(
 
     vertices (V, 3) mm in the chip frame, shared by all chips.
     """
-    rotations = Rotation.from_quat(quaternions).as_matrix()
-    lowest = (np.einsum("nij,vj->nvi", rotations, vertices)[..., 2]).min(axis=1)
-    return np.maximum(-(np.asarray(positions)[:, 2] + lowest), 0.0)
+    return np.maximum(-vertex_heights_mm(positions, quaternions, vertices).min(axis=1), 0.0)

@@ -55,38 +55,54 @@ def _run(args: argparse.Namespace) -> None:
         scenario = scenario.with_seed(args.seed)
     out = args.out or f"runs/{scenario.name}-seed{scenario.seed}"
     n_batches = -(-scenario.deposition.chips // scenario.deposition.batch_size)
-    bar = tqdm(
-        total=n_batches, desc="depositing", unit="batch", disable=args.quiet, file=sys.stderr
-    )
+    bars: list[tqdm] = []  # drawn at the first batch, so early errors stay one line
 
     def progress(batch: int, result) -> None:
-        bar.set_postfix(chips=len(result.positions), sim_s=f"{result.sim_time_s:.2f}")
-        bar.update(1)
+        if not bars:
+            bars.append(
+                tqdm(
+                    total=n_batches,
+                    desc="depositing",
+                    unit="batch",
+                    disable=args.quiet,
+                    file=sys.stderr,
+                )
+            )
+        bars[0].set_postfix(chips=len(result.positions), sim_s=f"{result.sim_time_s:.2f}")
+        bars[0].update(1)
 
     try:
         path, stack, manifest = run_pipeline(
             scenario, out, to=args.to, overwrite=args.overwrite, progress=progress, command=sys.argv
         )
     finally:
-        bar.close()
-    for warning in stack.warnings:
-        sys.stderr.write(f"pipeline: warning: {warning}\n")
+        for bar in bars:
+            bar.close()
     if not args.quiet:
         summary = manifest["packing"]
         last = summary["batches"][-1]
         print(
             f"{stack.n_chips} chips in {len(stack.batches)} batches, "
-            f"height {last['height_mm']:.1f} mm, {summary['outside_target']} outside the target, "
+            f"top {last['top_mm']:.1f} mm, {summary['outside_target']} outside the target, "
             f"max interpenetration {last['max_chip_penetration_mm']:.3f} mm; "
             f"deposition {manifest['wall_time_s']['packing']:.1f} s; written to {path}"
         )
 
 
+class _Formatter(logging.Formatter):
+    def format(self, record: logging.LogRecord) -> str:
+        return f"pipeline: {record.levelname.lower()}: {record.getMessage()}"
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    # Warnings (an unsettled batch, ...) reach the user through the library's log records,
+    # also with --quiet; -v adds the progress details.
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(_Formatter())
+    verbose = getattr(args, "verbose", False)
     logging.basicConfig(
-        level=logging.INFO if getattr(args, "verbose", False) else logging.ERROR,
-        format="%(levelname)s %(name)s: %(message)s",
+        level=logging.INFO if verbose else logging.WARNING, handlers=[handler], force=True
     )
     try:
         if args.command == "run":

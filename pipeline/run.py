@@ -12,7 +12,9 @@ from pathlib import Path
 from typing import Any
 
 from packing import BatchResult, Scenario, Stack, deposit
+from packing.config import printable
 from packing.errors import InputError
+from packing.overlap import vertex_heights_mm
 from pipeline.rundir import RunDirectory
 from pipeline.scenario_files import dumps_toml
 
@@ -47,9 +49,9 @@ def run_pipeline(
     if to not in STAGES:
         if to in PLANNED:
             raise InputError(
-                f"--to {to}: stage not implemented yet; available: {', '.join(STAGES)}"
+                f"--to {printable(to)}: stage not implemented yet; available: {', '.join(STAGES)}"
             )
-        raise InputError(f"--to {to}: unknown stage; valid stages: {', '.join(STAGES)}")
+        raise InputError(f"--to {printable(to)}: unknown stage; valid stages: {', '.join(STAGES)}")
     run = RunDirectory(out, overwrite=overwrite)
     run.check()  # fail on a bad --out before minutes of simulation
     started = datetime.now(UTC)
@@ -123,7 +125,7 @@ def _packing_summary(stack: Stack) -> dict[str, Any]:
             "outside_target": r.outside_target,
             "max_floor_penetration_mm": round(r.max_floor_penetration_mm, 5),
             "max_chip_penetration_mm": round(r.max_chip_penetration_mm, 5),
-            "height_mm": round(float(_top(r)), 3),
+            "top_mm": round(_top(stack, r), 3),
         }
         for r in stack.batches
     ]
@@ -135,5 +137,15 @@ def _packing_summary(stack: Stack) -> dict[str, Any]:
     }
 
 
-def _top(result: BatchResult) -> float:
-    return float(result.positions[:, 2].max()) if len(result.positions) else 0.0
+def _top(stack: Stack, result: BatchResult) -> float:
+    """Height of the highest point of any chip (mm): the top of the stack."""
+    n = len(result.positions)
+    top = 0.0
+    for k, shape in enumerate(stack.shapes):
+        mine = stack.shape_index[:n] == k
+        if mine.any():
+            heights = vertex_heights_mm(
+                result.positions[mine], result.quaternions[mine], shape.vertices
+            )
+            top = max(top, float(heights.max()))
+    return top

@@ -17,32 +17,62 @@ from packing.errors import InputError
 __all__ = ["RunDirectory"]
 
 
+def _nearest_existing(path: Path) -> Path:
+    for candidate in (path, *path.parents):
+        if candidate.exists():
+            return candidate
+    return Path("/")
+
+
 class RunDirectory:
-    """Context manager: ``with RunDirectory(out) as run: run.path("poses.csv") ...``."""
+    """Context manager: ``with RunDirectory(out) as run: run.path("poses.csv") ...``.
+
+    Only an empty directory or an earlier run (a directory holding ``manifest.json``) is
+    ever replaced, and only with ``overwrite``; the current directory and its ancestors
+    never are.
+    """
 
     def __init__(self, target: str | Path, overwrite: bool = False) -> None:
-        self.target = Path(target)
+        self.given = str(target)
         self.overwrite = overwrite
+        try:
+            self.target = Path(target).expanduser().absolute()
+            self.target = self.target.parent.resolve() / self.target.name
+        except (OSError, RuntimeError) as exc:
+            raise InputError(f"--out {self.given!r}: unusable path ({exc})") from None
         self._partial = self.target.parent / f".{self.target.name}.partial-{os.getpid()}"
 
     def check(self) -> None:
-        """Refuse early (before any work) if the target cannot be written."""
-        if self.target.exists() and not self.target.is_dir():
-            raise InputError(f"--out {self.target}: exists and is not a directory")
-        if self.target.exists() and any(self.target.iterdir()) and not self.overwrite:
-            raise InputError(
-                f"--out {self.target}: directory exists and is not empty (use --overwrite)"
-            )
-        parent = self.target.parent if str(self.target.parent) else Path(".")
-        if parent.exists() and not os.access(parent, os.W_OK):
-            raise InputError(f"--out {self.target}: parent directory is not writable")
+        """Refuse early (before any work) if the target cannot or must not be written."""
+        out = f"--out {self.given!r}"
+        try:
+            if self.target.name in ("", ".", ".."):
+                raise InputError(f"{out}: not a usable run directory name")
+            here = Path.cwd().resolve()
+            if self.target == here or self.target in here.parents:
+                raise InputError(f"{out}: is the current directory or one of its parents")
+            if self.target.is_symlink():
+                raise InputError(f"{out}: is a symbolic link; give the real directory")
+            if self.target.exists():
+                if not self.target.is_dir():
+                    raise InputError(f"{out}: exists and is not a directory")
+                entries = list(self.target.iterdir())
+                if entries and not self.overwrite:
+                    raise InputError(f"{out}: directory exists and is not empty (use --overwrite)")
+                if entries and not (self.target / "manifest.json").is_file():
+                    raise InputError(f"{out}: not an earlier run (no manifest.json); not replaced")
+            ancestor = _nearest_existing(self.target.parent)
+            if not ancestor.is_dir() or not os.access(ancestor, os.W_OK | os.X_OK):
+                raise InputError(f"{out}: cannot write under {str(ancestor)!r}")
+        except OSError as exc:
+            raise InputError(f"{out}: {exc.strerror or exc}") from None
 
     def __enter__(self) -> RunDirectory:
         self.check()
         try:
             self._partial.mkdir(parents=True)
         except OSError as exc:
-            raise InputError(f"--out {self.target}: cannot create ({exc.strerror})") from None
+            raise InputError(f"--out {self.given!r}: cannot create ({exc.strerror})") from None
         return self
 
     def path(self, name: str) -> Path:
@@ -57,12 +87,22 @@ class RunDirectory:
         return path
 
     def write_json(self, name: str, data: Any) -> Path:
-        return self.write_text(name, json.dumps(data, indent=2, sort_keys=False) + "\n")
+        return self.write_text(name, json.dumps(data, indent=2) + "\n")
 
     def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
         if exc_type is not None:
             shutil.rmtree(self._partial, ignore_errors=True)
+            if isinstance(exc, OSError):  # a full disk, a vanished directory, ...
+                raise InputError(
+                    f"--out {self.given!r}: cannot write the run ({exc.strerror or exc})"
+                ) from None
             return
-        if self.target.exists():
-            shutil.rmtree(self.target)
-        os.replace(self._partial, self.target)
+        try:
+            if self.target.exists():
+                shutil.rmtree(self.target)
+            os.replace(self._partial, self.target)
+        except OSError as error:
+            shutil.rmtree(self._partial, ignore_errors=True)
+            raise InputError(
+                f"--out {self.given!r}: cannot write the run ({error.strerror or error})"
+            ) from None

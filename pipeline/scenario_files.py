@@ -8,7 +8,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from packing.config import Scenario, scenario_from_dict, scenario_to_dict
+from packing.config import Scenario, printable, scenario_from_dict, scenario_to_dict
 from packing.errors import InputError
 
 __all__ = ["BUILTIN", "builtin_names", "load_scenario", "dumps_toml"]
@@ -27,21 +27,26 @@ def load_scenario(source: str | Path | None) -> Scenario:
     """A scenario from a TOML file, a built-in name, or (None) the paper's reference stack."""
     if source is None:
         source = BUILTIN
-    path = Path(source)
-    if not path.is_file():
+    shown = printable(source)
+    try:
+        path = Path(source)
+        is_file, is_dir = path.is_file(), path.is_dir()
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{shown}: unusable scenario path ({exc})") from None
+    if not is_file:
         if str(source) in builtin_names():
             text = (resources.files("pipeline") / "scenarios" / f"{source}.toml").read_text()
             return _parse(text, f"built-in scenario {source}")
-        if path.is_dir():
-            raise InputError(f"{source}: is a directory, not a scenario file")
+        if is_dir:
+            raise InputError(f"{shown}: is a directory, not a scenario file")
         raise InputError(
-            f"{source}: scenario file not found (built-in scenarios: {', '.join(builtin_names())})"
+            f"{shown}: scenario file not found (built-in scenarios: {', '.join(builtin_names())})"
         )
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{source}: cannot read scenario file ({exc})") from None
-    return _parse(text, str(source))
+        raise InputError(f"{shown}: cannot read scenario file ({exc})") from None
+    return _parse(text, shown)
 
 
 def _parse(text: str, origin: str) -> Scenario:
@@ -65,7 +70,8 @@ def _toml_value(value: Any) -> str:
     if isinstance(value, float):
         return repr(value)
     if isinstance(value, str):
-        return json.dumps(value)  # JSON string escapes are valid TOML basic strings
+        # JSON escapes (quotes, backslash, control characters) are valid in TOML basic strings
+        return json.dumps(value, ensure_ascii=False)
     if isinstance(value, list):
         return "[" + ", ".join(_toml_value(v) for v in value) + "]"
     raise TypeError(f"cannot write {type(value).__name__} to TOML")

@@ -47,9 +47,10 @@ def test_manifest_records_versions_seed_times_and_warnings(small_run):
 
 
 def test_resolved_scenario_loads_back_to_the_same_scenario(small_run):
-    resolved = load_scenario(small_run[0] / "scenario.toml")
-    assert resolved.seed == 7 and resolved.deposition.chips == 24
-    assert dumps_toml(resolved) == (small_run[0] / "scenario.toml").read_text()
+    out = small_run[0]
+    resolved = load_scenario(out / "scenario.toml")
+    assert resolved == load_scenario(out.parent / "small.toml").with_seed(7)
+    assert dumps_toml(resolved) == (out / "scenario.toml").read_text()
 
 
 def test_poses_csv_matches_the_vtk_series(small_run):
@@ -101,8 +102,18 @@ def test_progress_bar_is_shown_and_quiet_silences_it(small_scenario, tmp_path):
     loud = run_cli("run", str(small_scenario), "--out", str(tmp_path / "a"))
     quiet = run_cli("run", str(small_scenario), "--out", str(tmp_path / "b"), "--quiet")
     assert loud.returncode == quiet.returncode == 0
-    assert "depositing" in loud.stderr and "5/5" not in loud.stderr and "2/2" in loud.stderr
+    assert "depositing" in loud.stderr and "2/2" in loud.stderr
+    assert "written to" in loud.stdout
     assert quiet.stderr == "" and quiet.stdout == ""
+
+
+def test_errors_stay_one_line_without_quiet(small_scenario, tmp_path):
+    # The progress bar must not be drawn before the run directory has been checked.
+    (tmp_path / "busy").mkdir()
+    (tmp_path / "busy" / "keep.txt").write_text("x")
+    result = run_cli("run", str(small_scenario), "--out", str(tmp_path / "busy"))
+    assert result.returncode == 2
+    assert len(result.stderr.strip().splitlines()) == 1, result.stderr
 
 
 def test_an_unsettled_batch_is_shown_to_the_user(small_scenario, tmp_path):
@@ -130,17 +141,43 @@ BAD_SCENARIOS = {
     "unknown section": ("[chips]\nn = 3\n", "chips"),
     "wrong type": ('[deposition]\nchips = "many"\n', "deposition.chips"),
     "float count": ("[deposition]\nchips = 10.5\n", "deposition.chips"),
+    "boolean size": ("[chip]\nlength_mm = true\n", "chip.length_mm"),
+    "table for a number": ("[chip]\nlength_mm = { a = 1 }\n", "chip.length_mm"),
     "zero size": ("[chip]\nlength_mm = 0\n", "chip.length_mm"),
     "negative size": ("[deposition]\ntarget_size_mm = -150\n", "deposition.target_size_mm"),
+    "absurd size": ("[deposition]\ntarget_size_mm = 1e300\n", "deposition.target_size_mm"),
+    "absurd release": (
+        "[deposition]\nrelease_height_mm = [1e300, 1e300]\n",
+        "deposition.release_height_mm",
+    ),
     "zero count": ("[deposition]\nchips = 0\n", "deposition.chips"),
+    "zero batch": ("[deposition]\nbatch_size = 0\n", "deposition.batch_size"),
+    "absurd count": ("[deposition]\nchips = 100000000\nbatch_size = 5\n", "deposition.chips"),
     "batch above chips": ("[deposition]\nchips = 10\nbatch_size = 20\n", "deposition.batch_size"),
     "nan": ("[settling]\nspeed_mm_s = nan\n", "settling.speed_mm_s"),
+    "infinite": ("[chip]\nwidth_mm = inf\n", "chip.width_mm"),
     "inverted range": (
         "[deposition]\nrelease_height_mm = [200.0, 100.0]\n",
         "deposition.release_height_mm",
     ),
+    "three-value range": (
+        "[deposition]\nrelease_height_mm = [100.0, 150.0, 200.0]\n",
+        "deposition.release_height_mm",
+    ),
+    "release touching the floor": (
+        "[deposition]\nrelease_height_mm = [5.0, 200.0]\n",
+        "deposition.release_height_mm",
+    ),
+    "no fibre direction": ("[chip]\nfibre_directions_deg = []\n", "chip.fibre_directions_deg"),
+    "chip as thick as wide": ("[chip]\nwidth_mm = 2.0\n", "chip.thickness_mm"),
+    "time step out of range": ("[physics]\ntime_step_s = 0.5\n", "physics.time_step_s"),
+    "friction out of range": ("[physics]\nfriction = 1e9\n", "physics.friction"),
+    "hold longer than cap": ("[settling]\nhold_time_s = 20.0\n", "settling.hold_time_s"),
+    "negative seed": ("seed = -3\n", "seed"),
+    "name with a slash": ('name = "../../escape"\n', "name"),
     "unknown preset": ('[physics]\npreset = "stiff"\n', "physics.preset"),
     "unknown shape": ('[chip]\nshape = "blob"\n', "chip.shape"),
+    "unknown orientation": ('[deposition]\norientation = "tumbling"\n', "deposition.orientation"),
     "malformed": ("[deposition\nchips = 3\n", "malformed TOML"),
     "empty": ("", "empty"),
 }
@@ -172,10 +209,39 @@ def test_missing_scenario_file_and_bad_flags(tmp_path):
     result = run_cli("run", str(tmp_path / "nope.toml"), "--out", str(tmp_path / "o"))
     assert result.returncode == 2 and "nope.toml" in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1
+    result = run_cli("run", str(tmp_path), "--out", str(tmp_path / "o"))
+    assert result.returncode == 2 and "is a directory" in result.stderr
     result = run_cli("run", "--seed", "abc", "--out", str(tmp_path / "o"))
     assert result.returncode == 2 and "--seed" in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1
+    result = run_cli("run", "--to", "mesh\nmore", "--out", str(tmp_path / "o"))
+    assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("out", [".", ".."])
+def test_the_current_directory_and_its_parents_are_never_replaced(small_scenario, tmp_path, out):
+    work = tmp_path / "work"
+    work.mkdir()
+    (work / "keep.txt").write_text("precious")
+    result = run_cli("run", str(small_scenario), "--out", out, "--overwrite", cwd=work)
+    assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1
+    assert (work / "keep.txt").read_text() == "precious"
+    assert sorted(p.name for p in work.iterdir()) == ["keep.txt"]
+
+
+def test_overwrite_replaces_only_an_earlier_run(small_scenario, tmp_path):
+    notes = tmp_path / "notes"
+    notes.mkdir()
+    (notes / "thesis.tex").write_text("x")
+    result = run_cli("run", str(small_scenario), "--out", str(notes), "--overwrite")
+    assert result.returncode == 2 and "manifest.json" in result.stderr
+    assert (notes / "thesis.tex").exists()
+    link = tmp_path / "link"
+    link.symlink_to(notes)
+    result = run_cli("run", str(small_scenario), "--out", str(link), "--overwrite")
+    assert result.returncode == 2 and "symbolic link" in result.stderr
+    assert not list(tmp_path.glob(".*partial*"))
 
 
 def test_builtin_scenarios_are_the_papers():
@@ -196,9 +262,8 @@ def test_builtin_scenarios_are_the_papers():
     assert volume[0] == volume[1]
 
 
-def test_readme_documents_every_scenario_key():
-    from packing.config import key_table
+def test_readme_documents_every_scenario_key_with_unit_and_default():
+    from packing.config import key_table_markdown
 
     readme = (Path(__file__).parents[1] / "README.md").read_text()
-    missing = [key for key, *_ in key_table() if f"`{key}`" not in readme]
-    assert not missing, f"README lacks scenario keys: {missing}"
+    assert key_table_markdown() in readme, "README's key table differs from packing/config.py"
