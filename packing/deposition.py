@@ -4,16 +4,15 @@ Each batch of chips is released at rest, at random positions over the target, ra
 heights and random orientations, without overlapping one another or the pile. Gravity
 does the rest. A chip *settles* when, for ``settling.hold_time_s`` of simulated time, no
 point of it strays more than ``settling.speed_mm_s x settling.hold_time_s`` from where it
-was (its speed averaged over the hold time stays below the threshold) and it is never
-faster than ``settling.wake_speed_mm_s``; it is then frozen (made static) so it no longer
-costs solver time or trembles. A frozen chip is woken again when a moving chip (faster
-than ``settling.wake_speed_mm_s``, or one that strayed out of its rest window) could
-reach it before the next speed check (surfaces within 0.5 mm plus the distance the mover
-travels in a check interval): impacts push the pile instead of bouncing off static chips,
-and a chip resting on one that slides away does not stay hanging in the air. A batch is
-settled when all its chips and all chips it woke have settled; the next batch is released
-then. A batch still moving at ``settling.max_time_s`` is frozen where it is and recorded
-as a warning.
+was (its speed averaged over the hold time stays below the threshold); it is then frozen
+(made static) so it no longer costs solver time or trembles. A frozen chip is woken
+again when a moving chip (faster than ``settling.wake_speed_mm_s``, or one that strayed
+out of its rest window) could reach it before the next speed check (surfaces within
+0.5 mm plus the distance the mover travels in a check interval): impacts push the pile
+instead of bouncing off static chips, and a chip resting on one that slides away does
+not stay hanging in the air. A batch is settled when all its chips and all chips it woke
+have settled; the next batch is released then. A batch still moving at
+``settling.max_time_s`` is frozen where it is and recorded as a warning.
 """
 
 from __future__ import annotations
@@ -156,10 +155,13 @@ class _RestTracker:
         stray += turned * self.world.circumradius_mm(chips)
         moving = []
         for k, chip in enumerate(chips):
-            if stray[k] > self.stray_mm or speed[k] > wake_speed_mm_s:
+            if speed[k] > wake_speed_mm_s:
+                moving.append((chip, float(speed[k])))
+            if stray[k] > self.stray_mm:
                 self.awake[chip] = 0
                 self._anchor[chip] = (positions[k], quaternions[k])
-                moving.append((chip, float(speed[k])))
+                if speed[k] <= wake_speed_mm_s:
+                    moving.append((chip, float(speed[k])))
                 continue
             self.awake[chip] += 1
             if self.awake[chip] >= self.hold_checks:
