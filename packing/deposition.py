@@ -74,35 +74,33 @@ def release_poses(
     """
     d = scenario.deposition
     half = d.release_side_mm / 2
-    placed_pos = [] if occupied is None else list(occupied[0])
-    placed_rot = [] if occupied is None else list(Rotation.from_quat(occupied[1]).as_matrix())
+    # Every chip a new pose must not overlap: the pile, then this batch as it is placed.
+    m = 0 if occupied is None else len(occupied[0])
+    placed_pos, placed_rot = np.empty((m + n, 3)), np.empty((m + n, 3, 3))
+    if m:
+        placed_pos[:m] = occupied[0]
+        placed_rot[:m] = Rotation.from_quat(occupied[1]).as_matrix()
     positions, quaternions = np.empty((n, 3)), np.empty((n, 4))
     reach = 2 * shape.circumradius_mm
     for i in range(n):
+        others, others_rot = placed_pos[: m + i], placed_rot[: m + i]
         for _ in range(_MAX_PLACEMENT_TRIES):
             centre = np.array([*rng.uniform(-half, half, 2), rng.uniform(*d.release_height_mm)])
             rotation = _random_rotations(scenario, 1, rng)
             matrix = rotation.as_matrix()[0]
-            if placed_pos:
-                others = np.asarray(placed_pos)
-                near = np.flatnonzero(np.linalg.norm(others - centre, axis=1) < reach)
-                if (
-                    near.size
-                    and box_penetration_depth(
-                        np.repeat(centre[None], near.size, 0),
-                        np.repeat(matrix[None], near.size, 0),
-                        shape.half_extents,
-                        others[near],
-                        np.asarray(placed_rot)[near],
-                        shape.half_extents,
-                    ).max()
-                    > 0
-                ):
-                    continue
-            lowest = (matrix @ shape.vertices.T)[2].min() + centre[2]
-            if lowest <= 0:
-                continue
-            break
+            near = np.flatnonzero(np.linalg.norm(others - centre, axis=1) < reach)
+            if near.size == 0:
+                break
+            depth = box_penetration_depth(
+                np.repeat(centre[None], near.size, 0),
+                np.repeat(matrix[None], near.size, 0),
+                shape.half_extents,
+                others[near],
+                others_rot[near],
+                shape.half_extents,
+            )
+            if depth.max() == 0:
+                break
         else:
             raise InputError(
                 "deposition: cannot release "
@@ -111,8 +109,7 @@ def release_poses(
                 "widen release_height_mm or lower batch_size"
             )
         positions[i], quaternions[i] = centre, rotation.as_quat()[0]
-        placed_pos.append(centre)
-        placed_rot.append(matrix)
+        placed_pos[m + i], placed_rot[m + i] = centre, matrix
     return positions, quaternions
 
 
@@ -155,13 +152,11 @@ class _RestTracker:
         stray += turned * self.world.circumradius_mm(chips)
         moving = []
         for k, chip in enumerate(chips):
-            if speed[k] > wake_speed_mm_s:
+            if speed[k] > wake_speed_mm_s or stray[k] > self.stray_mm:
                 moving.append((chip, float(speed[k])))
             if stray[k] > self.stray_mm:
                 self.awake[chip] = 0
                 self._anchor[chip] = (positions[k], quaternions[k])
-                if speed[k] <= wake_speed_mm_s:
-                    moving.append((chip, float(speed[k])))
                 continue
             self.awake[chip] += 1
             if self.awake[chip] >= self.hold_checks:
@@ -184,7 +179,8 @@ def deposit(
     rng = np.random.default_rng(scenario.seed)
     d, s = scenario.deposition, scenario.settling
     check_steps = max(1, round(CHECK_INTERVAL_S / scenario.physics.time_step_s))
-    hold_checks = max(1, int(np.ceil(s.hold_time_s / (check_steps * scenario.physics.time_step_s))))
+    check_interval_s = check_steps * scenario.physics.time_step_s
+    hold_checks = max(1, int(np.ceil(s.hold_time_s / check_interval_s)))
     batch_of: list[int] = []
     results: list[BatchResult] = []
     warnings: list[str] = []
@@ -208,7 +204,7 @@ def deposit(
                     # Wake every frozen chip this one can reach before the next check, so an
                     # impact pushes what it hits instead of bouncing off a static chip, and a
                     # chip resting on one that slides away does not stay hanging in the air.
-                    reach = WAKE_MARGIN_MM + speed * check_steps * scenario.physics.time_step_s
+                    reach = WAKE_MARGIN_MM + speed * check_interval_s
                     near = [c for c in world.chips_near(chip, reach) if c not in tracker.awake]
                     woken = world.within(chip, near, reach)
                     for other in woken:

@@ -14,7 +14,7 @@ Choices that make a chip stack right before fast (measured; see the README):
 * contact ERP 0.5 (PyBullet: 0.2) removes residual interpenetration in the pile to a few
   hundredths of a millimetre;
 * settled chips are frozen (made static, asleep, and out of collision with one another)
-  one by one and woken when a fast chip comes near them; see :mod:`packing.deposition`.
+  one by one and woken when a moving chip can reach them; see :mod:`packing.deposition`.
 """
 
 from __future__ import annotations
