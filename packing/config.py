@@ -23,6 +23,7 @@ __all__ = [
     "PhysicsSpec",
     "SettlingSpec",
     "OutputSpec",
+    "GeometrySpec",
     "Scenario",
     "scenario_from_dict",
     "scenario_to_dict",
@@ -196,6 +197,28 @@ class OutputSpec:
 
 
 @dataclass(frozen=True)
+class GeometrySpec:
+    """How the geometry stage describes the stack (see README: Descriptors)."""
+
+    pixel_mm: float = _key(
+        3.0, "mm", "pixel of the local stack thickness (NEH) map", _between(0.05, 1000.0)
+    )
+    layer_mm: float = _key(
+        2.0, "mm", "thickness of a layer for layer filling and porosity", _between(0.05, 1000.0)
+    )
+    contact_gap_mm: float = _key(
+        0.05, "mm", "surfaces closer than this touch (contact types)", _between(1e-4, 10.0)
+    )
+    contact_extent_mm: float = _key(
+        5.0,
+        "mm",
+        "a contact patch this long is a line, this long and wide a surface",
+        _between(1e-3, 1000.0),
+    )
+    voxel_mm: float = _key(1.0, "mm", "voxel of the stack's voxel image", _between(0.05, 100.0))
+
+
+@dataclass(frozen=True)
 class Scenario:
     """A complete, validated scenario."""
 
@@ -207,6 +230,7 @@ class Scenario:
     physics: PhysicsSpec = field(default_factory=PhysicsSpec)
     settling: SettlingSpec = field(default_factory=SettlingSpec)
     output: OutputSpec = field(default_factory=OutputSpec)
+    geometry: GeometrySpec = field(default_factory=GeometrySpec)
 
     def with_seed(self, seed: int) -> Scenario:
         return dataclasses.replace(self, seed=seed)
@@ -218,6 +242,7 @@ _SECTIONS: dict[str, type] = {
     "physics": PhysicsSpec,
     "settling": SettlingSpec,
     "output": OutputSpec,
+    "geometry": GeometrySpec,
 }
 
 

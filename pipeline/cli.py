@@ -1,4 +1,4 @@
-"""Command line: ``pipeline run [SCENARIO] --to STAGE --out DIR --seed N [--quiet]``.
+"""Command line: ``pipeline run``, ``pipeline describe`` and ``pipeline compare``.
 
 The only place that prints or exits. Every expected failure (bad input, a physics error)
 becomes one line on stderr and exit status 2.
@@ -39,7 +39,43 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--overwrite", action="store_true", help="replace an existing run directory")
     run.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     run.add_argument("-v", "--verbose", action="store_true", help="log progress details")
+    run.add_argument(
+        "--repeats",
+        type=int,
+        default=None,
+        help="an ensemble of N independent runs (seeds derived from --seed) with statistics",
+    )
+    run.add_argument(
+        "--descriptors",
+        default=None,
+        help="comma-separated descriptors for the geometry stage (default: all)",
+    )
+    describe = commands.add_parser("describe", help="the geometry stage on an existing run")
+    describe.add_argument("run_dir", help="run directory holding a packing result")
+    describe.add_argument("--descriptors", default=None, help="comma-separated (default: all)")
+    describe.add_argument("--overwrite", action="store_true", help="describe it again")
+    describe.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    describe.add_argument("--quiet", action="store_true", help="no summary")
+    describe.add_argument("-v", "--verbose", action="store_true", help="log progress details")
+    compare = commands.add_parser(
+        "compare", help="do two ensembles differ, descriptor by descriptor"
+    )
+    compare.add_argument("run_a", help="ensemble directory (pipeline run --repeats N)")
+    compare.add_argument("run_b", help="ensemble directory")
+    compare.add_argument("--out", default=None, help="where to write (default: runs/compare-A-B)")
+    compare.add_argument("--overwrite", action="store_true", help="replace an earlier comparison")
+    compare.add_argument("--quiet", action="store_true", help="no table on stdout")
+    compare.add_argument("-v", "--verbose", action="store_true", help="log progress details")
     return parser
+
+
+def _names(text: str | None) -> list[str] | None:
+    if text is None:
+        return None
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    if not names:
+        raise ChipstackError("--descriptors: give at least one descriptor name")
+    return names
 
 
 def _run(args: argparse.Namespace) -> None:
@@ -54,6 +90,12 @@ def _run(args: argparse.Namespace) -> None:
             raise ChipstackError("--seed: must not be negative")
         scenario = scenario.with_seed(args.seed)
     out = args.out or f"runs/{scenario.name}-seed{scenario.seed}"
+    descriptors = _names(args.descriptors)
+    if descriptors is not None and args.to != "geometry":
+        raise ChipstackError("--descriptors: only with --to geometry")
+    if args.repeats is not None:
+        _ensemble(args, scenario, out, descriptors)
+        return
     n_batches = -(-scenario.deposition.chips // scenario.deposition.batch_size)
     bars: list[tqdm] = []  # drawn at the first batch, so early errors stay one line
 
@@ -73,7 +115,13 @@ def _run(args: argparse.Namespace) -> None:
 
     try:
         path, stack, manifest = run_pipeline(
-            scenario, out, to=args.to, overwrite=args.overwrite, progress=progress, command=sys.argv
+            scenario,
+            out,
+            to=args.to,
+            overwrite=args.overwrite,
+            progress=progress,
+            command=sys.argv,
+            descriptors=descriptors,
         )
     finally:
         for bar in bars:
@@ -87,6 +135,116 @@ def _run(args: argparse.Namespace) -> None:
             f"max interpenetration {last['max_chip_penetration_mm']:.3f} mm; "
             f"deposition {manifest['wall_time_s']['packing']:.1f} s; written to {path}"
         )
+        if "geometry" in manifest:
+            _print_geometry(path)
+
+
+def _print_geometry(path) -> None:
+    import json
+    from pathlib import Path
+
+    data = json.loads((Path(path) / "geometry" / "descriptors.json").read_text())
+    d = data["descriptors"]
+    parts = []
+    if "contacts" in d:
+        s = d["contacts"]["scalars"]
+        parts.append(
+            "contacts per chip: "
+            + ", ".join(
+                f"{k} {s[k + '_per_chip']['value']:.2f}" for k in ("point", "line", "surface")
+            )
+        )
+    if "stack" in d:
+        s = d["stack"]["scalars"]
+        parts.append(
+            f"mean height {s['height_mean_mm']['value']:.1f} mm, "
+            f"volume fraction {s['volume_fraction']['value']:.3f}"
+        )
+    if "layers" in d:
+        parts.append(f"highest layer {int(d['layers']['scalars']['highest_layer']['value'])}")
+    seconds = sum(data["wall_time_s"].values())
+    print(f"descriptors in {seconds:.2f} s: " + "; ".join(parts))
+
+
+def _ensemble(args: argparse.Namespace, scenario, out: str, descriptors) -> None:
+    from tqdm import tqdm
+
+    from pipeline.run import run_ensemble
+
+    bars: list[tqdm] = []
+
+    def progress(done: int, total: int) -> None:
+        if not bars:
+            bars.append(
+                tqdm(total=total, desc="repeats", unit="run", disable=args.quiet, file=sys.stderr)
+            )
+            bars[0].update(done)
+        else:
+            bars[0].update(1)
+
+    try:
+        path, manifest = run_ensemble(
+            scenario,
+            out,
+            args.repeats,
+            to=args.to,
+            overwrite=args.overwrite,
+            progress=progress,
+            command=sys.argv,
+            descriptors=descriptors,
+        )
+    finally:
+        for bar in bars:
+            bar.close()
+    if args.quiet:
+        return
+    print(f"{args.repeats} repeats in {manifest['wall_time_s']['total']:.1f} s; written to {path}")
+    if "geometry" in manifest["stages_completed"]:
+        import json
+        from pathlib import Path
+
+        summary = json.loads((Path(path) / "ensemble.json").read_text())
+        d = summary["descriptors"]
+        for section, key in (
+            ("contacts", "point_per_chip"),
+            ("contacts", "line_per_chip"),
+            ("contacts", "surface_per_chip"),
+            ("stack", "height_max_mm"),
+            ("stack", "volume_fraction"),
+            ("layers", "highest_layer"),
+        ):
+            if section in d:
+                s = d[section]["scalars"][key]
+                print(
+                    f"  {section}.{key}: {s['mean']:.4g} "
+                    f"(95 % CI {s['ci_low']:.4g} to {s['ci_high']:.4g}) {s['unit']}"
+                )
+
+
+def _describe(args: argparse.Namespace) -> None:
+    from pipeline.run import describe_run
+
+    manifest = describe_run(
+        args.run_dir,
+        _names(args.descriptors),
+        figures=not args.no_figures,
+        overwrite=args.overwrite,
+    )
+    if not args.quiet:
+        _print_geometry(args.run_dir)
+        print(f"written to {args.run_dir}/geometry ({len(manifest['geometry']['files'])} files)")
+
+
+def _compare(args: argparse.Namespace) -> None:
+    from pathlib import Path
+
+    from pipeline.compare import compare_runs
+
+    out = args.out or f"runs/compare-{Path(args.run_a).name}-{Path(args.run_b).name}"
+    _, table = compare_runs(args.run_a, args.run_b, out, overwrite=args.overwrite, command=sys.argv)
+    if not args.quiet:
+        print(table, end="")
+        print(f"written to {out}")
 
 
 class _Formatter(logging.Formatter):
@@ -107,6 +265,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "run":
             _run(args)
+        elif args.command == "describe":
+            _describe(args)
+        elif args.command == "compare":
+            _compare(args)
     except ChipstackError as exc:
         sys.stderr.write(f"pipeline: error: {exc}\n")
         return EXIT_BAD_INPUT

@@ -14,7 +14,7 @@ from typing import Any
 
 from packing.errors import InputError
 
-__all__ = ["RunDirectory"]
+__all__ = ["RunDirectory", "StageWriter"]
 
 
 def _nearest_existing(path: Path) -> Path:
@@ -106,3 +106,54 @@ class RunDirectory:
             raise InputError(
                 f"--out {self.given!r}: cannot write the run ({error.strerror or error})"
             ) from None
+
+
+class StageWriter:
+    """Context manager adding one stage's folder to an existing run directory.
+
+    ``with StageWriter(run, "geometry") as folder: ...`` builds the folder hidden inside the
+    run and swaps it in only when the block completes, so an error or interruption leaves
+    the run as it was.
+    """
+
+    def __init__(self, run_dir: str | Path, name: str) -> None:
+        self.run = Path(run_dir)
+        self.name = name
+        self._partial = self.run / f".{name}.partial-{os.getpid()}"
+
+    def __enter__(self) -> Path:
+        if not os.access(self.run, os.W_OK | os.X_OK):
+            raise InputError(f"{str(self.run)!r}: run directory is not writable")
+        try:
+            self._partial.mkdir()
+        except OSError as exc:
+            raise InputError(f"{str(self.run)!r}: cannot write ({exc.strerror})") from None
+        return self._partial
+
+    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+        if exc_type is not None:
+            shutil.rmtree(self._partial, ignore_errors=True)
+            if isinstance(exc, OSError):
+                raise InputError(
+                    f"{str(self.run)!r}: cannot write the {self.name} stage ({exc.strerror or exc})"
+                ) from None
+            return
+        final = self.run / self.name
+        old = self.run / f".{self.name}.old-{os.getpid()}"
+        try:
+            if final.exists():
+                os.replace(final, old)
+            os.replace(self._partial, final)
+        except OSError as error:
+            shutil.rmtree(self._partial, ignore_errors=True)
+            raise InputError(
+                f"{str(self.run)!r}: cannot write the {self.name} stage ({error.strerror})"
+            ) from None
+        shutil.rmtree(old, ignore_errors=True)
+
+    @staticmethod
+    def replace_json(path: Path, data: Any) -> None:
+        """Write a JSON file by writing a temporary sibling and renaming it over the file."""
+        temporary = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+        temporary.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
+        os.replace(temporary, path)

@@ -1,0 +1,1 @@
+"""Geometry stage: descriptors of a settled stack, as pure functions on exact solids."""

@@ -1,0 +1,471 @@
+"""Every descriptor of a stack, by name, as plain JSON-ready sections.
+
+``describe`` runs the registered descriptors on a stack's history (one arrangement per
+deposited batch, NBD 1, 2, ...) and returns, per descriptor, its record (arrays for
+figures and tables) and its section of ``descriptors.json``: named scalars and profiles,
+each with its unit and a one-line definition.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Any
+
+import numpy as np
+
+from geometry.arrangement import Arrangement
+from geometry.contacts import GROUND, KINDS, PLACES, ContactTable, contact_counts, find_contacts
+from geometry.layers import LayerFilling, layer_filling, slab_fractions
+from geometry.orientation import (
+    fibre_directions_world,
+    fibre_tensor,
+    in_plane_direction_deg,
+    tilt_deg,
+)
+from geometry.overlaps import Overlaps, find_overlaps
+from geometry.rays import RayMaps, ray_maps
+from geometry.solids import chip_solids, target_prism, union_solid
+from geometry.voxels import VoxelImage, voxel_solid_profile, voxelize
+from packing.config import GeometrySpec
+from packing.errors import InputError
+from packing.registry import Registry
+
+__all__ = ["DESCRIPTORS", "Description", "describe", "SCHEMA"]
+
+SCHEMA = "chipstack.descriptors/1"
+TILT_BINS_DEG = np.arange(0.0, 91.0, 10.0)
+RING_EDGES_MM = (0.0, 25.0, 50.0, 75.0, 100.0, np.inf)
+
+
+def scalar(value: float, unit: str, doc: str) -> dict[str, Any]:
+    value = float(value)
+    return {"value": value if np.isfinite(value) else None, "unit": unit, "doc": doc}
+
+
+def profile(
+    index: Sequence[float],
+    values: Sequence[float],
+    index_name: str,
+    unit: str,
+    doc: str,
+    pad: float | str | None = 0.0,
+) -> dict[str, Any]:
+    """A profile section; ``pad`` is its value at an index a stack does not reach (layers
+    above its top: 0 chips), ``"last"`` to repeat the last value (cumulative profiles), or
+    None when such an index has no value."""
+    return {
+        "pad": pad,
+        "index_name": index_name,
+        "index": [float(v) if isinstance(v, float) else v for v in index],
+        "values": [None if not np.isfinite(v) else float(v) for v in values],
+        "unit": unit,
+        "doc": doc,
+    }
+
+
+class _Context:
+    """Intermediate results shared by descriptors (the union, the ray maps), made once."""
+
+    def __init__(self, history: Sequence[Arrangement], spec: GeometrySpec) -> None:
+        self.history = list(history)
+        self.final = self.history[-1]
+        self.spec = spec
+
+    @cached_property
+    def union(self):
+        return union_solid(chip_solids(self.final))
+
+    @cached_property
+    def rays(self) -> RayMaps:
+        return ray_maps(self.final, self.spec.pixel_mm)
+
+
+@dataclass(frozen=True)
+class Descriptor:
+    name: str
+    doc: str
+    compute: Callable[[_Context], tuple[Any, dict[str, Any]]]
+
+
+DESCRIPTORS: Registry[Descriptor] = Registry("descriptor")
+
+
+def _register(name: str, doc: str):
+    def wrap(function):
+        DESCRIPTORS.register(name, Descriptor(name, doc, function))
+        return function
+
+    return wrap
+
+
+# -- contact types -----------------------------------------------------------------------
+@dataclass(frozen=True)
+class ContactHistory:
+    """Contact tables after each batch (NBD 1, 2, ...)."""
+
+    tables: tuple[ContactTable, ...]
+    batches: tuple[int, ...]
+
+
+@_register("contacts", "contact types per chip (point, line, surface) and partner place, by NBD")
+def _contacts(ctx: _Context):
+    spec = ctx.spec
+    tables = tuple(
+        find_contacts(a, spec.contact_gap_mm, spec.contact_extent_mm) for a in ctx.history
+    )
+    batches = tuple(int(a.batch.max()) if a.n_chips else 0 for a in ctx.history)
+    final = tables[-1]
+    n = max(final.n_chips, 1)
+    counts = contact_counts(final)  # (n, kinds, places), each chip counting its own contacts
+    scalars: dict[str, Any] = {}
+    for k, kind in enumerate(KINDS):
+        scalars[f"{kind}_per_chip"] = scalar(
+            np.sum(final.kind == k) / n,
+            "1/chip",
+            f"{kind} contacts (touching pairs, floor included) divided by the number of chips",
+        )
+    scalars["total_per_chip"] = scalar(len(final) / n, "1/chip", "all contacts / chips")
+    for k, kind in enumerate(KINDS):
+        scalars[f"{kind}_per_chip_both_sides"] = scalar(
+            counts[:, k].sum() / n,
+            "1/chip",
+            f"{kind} contacts each chip takes part in, averaged over chips "
+            "(a chip-chip contact counts for both chips)",
+        )
+    for p, place in enumerate(PLACES):
+        for k, kind in enumerate(KINDS):
+            scalars[f"{kind}_{place}_per_chip"] = scalar(
+                counts[:, k, p].sum() / n,
+                "1/chip",
+                f"{kind} contacts with a partner {place} the chip, per chip (both sides)",
+            )
+    scalars["ground_contacts"] = scalar(
+        np.sum(final.chip_b == GROUND), "", "chips touching the conveyor"
+    )
+    scalars["mean_patch_area_mm2"] = scalar(
+        final.area_mm2.mean() if len(final) else 0.0,
+        "mm2",
+        "mean area of a contact patch at the gap tolerance",
+    )
+    profiles = {}
+    for k, kind in enumerate(KINDS):
+        profiles[f"{kind}_per_chip_by_batch"] = profile(
+            list(batches),
+            [np.sum(t.kind == k) / max(t.n_chips, 1) for t in tables],
+            "batch",
+            "1/chip",
+            f"{kind} contacts per chip after each batch (NBD), pair convention",
+        )
+    return ContactHistory(tables, batches), {"scalars": scalars, "profiles": profiles}
+
+
+# -- local stack thickness -----------------------------------------------------------------
+@_register("thickness", "local stack thickness: chips crossed by vertical rays (NEH map)")
+def _thickness(ctx: _Context):
+    maps = ctx.rays
+    on = maps.grid.on_target
+    neh = maps.neh[on]
+    radius = np.hypot(maps.grid.x[:, None], maps.grid.y[None, :])
+    ring_means = []
+    labels = []
+    for lo, hi in zip(RING_EDGES_MM[:-1], RING_EDGES_MM[1:], strict=True):
+        ring = (radius >= lo) & (radius < hi)
+        ring_means.append(maps.neh[ring].mean() if ring.any() else np.nan)
+        labels.append(f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">{lo:g}")
+    histogram = np.bincount(np.minimum(neh, 8), minlength=9) / max(len(neh), 1)
+    scalars = {
+        "neh_mean": scalar(neh.mean(), "chips", "mean NEH over the target's pixels"),
+        "neh_max": scalar(maps.neh.max(initial=0), "chips", "largest NEH anywhere"),
+        "pixel_mm": scalar(maps.grid.pixel_mm, "mm", "pixel side"),
+    }
+    profiles = {
+        "neh_by_ring": profile(
+            labels,
+            ring_means,
+            "distance from the target centre (mm)",
+            "chips",
+            "mean NEH of the pixels in rings around the target centre",
+        ),
+        "neh_histogram": profile(
+            [str(k) if k < 8 else "8+" for k in range(9)],
+            histogram,
+            "NEH",
+            "",
+            "fraction of the target's pixels with each NEH (8 and more together)",
+        ),
+    }
+    return maps, {"scalars": scalars, "profiles": profiles}
+
+
+# -- layer filling -------------------------------------------------------------------------
+@_register("layers", "layer filling by centre of mass, solid and covered fractions per layer")
+def _layers(ctx: _Context):
+    filling: LayerFilling = layer_filling(ctx.final, ctx.union, ctx.spec.layer_mm)
+    index = list(range(len(filling.chips)))
+    nonempty = np.flatnonzero(filling.chips)
+    scalars = {
+        "full_layer": scalar(filling.full_layer, "chips", "chips per full layer"),
+        "highest_layer": scalar(
+            nonempty.max() if len(nonempty) else -1, "", "highest layer holding a centre"
+        ),
+        "nonempty_layers": scalar(len(nonempty), "", "layers holding at least one centre"),
+    }
+    h = filling.layer_mm
+    profiles = {
+        "chips": profile(index, filling.chips, "layer", "chips", f"chips per {h:g} mm layer"),
+        "chips_cumulative": profile(
+            index,
+            np.cumsum(filling.chips),
+            "layer",
+            "chips",
+            "chips whose centre lies in this layer or below (filling up to the layer's top)",
+            pad="last",
+        ),
+        "chips_over_target": profile(
+            index,
+            filling.chips_over_target,
+            "layer",
+            "chips",
+            "chips per layer, counting chips whose centre lies over the target",
+        ),
+        "solid_fraction": profile(
+            index,
+            filling.solid_fraction,
+            "layer",
+            "",
+            "solid volume / layer volume over the target (porosity = 1 - this)",
+        ),
+        "covered_fraction": profile(
+            index,
+            filling.covered_fraction,
+            "layer",
+            "",
+            "area of the target under the layer's solid / target area",
+        ),
+    }
+    return filling, {"scalars": scalars, "profiles": profiles}
+
+
+# -- overlaps ------------------------------------------------------------------------------
+@_register("overlaps", "interpenetration volumes and projected overlap areas between chips")
+def _overlaps(ctx: _Context):
+    result: Overlaps = find_overlaps(ctx.final)
+    a = ctx.final
+    volume = sum(a.shapes[i].volume_mm3 for i in a.shape_index) or 1.0
+    n = max(a.n_chips, 1)
+    scalars = {
+        "projected_total_mm2": scalar(
+            result.total_projected_mm2, "mm2", "sum over pairs of footprint overlap areas"
+        ),
+        "projected_per_chip_mm2": scalar(
+            2 * result.total_projected_mm2 / n,
+            "mm2",
+            "mean over chips of their footprint overlap with all other chips",
+        ),
+        "overlapping_pairs": scalar(len(result.pairs), "", "pairs with overlapping footprints"),
+        "penetration_total_mm3": scalar(
+            result.total_penetration_mm3, "mm3", "sum over pairs of interpenetration volumes"
+        ),
+        "penetration_fraction": scalar(
+            result.total_penetration_mm3 / volume, "", "interpenetration / total chip volume"
+        ),
+        "penetration_max_mm3": scalar(
+            result.penetration_mm3.max(initial=0.0), "mm3", "largest interpenetration of a pair"
+        ),
+    }
+    return result, {"scalars": scalars, "profiles": {}}
+
+
+# -- orientation ---------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Orientation:
+    tilt_deg: np.ndarray
+    direction_deg: np.ndarray
+    tensor: np.ndarray
+    layer_tensors: dict[int, np.ndarray] = field(default_factory=dict)
+
+
+@_register("orientation", "chip tilt, in-plane direction and fibre orientation tensors")
+def _orientation(ctx: _Context):
+    a = ctx.final
+    tilt = tilt_deg(a.rotations)
+    direction = in_plane_direction_deg(a.rotations)
+    vectors, owners = fibre_directions_world(a)
+    tensor = fibre_tensor(vectors, owners)
+    layer = np.maximum(np.floor(a.positions[:, 2] / ctx.spec.layer_mm), 0).astype(int)
+    layer_tensors = {}
+    for k in np.unique(layer):
+        mine = np.isin(owners, np.flatnonzero(layer == k))
+        layer_tensors[int(k)] = fibre_tensor(vectors[mine], owners[mine])
+    eigen = np.sort(np.linalg.eigvalsh(tensor))[::-1]
+    scalars = {
+        "tilt_mean_deg": scalar(tilt.mean() if len(tilt) else 0, "deg", "mean chip tilt"),
+        "tilt_sd_deg": scalar(tilt.std(ddof=1) if len(tilt) > 1 else 0, "deg", "tilt sd"),
+        "flat_fraction": scalar(
+            np.mean(tilt < 5.0) if len(tilt) else 0, "", "share of chips tilted under 5 deg"
+        ),
+    }
+    for i, j in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)):
+        name = "xyz"[i] + "xyz"[j]
+        scalars[f"a_{name}"] = scalar(tensor[i, j], "", f"fibre orientation tensor A_{name}")
+    for k, value in enumerate(eigen):
+        scalars[f"a_eigen_{k + 1}"] = scalar(value, "", f"eigenvalue {k + 1} of A")
+    histogram = np.histogram(tilt, TILT_BINS_DEG)[0] / max(len(tilt), 1)
+    layers = sorted(layer_tensors)
+    profiles = {
+        "tilt_histogram": profile(
+            [float(v) for v in TILT_BINS_DEG[:-1]],
+            histogram,
+            "tilt bin start (deg)",
+            "",
+            "share of chips in 10 deg bins of tilt",
+        ),
+        "a_zz_by_layer": profile(
+            layers,
+            [layer_tensors[k][2, 2] for k in layers],
+            "layer",
+            "",
+            "out-of-plane component A_zz of the fibre tensor of the chips in each layer",
+            pad=None,
+        ),
+    }
+    record = Orientation(tilt, direction, tensor, layer_tensors)
+    return record, {"scalars": scalars, "profiles": profiles}
+
+
+# -- whole stack ---------------------------------------------------------------------------
+@_register("stack", "height, bulk volume fraction, bare and uneven target area")
+def _stack(ctx: _Context):
+    a = ctx.final
+    maps = ctx.rays
+    on = maps.grid.on_target
+    top = maps.top_mm[on]
+    neh = maps.neh[on]
+    height_max = float(a.bounds[:, 1, 2].max()) if a.n_chips else 0.0
+    height_mean = float(top.mean()) if len(top) else 0.0
+    area = a.target_size_mm**2
+    solid = (ctx.union ^ target_prism(a.target_size_mm, -1.0, height_max + 1.0)).volume()
+    scalars = {
+        "height_max_mm": scalar(height_max, "mm", "highest point of any chip"),
+        "height_mean_mm": scalar(
+            height_mean, "mm", "mean over the target's pixels of the top surface (0 if bare)"
+        ),
+        "solid_volume_over_target_mm3": scalar(solid, "mm3", "solid inside the target prism"),
+        "volume_fraction": scalar(
+            solid / (area * height_mean) if height_mean > 0 else 0.0,
+            "",
+            "bulk volume fraction: solid over the target / (target area x mean height)",
+        ),
+        "volume_fraction_max_height": scalar(
+            solid / (area * height_max) if height_max > 0 else 0.0,
+            "",
+            "solid over the target / (target area x maximum height)",
+        ),
+        "bare_fraction": scalar(
+            np.mean(neh == 0) if len(neh) else 1.0, "", "share of target pixels with no chip"
+        ),
+        "neh_cv": scalar(
+            neh.std() / neh.mean() if len(neh) and neh.mean() > 0 else 0.0,
+            "",
+            "coefficient of variation (sd / mean) of NEH over the target",
+        ),
+        "chips_outside_target": scalar(
+            np.sum(~a.inside_target()), "chips", "chips whose centre is off the target"
+        ),
+    }
+    return None, {"scalars": scalars, "profiles": {}}
+
+
+# -- voxel image ---------------------------------------------------------------------------
+@_register("voxels", "voxel image of chip ids and its porosity profile against the exact one")
+def _voxels(ctx: _Context):
+    image: VoxelImage = voxelize(ctx.final, ctx.spec.voxel_mm)
+    profile_voxels = voxel_solid_profile(image)
+    h = image.voxel_mm
+    edges = h * np.arange(image.labels.shape[2] + 1)
+    exact, _ = slab_fractions(ctx.union, ctx.final.target_size_mm, edges)
+    scalars = {
+        "voxel_mm": scalar(h, "mm", "voxel side"),
+        "shape_x": scalar(image.labels.shape[0], "voxels", "image size along x"),
+        "shape_y": scalar(image.labels.shape[1], "voxels", "image size along y"),
+        "shape_z": scalar(image.labels.shape[2], "voxels", "image size along z"),
+        "profile_max_difference": scalar(
+            np.abs(profile_voxels - exact).max(initial=0.0),
+            "",
+            "largest difference between voxel and exact solid fraction of a voxel layer",
+        ),
+    }
+    z = list(h * (np.arange(len(exact)) + 0.5))
+    profiles = {
+        "solid_fraction_voxels": profile(
+            z, profile_voxels, "z (mm)", "", "solid fraction of each voxel layer over the target"
+        ),
+        "solid_fraction_exact": profile(
+            z, exact, "z (mm)", "", "exact solid fraction of the same slabs (manifold3d)"
+        ),
+    }
+    return image, {"scalars": scalars, "profiles": profiles}
+
+
+# -- running them --------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Description:
+    """Records (arrays) and JSON sections of the descriptors that were computed."""
+
+    records: dict[str, Any]
+    sections: dict[str, dict[str, Any]]
+    timings_s: dict[str, float]
+    spec: GeometrySpec
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "schema": SCHEMA,
+            "parameters": {k: getattr(self.spec, k) for k in self.spec.__dataclass_fields__},
+            "descriptors": self.sections,
+            "wall_time_s": {k: round(v, 4) for k, v in self.timings_s.items()},
+        }
+
+
+def check_names(names: Sequence[str] | None) -> list[str]:
+    """The descriptors to compute, in registry order; raises naming an unknown one."""
+    if names is None:
+        return list(DESCRIPTORS_ORDER)
+    for name in names:
+        DESCRIPTORS.get(name, key="descriptors")
+    return [n for n in DESCRIPTORS_ORDER if n in set(names)]
+
+
+DESCRIPTORS_ORDER = (
+    "contacts",
+    "thickness",
+    "layers",
+    "overlaps",
+    "orientation",
+    "stack",
+    "voxels",
+)
+
+
+def describe(
+    history: Sequence[Arrangement],
+    spec: GeometrySpec | None = None,
+    names: Sequence[str] | None = None,
+) -> Description:
+    """Compute the named descriptors (all by default) of a stack's history.
+
+    ``history``: the stack after each batch, in order; the last one is the stack.
+    """
+    if not history:
+        raise InputError("history: no arrangement to describe")
+    spec = spec or GeometrySpec()
+    selected = check_names(names)
+    ctx = _Context(history, spec)
+    records, sections, timings = {}, {}, {}
+    for name in selected:
+        start = time.perf_counter()
+        records[name], sections[name] = DESCRIPTORS.get(name).compute(ctx)
+        timings[name] = time.perf_counter() - start
+    return Description(records, sections, timings, spec)

@@ -1,0 +1,106 @@
+"""`pipeline compare RUN_A RUN_B`: do two ensembles of stacks differ, descriptor by descriptor?"""
+
+from __future__ import annotations
+
+import json
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from geometry.ensemble import compare_ensembles
+from packing.config import printable
+from packing.errors import InputError
+from pipeline.rundir import RunDirectory
+
+__all__ = ["load_ensemble", "compare_runs", "comparison_table"]
+
+
+def load_ensemble(path: str | Path) -> dict[str, Any]:
+    """The ``ensemble.json`` of an ensemble run directory (``pipeline run --repeats N``)."""
+    folder = Path(path)
+    shown = printable(path)
+    if not folder.is_dir():
+        raise InputError(f"{shown}: no such run directory")
+    file = folder / "ensemble.json"
+    if not file.is_file():
+        if (folder / "geometry" / "descriptors.json").is_file():
+            raise InputError(
+                f"{shown}: a single run; compare needs ensembles (pipeline run --repeats N)"
+            )
+        raise InputError(
+            f"{shown}: no ensemble.json (run `pipeline run SCENARIO --to geometry --repeats N`)"
+        )
+    try:
+        data = json.loads(file.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"{file}: unreadable ensemble file ({exc})") from None
+    if not isinstance(data, dict) or "descriptors" not in data or "repeats" not in data:
+        raise InputError(f"{file}: not an ensemble file (no descriptors or repeats)")
+    return data
+
+
+def comparison_table(result: dict[str, Any], labels: tuple[str, str]) -> str:
+    """A Markdown table: one row per scalar descriptor, and the profiles' carrying indices."""
+    a, b = labels
+    lines = [
+        f"| descriptor | {a} mean | {b} mean | difference (95 % CI) | Hedges g | p (perm.) "
+        "| p (Welch) | differs |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+
+    def f(v: float | None, digits: int = 4) -> str:
+        return "-" if v is None else f"{v:.{digits}g}"
+
+    for name, section in result["descriptors"].items():
+        for key, c in section["scalars"].items():
+            lines.append(
+                f"| {name}.{key} | {f(c['mean_a'])} | {f(c['mean_b'])} | "
+                f"{f(c['difference'])} ({f(c['ci_low'])} to {f(c['ci_high'])}) | "
+                f"{f(c['hedges_g'], 3)} | {f(c['p_permutation'], 3)} | {f(c['p_welch'], 3)} | "
+                f"{'yes' if c['differs'] else 'no'} |"
+            )
+    lines += ["", "| profile | differs at (Holm-adjusted p < alpha) |", "|---|---|"]
+    for name, section in result["descriptors"].items():
+        for key, p in section["profiles"].items():
+            where = ", ".join(str(i) for i in p["carried_by"]) or "nowhere"
+            lines.append(f"| {name}.{key} | {p['index_name']}: {where} |")
+    return "\n".join(lines) + "\n"
+
+
+def compare_runs(
+    run_a: str | Path,
+    run_b: str | Path,
+    out: str | Path,
+    overwrite: bool = False,
+    command: list[str] | None = None,
+) -> tuple[dict[str, Any], str]:
+    """Compare two ensembles; writes compare.json, compare.md and Fig. 12 into ``out``."""
+    from pipeline.figures import comparison_figures
+
+    ensembles = (load_ensemble(run_a), load_ensemble(run_b))
+    labels = (Path(run_a).name or str(run_a), Path(run_b).name or str(run_b))
+    if labels[0] == labels[1]:
+        labels = (f"A: {labels[0]}", f"B: {labels[1]}")
+    run = RunDirectory(out, overwrite=overwrite)
+    run.check()
+    result = compare_ensembles(*ensembles)
+    result["a"] = {"path": str(run_a), "repeats": ensembles[0]["repeats"]}
+    result["b"] = {"path": str(run_b), "repeats": ensembles[1]["repeats"]}
+    table = comparison_table(result, labels)
+    with run:
+        run.write_json("compare.json", result)
+        run.write_text("compare.md", f"# {labels[0]} vs {labels[1]}\n\n" + table)
+        files = comparison_figures(run.path("figures/x").parent, labels, ensembles)
+        run.write_json(
+            "manifest.json",
+            {
+                "tool": "chipstack",
+                "kind": "comparison",
+                "command": command or [],
+                "a": str(run_a),
+                "b": str(run_b),
+                "files": ["compare.json", "compare.md", *files],
+                "finished_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+            },
+        )
+    return result, table

@@ -1,0 +1,119 @@
+"""Reading a packing result back from a run directory (for `pipeline describe`)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+
+from export.tables import POSE_COLUMNS
+from geometry.arrangement import Arrangement
+from packing.config import Scenario, printable
+from packing.errors import InputError
+from packing.shapes import make_shape
+from pipeline.scenario_files import load_scenario
+
+__all__ = ["load_run"]
+
+_POSES = re.compile(r"poses_after_batch_(\d+)\.csv")
+
+
+def load_run(run_dir: str | Path) -> tuple[Scenario, list[Arrangement], dict]:
+    """The scenario, the stack after every batch, and the manifest of a finished run.
+
+    Raises :class:`InputError` naming the directory or file and what is wrong with it.
+    """
+    run = Path(run_dir)
+    shown = printable(run_dir)
+    if not run.is_dir():
+        raise InputError(f"{shown}: no such run directory")
+    manifest_path = run / "manifest.json"
+    if not manifest_path.is_file():
+        raise InputError(f"{shown}: not a run directory (no manifest.json)")
+    try:
+        manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"{manifest_path}: unreadable manifest ({exc})") from None
+    if not isinstance(manifest, dict) or "packing" not in manifest.get("stages_completed", []):
+        raise InputError(f"{shown}: holds no packing result (run `pipeline run --to packing`)")
+    scenario_path = run / "scenario.toml"
+    if not scenario_path.is_file():
+        raise InputError(f"{shown}: no scenario.toml; the packing result cannot be read")
+    scenario = load_scenario(str(scenario_path))
+    files = sorted(
+        (int(m.group(1)), p)
+        for p in (run / "packing").glob("poses_after_batch_*.csv")
+        if (m := _POSES.fullmatch(p.name))
+    )
+    if not files:
+        raise InputError(f"{shown}: holds no packing result (no packing/poses_after_batch_*.csv)")
+    numbers = [n for n, _ in files]
+    if numbers != list(range(1, len(files) + 1)):
+        raise InputError(f"{run / 'packing'}: batch files must be numbered 1 to N, got {numbers}")
+    shape = make_shape(scenario.chip)
+    history = []
+    previous = 0
+    for number, path in files:
+        arrangement = _read_poses(path, shape, scenario.deposition.target_size_mm)
+        if arrangement.n_chips <= previous:
+            raise InputError(
+                f"{path}: {arrangement.n_chips} chips, not more than batch {number - 1}"
+            )
+        if arrangement.batch.max(initial=0) != number:
+            raise InputError(f"{path}: last batch column is not {number}")
+        previous = arrangement.n_chips
+        history.append(arrangement)
+    return scenario, history, manifest
+
+
+def _read_poses(path: Path, shape, target_size_mm: float) -> Arrangement:
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            rows = list(csv.reader(f))
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise InputError(f"{path}: unreadable poses file ({exc})") from None
+    if not rows:
+        raise InputError(f"{path}: empty poses file")
+    if tuple(rows[0]) != POSE_COLUMNS:
+        raise InputError(f"{path}: header must be {','.join(POSE_COLUMNS)}")
+    body = rows[1:]
+    if not body:
+        raise InputError(f"{path}: no chips")
+    numbers = np.empty((len(body), 7))
+    batch = np.empty(len(body), dtype=np.int64)
+    for line, row in enumerate(body, start=2):
+        if len(row) != len(POSE_COLUMNS):
+            raise InputError(f"{path} line {line}: {len(row)} fields, expected {len(POSE_COLUMNS)}")
+        if row[0] != str(line - 2):
+            raise InputError(f"{path} line {line}: chip {printable(row[0])}, expected {line - 2}")
+        if row[2] != shape.name:
+            raise InputError(
+                f"{path} line {line}: shape {printable(row[2])} is not the scenario's "
+                f"{shape.name!r}"
+            )
+        try:
+            batch[line - 2] = int(row[1])
+            numbers[line - 2] = [float(v) for v in row[3:10]]
+        except ValueError:
+            raise InputError(f"{path} line {line}: a value is not a number") from None
+    if not np.isfinite(numbers).all():
+        bad = int(np.flatnonzero(~np.isfinite(numbers).all(axis=1))[0]) + 2
+        raise InputError(f"{path} line {bad}: NaN or infinite value")
+    if batch.min() < 1 or (np.diff(batch) < 0).any():
+        raise InputError(f"{path}: batch numbers must start at 1 and never decrease")
+    quaternions = numbers[:, 3:7]
+    norms = np.linalg.norm(quaternions, axis=1)
+    if np.abs(norms - 1).max() > 1e-4:
+        bad = int(np.argmax(np.abs(norms - 1))) + 2
+        raise InputError(f"{path} line {bad}: quaternion is not of unit length")
+    return Arrangement(
+        (shape,),
+        np.zeros(len(body), dtype=np.int64),
+        numbers[:, :3],
+        quaternions / norms[:, None],
+        batch,
+        target_size_mm,
+    )
