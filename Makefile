@@ -12,9 +12,9 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install --quiet -e '.[test]'
 	touch $(STAMP)
 
-# The furthest stage that exists yet is `packing`; this becomes `--to mesh` with the meshing stage.
+# The furthest stage that exists yet is `geometry`; this becomes `--to mesh` with the meshing stage.
 run: $(STAMP)
-	$(BIN)/pipeline run --to packing --out runs/paper-squares --seed 0 --overwrite
+	$(BIN)/pipeline run --to geometry --out runs/paper-squares --seed 0 --overwrite
 
 test: $(STAMP)
 	$(BIN)/ruff check .
@@ -23,6 +23,7 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_packing.py
+	$(BIN)/python benchmarks/bench_geometry.py
 
 clean:
 	rm -rf $(VENV) runs

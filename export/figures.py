@@ -16,6 +16,7 @@ from __future__ import annotations
 import functools
 import math
 import os
+import signal
 import subprocess
 import sys
 from collections.abc import Mapping, Sequence
@@ -231,6 +232,9 @@ def plot_contact_types(
     for kind, values in means.items():
         if np.isnan(values).any():
             raise InputError(f"mean[{kind!r}]: must be finite")
+    if (low is None) != (high is None):
+        missing, given = ("low", "high") if low is None else ("high", "low")
+        raise InputError(f"{missing}: must be given together with {given}")
     lows = _by_kind(low, "low", len(nbd))
     highs = _by_kind(high, "high", len(nbd))
     bands = {
@@ -276,9 +280,7 @@ def neh_colormap() -> tuple[ListedColormap, BoundaryNorm]:
     chips; values above 8 take the colour of 8.
     """
     colours = colormaps["YlOrRd"](np.linspace(0.0, 1.0, _NEH_LEVELS))
-    cmap = ListedColormap(colours, name="neh")
-    cmap.set_over(colours[-1])
-    cmap.set_under(colours[0])
+    cmap = ListedColormap(colours, name="neh").with_extremes(over=colours[-1], under=colours[0])
     norm = BoundaryNorm(np.arange(_NEH_LEVELS + 1) - 0.5, _NEH_LEVELS, clip=True)
     return cmap, norm
 
@@ -480,8 +482,9 @@ def plot_profile(
     """A quantity through the stack's thickness (e.g. porosity): values across, z up.
 
     values: (n,) the quantity per slab (x axis, labelled ``xlabel`` with its unit).
-    z: (n + 1,) mm slab edges, or (n,) mm slab centres (n >= 2, edges then halfway between
-    centres); strictly increasing. Drawn as steps, constant over each slab.
+    z: (n + 1,) mm slab edges, or (n,) mm slab centres (edges then halfway between centres,
+    a lone centre c > 0 taken as the slab 0 .. 2 c); strictly increasing. Drawn as steps,
+    constant over each slab.
     label: legend entry of the line (no legend when None).
     """
     path = _path(path)
@@ -493,12 +496,15 @@ def plot_profile(
     if len(heights) == len(quantity) + 1:
         edges = heights
     elif len(heights) == len(quantity):
-        if len(heights) < 2:
-            raise InputError("z: one centre gives no slab thickness; pass the 2 slab edges")
-        middle = (heights[:-1] + heights[1:]) / 2
-        edges = np.concatenate(
-            [[heights[0] - (middle[0] - heights[0])], middle, [2 * heights[-1] - middle[-1]]]
-        )
+        if len(heights) >= 2:
+            middle = (heights[:-1] + heights[1:]) / 2
+            edges = np.concatenate(
+                [[heights[0] - (middle[0] - heights[0])], middle, [2 * heights[-1] - middle[-1]]]
+            )
+        elif heights[0] > 0:  # one slab: taken to start on the conveyor
+            edges = np.array([0.0, 2 * heights[0]])
+        else:
+            raise InputError("z: a single centre must be above 0 mm, or pass the 2 slab edges")
     else:
         raise InputError(
             f"z: has length {len(heights)}, values has {len(quantity)} (z: centres or edges)"
@@ -549,9 +555,18 @@ def _rendering_problem() -> str | None:
         )
     except (OSError, subprocess.TimeoutExpired) as error:
         return f"the off-screen render test could not run ({type(error).__name__})"
+    if result.returncode < 0:
+        return f"a test render in a child process was killed by {_signal_name(-result.returncode)}"
     if result.returncode != 0:
-        return f"an off-screen VTK render failed in a child process (exit code {result.returncode})"
+        return f"a test render in a child process failed (exit code {result.returncode})"
     return None
+
+
+def _signal_name(number: int) -> str:
+    try:
+        return signal.Signals(number).name
+    except ValueError:
+        return f"signal {number}"
 
 
 def _tab20_categorical() -> ListedColormap:
@@ -622,9 +637,9 @@ def render_stack(
         j_resolution=1,
     )
     if "chip_id" in mesh.cell_data:
-        chips = len(np.unique(mesh.cell_data["chip_id"]))
+        what = f"Stack of {len(np.unique(mesh.cell_data['chip_id']))} chips"
     else:
-        chips = mesh.n_cells
+        what = "Stack"
 
     plotter = pyvista.Plotter(off_screen=True, window_size=list(map(int, window_size)))
     try:
@@ -641,7 +656,7 @@ def render_stack(
             **style,
         )
         plotter.add_text(
-            f"Stack of {chips} chips on the conveyor, coloured by {scalars}",
+            f"{what} on the conveyor, coloured by {scalars}",
             position="upper_edge",
             font_size=12,
             color="black",
