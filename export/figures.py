@@ -641,6 +641,17 @@ def render_stack(
     else:
         what = "Stack"
 
+    # VTK logs "bad X server connection" before falling back to an off-screen context: noise
+    # on a terminal that should show only the run's own lines.
+    with pyvista.vtk_verbosity("off"):
+        image = _render(pyvista, mesh, conveyor, colour_by, style, what, scalars, window_size)
+    from PIL import Image  # a pyvista dependency
+
+    Image.fromarray(np.asarray(image)).save(path, format="PNG")
+
+
+def _render(pyvista, mesh, conveyor, colour_by, style, what, scalars, window_size):
+    (x0, x1, y0, y1, _, z1) = mesh.bounds
     plotter = pyvista.Plotter(off_screen=True, window_size=list(map(int, window_size)))
     try:
         plotter.set_background("white")
@@ -670,9 +681,6 @@ def render_stack(
         plotter.camera_position = "iso"
         plotter.reset_camera(bounds=mesh.bounds)  # frame the chips, the conveyor runs on
         plotter.camera.zoom(1.3)
-        image = plotter.screenshot(return_img=True)
+        return plotter.screenshot(return_img=True)
     finally:
         plotter.close()
-    from PIL import Image  # a pyvista dependency
-
-    Image.fromarray(np.asarray(image)).save(path, format="PNG")

@@ -37,6 +37,7 @@ __all__ = ["DESCRIPTORS", "Description", "describe", "SCHEMA"]
 
 SCHEMA = "chipstack.descriptors/1"
 TILT_BINS_DEG = np.arange(0.0, 91.0, 10.0)
+DIRECTION_BINS_DEG = np.arange(0.0, 181.0, 15.0)
 RING_EDGES_MM = (0.0, 25.0, 50.0, 75.0, 100.0, np.inf)
 
 
@@ -323,15 +324,25 @@ def _orientation(ctx: _Context):
             "",
             "share of chips in 10 deg bins of tilt",
         ),
-        "a_zz_by_layer": profile(
-            layers,
-            [layer_tensors[k][2, 2] for k in layers],
-            "layer",
+        "direction_histogram": profile(
+            [float(v) for v in DIRECTION_BINS_DEG[:-1]],
+            np.histogram(direction[np.isfinite(direction)], DIRECTION_BINS_DEG)[0]
+            / max(int(np.isfinite(direction).sum()), 1),
+            "direction bin start (deg)",
             "",
-            "out-of-plane component A_zz of the fibre tensor of the chips in each layer",
-            pad=None,
+            "share of chips in 15 deg bins of in-plane direction (local x seen from above)",
         ),
     }
+    for i, j in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)):
+        name = "xyz"[i] + "xyz"[j]
+        profiles[f"a_{name}_by_layer"] = profile(
+            layers,
+            [layer_tensors[k][i, j] for k in layers],
+            "layer",
+            "",
+            f"component A_{name} of the fibre tensor of the chips whose centre is in the layer",
+            pad=None,
+        )
     record = Orientation(tilt, direction, tensor, layer_tensors)
     return record, {"scalars": scalars, "profiles": profiles}
 
