@@ -60,9 +60,7 @@ def main() -> None:
         print(f"{label}: all descriptors in {median:.3f} s (median of {args.repeats}); {detail}")
     print()
     small = results["270 chips"]
-    print(
-        f"270 chips: {small:.3f} s (target <= 1 s; paper 210 s: {PAPER_S / small:.0f}x faster)"
-    )
+    print(f"270 chips: {small:.3f} s (target <= 1 s; paper 210 s: {PAPER_S / small:.0f}x faster)")
     if "2700 chips" in results:
         large = results["2700 chips"]
         print(
