@@ -11,7 +11,9 @@ from scipy.spatial.transform import Rotation
 from packing.errors import InputError
 from packing.shapes import ChipShape
 
-__all__ = ["Arrangement", "arrangements_from_stack"]
+__all__ = ["Arrangement", "arrangements_from_stack", "MAX_COORDINATE_MM"]
+
+MAX_COORDINATE_MM = 1e6  # 1 km: beyond any conveyor, and well inside float arithmetic
 
 
 @dataclass(frozen=True, eq=False)
@@ -57,6 +59,8 @@ class Arrangement:
             0 <= arrays["shape_index"].min() and arrays["shape_index"].max() < len(self.shapes)
         ):
             raise InputError(f"shape_index: must index the {len(self.shapes)} shapes")
+        if n and np.abs(arrays["positions"]).max() > MAX_COORDINATE_MM:
+            raise InputError(f"positions: beyond {MAX_COORDINATE_MM:g} mm from the target centre")
         norms = np.linalg.norm(arrays["quaternions"], axis=1)
         if n and np.abs(norms - 1).max() > 1e-4:
             raise InputError("quaternions: must be unit quaternions (x, y, z, w)")

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import manifold3d as m3
 import numpy as np
-from scipy.spatial import cKDTree
+from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from geometry.arrangement import Arrangement
 from geometry.solids import chip_solid
@@ -32,6 +32,7 @@ __all__ = [
     "GROUND",
     "ContactTable",
     "classify_patch",
+    "patch_extents",
     "find_contacts",
     "contact_counts",
 ]
@@ -41,19 +42,57 @@ PLACES = ("below", "above", "around", "ground")
 GROUND = -1
 
 
-def classify_patch(vertices: np.ndarray, extent_mm: float) -> tuple[int, np.ndarray]:
-    """Kind (index into :data:`KINDS`) and sorted extents (3,) mm of a contact patch.
+def patch_extents(vertices: np.ndarray) -> np.ndarray:
+    """(3,) mm: length, width and thickness of a contact patch, largest first.
 
-    ``vertices`` (k, 3) mm are the corners of the patch solid; its extents are the ranges
-    of the corners along the principal axes of their spread, largest first.
+    The patch's plane is the one across which its corners spread least (the smallest
+    principal axis is its normal, and the thickness is the corners' span along it). In that
+    plane, length and width are the sides of the narrowest rectangle holding the corners
+    (rotating calipers), so the extents do not depend on how the stack is turned.
     """
     points = np.asarray(vertices, dtype=float)
     if len(points) < 2:
-        return 0, np.zeros(3)
+        return np.zeros(3)
     centred = points - points.mean(axis=0)
     _, _, axes = np.linalg.svd(centred, full_matrices=False)
-    spans = np.ptp(centred @ axes.T, axis=0)
-    extents = np.sort(np.pad(spans, (0, 3 - len(spans))))[::-1]
+    if len(axes) < 3:
+        axes = np.vstack([axes, np.zeros((3 - len(axes), 3))])
+    thickness = float(np.ptp(centred @ axes[2]))
+    plane = centred @ axes[:2].T
+    length, width = _length_and_width(plane)
+    return np.array([length, width, thickness])
+
+
+def _length_and_width(points: np.ndarray) -> tuple[float, float]:
+    """Sides (mm) of the narrowest rectangle around points in the plane, longest first.
+
+    The rectangle is aligned with the hull edge across which the points are narrowest
+    (rotating calipers): its width is the points' minimum width, its length their span
+    along that edge.
+    """
+    try:
+        hull = points[ConvexHull(points).vertices]
+    except QhullError:  # collinear or coincident: a segment or a point
+        spread = points - points.mean(axis=0)
+        if not np.any(spread):
+            return 0.0, 0.0
+        direction = np.linalg.svd(spread, full_matrices=False)[2][0]
+        return float(np.ptp(spread @ direction)), 0.0
+    edges = np.roll(hull, -1, axis=0) - hull
+    edges /= np.linalg.norm(edges, axis=1, keepdims=True)
+    normals = np.column_stack([-edges[:, 1], edges[:, 0]])
+    across = np.ptp(hull @ normals.T, axis=0)  # width across each edge
+    along = np.ptp(hull @ edges.T, axis=0)
+    k = int(np.argmin(across))
+    return float(max(along[k], across[k])), float(min(along[k], across[k]))
+
+
+def classify_patch(vertices: np.ndarray, extent_mm: float) -> tuple[int, np.ndarray]:
+    """Kind (index into :data:`KINDS`) and extents (3,) mm of a contact patch.
+
+    ``vertices`` (k, 3) mm are the corners of the patch solid; see :func:`patch_extents`.
+    """
+    extents = patch_extents(vertices)
     if extents[1] >= extent_mm:
         return 2, extents
     if extents[0] >= extent_mm:

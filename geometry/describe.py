@@ -38,7 +38,7 @@ __all__ = ["DESCRIPTORS", "Description", "describe", "SCHEMA"]
 SCHEMA = "chipstack.descriptors/1"
 TILT_BINS_DEG = np.arange(0.0, 91.0, 10.0)
 DIRECTION_BINS_DEG = np.arange(0.0, 181.0, 15.0)
-RING_EDGES_MM = (0.0, 25.0, 50.0, 75.0, 100.0, np.inf)
+RING_EDGES_MM = (0.0, 25.0, 50.0, 75.0, np.inf)  # the last ring: the target's corners
 
 
 def scalar(value: float, unit: str, doc: str) -> dict[str, Any]:
@@ -159,6 +159,7 @@ def _contacts(ctx: _Context):
             "batch",
             "1/chip",
             f"{kind} contacts per chip after each batch (NBD), pair convention",
+            pad=None,
         )
     return ContactHistory(tables, batches), {"scalars": scalars, "profiles": profiles}
 
@@ -173,7 +174,7 @@ def _thickness(ctx: _Context):
     ring_means = []
     labels = []
     for lo, hi in zip(RING_EDGES_MM[:-1], RING_EDGES_MM[1:], strict=True):
-        ring = (radius >= lo) & (radius < hi)
+        ring = (radius >= lo) & (radius < hi) & on
         ring_means.append(maps.neh[ring].mean() if ring.any() else np.nan)
         labels.append(f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">{lo:g}")
     histogram = np.bincount(np.minimum(neh, 8), minlength=9) / max(len(neh), 1)
@@ -188,7 +189,7 @@ def _thickness(ctx: _Context):
             ring_means,
             "distance from the target centre (mm)",
             "chips",
-            "mean NEH of the pixels in rings around the target centre",
+            "mean NEH of the target's pixels in rings around its centre",
         ),
         "neh_histogram": profile(
             [str(k) if k < 8 else "8+" for k in range(9)],
@@ -358,22 +359,28 @@ def _stack(ctx: _Context):
     height_max = float(a.bounds[:, 1, 2].max()) if a.n_chips else 0.0
     height_mean = float(top.mean()) if len(top) else 0.0
     area = a.target_size_mm**2
-    solid = (ctx.union ^ target_prism(a.target_size_mm, -1.0, height_max + 1.0)).volume()
+    solid = (ctx.union ^ target_prism(a.target_size_mm, 0.0, height_max + 1.0)).volume()
+    # Solid and envelope sampled by the same rays, so the ratio cannot pass 1 by sampling.
+    sampled_solid = float(np.minimum(maps.solid_mm[on], top).sum())
+    envelope = float(top.sum())
     scalars = {
         "height_max_mm": scalar(height_max, "mm", "highest point of any chip"),
         "height_mean_mm": scalar(
             height_mean, "mm", "mean over the target's pixels of the top surface (0 if bare)"
         ),
-        "solid_volume_over_target_mm3": scalar(solid, "mm3", "solid inside the target prism"),
+        "solid_volume_over_target_mm3": scalar(
+            solid, "mm3", "solid inside the target prism above the conveyor (exact)"
+        ),
         "volume_fraction": scalar(
-            solid / (area * height_mean) if height_mean > 0 else 0.0,
+            sampled_solid / envelope if envelope > 0 else 0.0,
             "",
-            "bulk volume fraction: solid over the target / (target area x mean height)",
+            "bulk volume fraction: solid / volume under the top surface, over the target "
+            "(both sampled by the NEH rays)",
         ),
         "volume_fraction_max_height": scalar(
             solid / (area * height_max) if height_max > 0 else 0.0,
             "",
-            "solid over the target / (target area x maximum height)",
+            "exact solid over the target / (target area x maximum height)",
         ),
         "bare_fraction": scalar(
             np.mean(neh == 0) if len(neh) else 1.0, "", "share of target pixels with no chip"

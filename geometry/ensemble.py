@@ -125,7 +125,9 @@ def compare_ensembles(
     """Descriptor by descriptor: do two ensembles differ, and where.
 
     For every scalar: difference of means (b - a) with its Welch 95 % interval, Hedges' g,
-    Welch and permutation p-values, and ``differs`` (permutation p < alpha). For every
+    Welch and permutation p-values, the permutation p Holm-adjusted across the
+    descriptor's scalars, and ``differs`` (adjusted p < alpha). Ensembles described with
+    different geometry settings are refused. For every
     profile: the same per index, with Holm-adjusted permutation p-values across the
     profile's indices, and ``carried_by``: the indices (layers, rings, batches) whose
     adjusted p is below alpha.
@@ -133,6 +135,14 @@ def compare_ensembles(
     for label, ensemble in (("A", a), ("B", b)):
         if ensemble.get("repeats", 0) < 2:
             raise InputError(f"ensemble {label}: needs at least 2 repeats to be compared")
+    pa, pb = a.get("parameters", {}), b.get("parameters", {})
+    differ = sorted(k for k in set(pa) | set(pb) if pa.get(k) != pb.get(k))
+    if differ:
+        shown = ", ".join(f"{k} {pa.get(k)} vs {pb.get(k)}" for k in differ)
+        raise InputError(f"ensembles described with different geometry settings ({shown})")
+    common = [name for name in a["descriptors"] if name in b["descriptors"]]
+    if not common:
+        raise InputError("ensembles A and B share no descriptor to compare")
     out: dict[str, Any] = {}
     for name in a["descriptors"]:
         if name not in b["descriptors"]:
@@ -147,10 +157,15 @@ def compare_ensembles(
             if len(va) < 2 or len(vb) < 2:
                 continue
             result = _comparison(va, vb, seed)
-            p = result["p_permutation"]
-            result["differs"] = bool(p is not None and p < alpha)
             result["unit"] = meta["unit"]
             scalars[key] = result
+        # One family per descriptor: its scalars are tested together (Holm).
+        raw = [
+            c["p_permutation"] if c["p_permutation"] is not None else 1.0 for c in scalars.values()
+        ]
+        for c, p in zip(scalars.values(), holm(raw) if raw else [], strict=True):
+            c["p_holm"] = float(p)
+            c["differs"] = bool(p < alpha)
         profiles = {}
         for key, meta in da["profiles"].items():
             if key not in db["profiles"]:

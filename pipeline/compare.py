@@ -34,9 +34,53 @@ def load_ensemble(path: str | Path) -> dict[str, Any]:
         data = json.loads(file.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise InputError(f"{file}: unreadable ensemble file ({exc})") from None
-    if not isinstance(data, dict) or "descriptors" not in data or "repeats" not in data:
-        raise InputError(f"{file}: not an ensemble file (no descriptors or repeats)")
+    problem = _ensemble_problem(data)
+    if problem:
+        raise InputError(f"{file}: not a valid ensemble file ({problem})")
     return data
+
+
+def _is_number(value: Any) -> bool:
+    return value is None or (isinstance(value, int | float) and not isinstance(value, bool))
+
+
+def _ensemble_problem(data: Any) -> str | None:
+    """What makes ``data`` unusable as an ensemble summary, or None."""
+    if not isinstance(data, dict):
+        return "not a JSON object"
+    repeats = data.get("repeats")
+    if not isinstance(repeats, int) or isinstance(repeats, bool) or repeats < 1:
+        return "repeats must be a positive integer"
+    descriptors = data.get("descriptors")
+    if not isinstance(descriptors, dict):
+        return "descriptors must be an object"
+    if not isinstance(data.get("parameters", {}), dict):
+        return "parameters must be an object"
+    for name, section in descriptors.items():
+        if not isinstance(section, dict):
+            return f"descriptor {name!r} must be an object"
+        for key, entry in (section.get("scalars") or {}).items():
+            values = entry.get("values") if isinstance(entry, dict) else None
+            if not isinstance(values, list) or len(values) != repeats:
+                return f"{name}.{key}: values must list one number per repeat"
+            if not all(_is_number(v) for v in values) or not isinstance(entry.get("unit"), str):
+                return f"{name}.{key}: values must be numbers and unit a string"
+        for key, entry in (section.get("profiles") or {}).items():
+            if not isinstance(entry, dict):
+                return f"{name}.{key}: must be an object"
+            index, rows = entry.get("index"), entry.get("values")
+            if not isinstance(index, list) or not isinstance(rows, list) or len(rows) != repeats:
+                return f"{name}.{key}: needs an index and one row of values per repeat"
+            for row in rows:
+                if not isinstance(row, list) or len(row) != len(index):
+                    return f"{name}.{key}: every row must have one value per index"
+                if not all(_is_number(v) for v in row):
+                    return f"{name}.{key}: values must be numbers"
+            if not isinstance(entry.get("unit"), str) or not isinstance(
+                entry.get("index_name"), str
+            ):
+                return f"{name}.{key}: unit and index_name must be strings"
+    return None
 
 
 def comparison_table(result: dict[str, Any], labels: tuple[str, str]) -> str:
@@ -44,8 +88,8 @@ def comparison_table(result: dict[str, Any], labels: tuple[str, str]) -> str:
     a, b = labels
     lines = [
         f"| descriptor | {a} mean | {b} mean | difference (95 % CI) | Hedges g | p (perm.) "
-        "| p (Welch) | differs |",
-        "|---|---|---|---|---|---|---|---|",
+        "| p (Holm) | p (Welch) | differs |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
 
     def f(v: float | None, digits: int = 4) -> str:
@@ -56,7 +100,8 @@ def comparison_table(result: dict[str, Any], labels: tuple[str, str]) -> str:
             lines.append(
                 f"| {name}.{key} | {f(c['mean_a'])} | {f(c['mean_b'])} | "
                 f"{f(c['difference'])} ({f(c['ci_low'])} to {f(c['ci_high'])}) | "
-                f"{f(c['hedges_g'], 3)} | {f(c['p_permutation'], 3)} | {f(c['p_welch'], 3)} | "
+                f"{f(c['hedges_g'], 3)} | {f(c['p_permutation'], 3)} | {f(c['p_holm'], 3)} | "
+                f"{f(c['p_welch'], 3)} | "
                 f"{'yes' if c['differs'] else 'no'} |"
             )
     lines += ["", "| profile | differs at (Holm-adjusted p < alpha) |", "|---|---|"]

@@ -11,7 +11,7 @@ import numpy as np
 
 from export.tables import POSE_COLUMNS
 from geometry.arrangement import Arrangement
-from packing.config import Scenario, printable
+from packing.config import MAX_LENGTH_MM, Scenario, printable
 from packing.errors import InputError
 from packing.shapes import make_shape
 from pipeline.scenario_files import load_scenario
@@ -37,7 +37,12 @@ def load_run(run_dir: str | Path) -> tuple[Scenario, list[Arrangement], dict]:
         manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise InputError(f"{manifest_path}: unreadable manifest ({exc})") from None
-    if not isinstance(manifest, dict) or "packing" not in manifest.get("stages_completed", []):
+    stages = manifest.get("stages_completed") if isinstance(manifest, dict) else None
+    if stages is not None and not (
+        isinstance(stages, list) and all(isinstance(s, str) for s in stages)
+    ):
+        raise InputError(f"{manifest_path}: stages_completed must be a list of stage names")
+    if not stages or "packing" not in stages:
         raise InputError(f"{shown}: holds no packing result (run `pipeline run --to packing`)")
     scenario_path = run / "scenario.toml"
     if not scenario_path.is_file():
@@ -102,6 +107,10 @@ def _read_poses(path: Path, shape, target_size_mm: float) -> Arrangement:
     if not np.isfinite(numbers).all():
         bad = int(np.flatnonzero(~np.isfinite(numbers).all(axis=1))[0]) + 2
         raise InputError(f"{path} line {bad}: NaN or infinite value")
+    far = np.abs(numbers[:, :3]) > MAX_LENGTH_MM
+    if far.any():
+        bad = int(np.flatnonzero(far.any(axis=1))[0]) + 2
+        raise InputError(f"{path} line {bad}: position beyond {MAX_LENGTH_MM:g} mm")
     if batch.min() < 1 or (np.diff(batch) < 0).any():
         raise InputError(f"{path}: batch numbers must start at 1 and never decrease")
     quaternions = numbers[:, 3:7]

@@ -60,10 +60,26 @@ def test_face_on_face_is_a_surface_and_the_partner_is_below():
     ground = np.flatnonzero(table.chip_b == GROUND)
     assert table.chip_a[ground].tolist() == [0]
     assert KINDS[table.kind[ground[0]]] == "surface"
-    # the patch is the 15 x 15 mm overlap of the faces
-    assert table.extents_mm[rows[0], 1] == pytest.approx(15 * np.sqrt(2), rel=0.02) or (
-        table.extents_mm[rows[0], 1] == pytest.approx(15, rel=0.02)
-    )
+    # the patch is the 15 x 15 mm overlap of the faces (plus the 0.025 mm inflation)
+    assert table.extents_mm[rows[0], :2] == pytest.approx([15, 15], abs=0.06)
+
+
+@pytest.mark.parametrize("yaw", [0.0, 30.0, 45.0, 77.0])
+def test_contact_type_does_not_depend_on_how_the_stack_is_turned(yaw):
+    """A 4 x 4 mm face overlap is a point at the 5 mm threshold, whatever the yaw."""
+    turn = Rotation.from_euler("z", yaw, degrees=True)
+    a = arrange([(turn.apply([0, 0, 1.0]), turn), (turn.apply([16.0, 16.0, 3.0]), turn)])
+    table, kind, rows = pair_kind(a, 0, 1)
+    assert kind == "point"
+    assert table.extents_mm[rows[0], :2] == pytest.approx([4, 4], abs=0.06)
+
+
+def test_chips_edge_to_edge_touch_around():
+    a = arrange([((0, 0, 1), None), ((20.02, 0, 1), None)])
+    table, kind, rows = pair_kind(a, 0, 1)
+    assert kind == "line"  # the 20 x 2 mm side faces: a strip 20 mm long, 2 mm wide
+    assert PLACES[table.place_a[rows[0]]] == "around"
+    assert PLACES[table.place_b[rows[0]]] == "around"
 
 
 def test_chip_lying_across_an_edge_is_a_line():
@@ -162,6 +178,15 @@ def test_a_tilted_chip_is_counted_where_its_footprint_is():
     assert (maps.neh[clearly_out] == 0).all()
     # where the ray crosses the chip it crosses 2 mm / cos 30 of solid
     assert maps.solid_mm[clearly_in & (np.abs(x) < 8)] == pytest.approx(2 / np.cos(np.radians(30)))
+
+
+def test_ring_means_use_the_target_only_and_ignore_stray_chips():
+    poses = [((-60 + 20 * i, -60 + 20 * j, 1), None) for i in range(7) for j in range(7)]
+    near = describe([arrange(poses)], names=["thickness"]).sections["thickness"]
+    far = describe([arrange([*poses, ((0, 400, 1), None)])], names=["thickness"])
+    rings = near["profiles"]["neh_by_ring"]
+    assert rings["values"] == far.sections["thickness"]["profiles"]["neh_by_ring"]["values"]
+    assert rings["values"][0] == pytest.approx(1.0)  # the centre is covered once
 
 
 def test_pixel_grid_tiles_the_target_exactly():

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -139,6 +140,7 @@ def test_describe_a_directory_without_packing_result(tmp_path):
         (lambda t: "\n".join(t.splitlines()[:1]), ["poses_after_batch_02.csv", "no chips"]),
         (lambda t: t.replace(",0.", ",nan", 1), ["poses_after_batch_02.csv"]),
         (lambda t: "", ["poses_after_batch_02.csv", "empty"]),
+        (lambda t: re.sub(r"\n0,1,(box [^,]*),[^,]*,", r"\n0,1,\1,1e300,", t, count=1), ["beyond"]),
     ],
 )
 def test_describe_a_corrupted_poses_file(tmp_path, small_scenario, corrupt, words):
@@ -238,6 +240,49 @@ def test_compare_refuses_single_runs_and_missing_directories(tmp_path, described
         "no such run directory",
     )
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+
+
+@pytest.mark.parametrize(
+    "damage, words",
+    [
+        (lambda d: d.update(repeats="3"), ["repeats"]),
+        (
+            lambda d: d["descriptors"]["stack"]["scalars"]["height_max_mm"]["values"].pop(),
+            ["height_max_mm"],
+        ),
+        (
+            lambda d: d["descriptors"]["layers"]["profiles"]["chips"]["values"][0].append(1),
+            ["layers.chips"],
+        ),
+        (
+            lambda d: d.update(parameters={**d["parameters"], "layer_mm": 4.0}),
+            ["layer_mm 2.0 vs 4.0"],
+        ),
+        (lambda d: d.update(descriptors={}), ["share no descriptor"]),
+    ],
+)
+def test_compare_refuses_damaged_or_mismatched_ensembles(tmp_path, small_scenario, damage, words):
+    a, b = tmp_path / "a", tmp_path / "b"
+    result = run_cli(
+        "run",
+        str(small_scenario),
+        "--to",
+        "geometry",
+        "--repeats",
+        "2",
+        "--out",
+        str(a),
+        "--quiet",
+        "--descriptors",
+        "stack,layers",
+    )
+    assert result.returncode == 0, result.stderr
+    shutil.copytree(a, b)
+    data = json.loads((b / "ensemble.json").read_text())
+    damage(data)
+    (b / "ensemble.json").write_text(json.dumps(data))
+    _one_line_error(run_cli("compare", str(a), str(b), "--out", str(tmp_path / "c")), *words)
+    assert not (tmp_path / "c").exists()
 
 
 def test_bad_repeats_are_refused(tmp_path, small_scenario):
