@@ -580,6 +580,7 @@ def render_stack(
     polydata,
     scalars: str = "chip_id",
     window_size: tuple[int, int] = (1200, 900),
+    show_edges: bool = True,
 ) -> None:
     """A 3-D picture of the stack on the conveyor (Fig. 6), rendered off screen.
 
@@ -644,13 +645,15 @@ def render_stack(
     # VTK logs "bad X server connection" before falling back to an off-screen context: noise
     # on a terminal that should show only the run's own lines.
     with pyvista.vtk_verbosity("off"):
-        image = _render(pyvista, mesh, conveyor, colour_by, style, what, scalars, window_size)
+        image = _render(
+            pyvista, mesh, conveyor, colour_by, style, what, scalars, window_size, show_edges
+        )
     from PIL import Image  # a pyvista dependency
 
     Image.fromarray(np.asarray(image)).save(path, format="PNG")
 
 
-def _render(pyvista, mesh, conveyor, colour_by, style, what, scalars, window_size):
+def _render(pyvista, mesh, conveyor, colour_by, style, what, scalars, window_size, show_edges):
     (x0, x1, y0, y1, _, z1) = mesh.bounds
     plotter = pyvista.Plotter(off_screen=True, window_size=list(map(int, window_size)))
     try:
@@ -660,7 +663,7 @@ def _render(pyvista, mesh, conveyor, colour_by, style, what, scalars, window_siz
             mesh,
             scalars=colour_by,
             preference="cell",
-            show_edges=True,
+            show_edges=show_edges,
             edge_color="#303030",
             line_width=1,
             show_scalar_bar=False,

@@ -24,6 +24,7 @@ __all__ = [
     "SettlingSpec",
     "OutputSpec",
     "GeometrySpec",
+    "MeshSpec",
     "Scenario",
     "scenario_from_dict",
     "scenario_to_dict",
@@ -219,6 +220,35 @@ class GeometrySpec:
 
 
 @dataclass(frozen=True)
+class MeshSpec:
+    """How the meshing stage meshes the stack (see README: Meshes)."""
+
+    kind: str = _key(
+        "voxel",
+        "",
+        "`voxel` (hexahedra, always succeeds), `conformal` (gmsh tetrahedra) or `both`",
+        _one_of("voxel", "conformal", "both"),
+    )
+    voxel_mm: float = _key(0.5, "mm", "voxel of the hexahedral mesh", _between(0.05, 100.0))
+    size_mm: float = _key(
+        1.5, "mm", "largest element edge of the conformal mesh", _between(0.05, 100.0)
+    )
+    pore_space: str = _key(
+        "none",
+        "",
+        "`box`: also mesh the pore space in the box over the chips from the conveyor to "
+        "the top; `none`: chips only",
+        _one_of("none", "box"),
+    )
+    min_quality: float = _key(
+        0.1, "", "smallest accepted element quality (SICN) of the conformal mesh", _between(0, 1)
+    )
+    formats: tuple[str, ...] = _key(
+        ("msh", "vtu", "inp", "xdmf"), "", "files to write (the CLI's --formats overrides)"
+    )
+
+
+@dataclass(frozen=True)
 class Scenario:
     """A complete, validated scenario."""
 
@@ -231,6 +261,7 @@ class Scenario:
     settling: SettlingSpec = field(default_factory=SettlingSpec)
     output: OutputSpec = field(default_factory=OutputSpec)
     geometry: GeometrySpec = field(default_factory=GeometrySpec)
+    mesh: MeshSpec = field(default_factory=MeshSpec)
 
     def with_seed(self, seed: int) -> Scenario:
         return dataclasses.replace(self, seed=seed)
@@ -243,6 +274,7 @@ _SECTIONS: dict[str, type] = {
     "settling": SettlingSpec,
     "output": OutputSpec,
     "geometry": GeometrySpec,
+    "mesh": MeshSpec,
 }
 
 
@@ -266,6 +298,10 @@ def _coerce(path: str, value: Any, annotation: str) -> Any:
         if not math.isfinite(value):
             raise InputError(f"{path}: must be finite, got {value!r}")
         return float(value)
+    if annotation == "tuple[str, ...]":
+        if not isinstance(value, list | tuple) or not all(isinstance(v, str) for v in value):
+            raise bad("a list of strings")
+        return tuple(value)
     if annotation.startswith("tuple[float"):
         if not isinstance(value, list | tuple):
             raise bad("a list of numbers")
@@ -316,6 +352,21 @@ def scenario_from_dict(data: Mapping[str, Any]) -> Scenario:
     return scenario
 
 
+MESH_FORMAT_NAMES = ("inp", "msh", "vtu", "xdmf")  # export.mesh_files registers these
+
+
+def check_formats(formats: tuple[str, ...], key: str) -> None:
+    """Refuse an empty list or an unknown mesh format, listing the valid ones."""
+    if not formats:
+        raise InputError(f"{key}: give at least one format ({', '.join(MESH_FORMAT_NAMES)})")
+    for name in formats:
+        if name not in MESH_FORMAT_NAMES:
+            raise InputError(
+                f"{key}: unknown mesh format {printable(name)!r}; "
+                f"valid formats: {', '.join(MESH_FORMAT_NAMES)}"
+            )
+
+
 def _check_consistency(s: Scenario) -> None:
     from packing.presets import PRESETS
     from packing.shapes import SHAPES
@@ -350,6 +401,7 @@ def _check_consistency(s: Scenario) -> None:
         )
     if s.settling.hold_time_s >= s.settling.max_time_s:
         raise InputError("settling.hold_time_s: must be shorter than settling.max_time_s")
+    check_formats(s.mesh.formats, "mesh.formats")
     if d.chips > 200_000:
         raise InputError(f"deposition.chips: {d.chips} is beyond what one run can hold (200000)")
 

@@ -33,7 +33,9 @@ def _parser() -> argparse.ArgumentParser:
         default=None,
         help="scenario TOML file or built-in name (default: paper-squares)",
     )
-    run.add_argument("--to", default="packing", help="last stage to run (default: packing)")
+    run.add_argument(
+        "--to", default="packing", help="last stage: packing, geometry or mesh (default: packing)"
+    )
     run.add_argument("--out", default=None, help="run directory (default: runs/<name>-seed<N>)")
     run.add_argument("--seed", type=int, default=None, help="seed of every random draw")
     run.add_argument("--overwrite", action="store_true", help="replace an existing run directory")
@@ -49,6 +51,11 @@ def _parser() -> argparse.ArgumentParser:
         "--descriptors",
         default=None,
         help="comma-separated descriptors for the geometry stage (default: all)",
+    )
+    run.add_argument(
+        "--formats",
+        default=None,
+        help="comma-separated mesh files to write with --to mesh: msh, vtu, inp, xdmf",
     )
     describe = commands.add_parser("describe", help="the geometry stage on an existing run")
     describe.add_argument("run_dir", help="run directory holding a packing result")
@@ -91,8 +98,18 @@ def _run(args: argparse.Namespace) -> None:
         scenario = scenario.with_seed(args.seed)
     out = args.out or f"runs/{scenario.name}-seed{scenario.seed}"
     descriptors = _names(args.descriptors)
-    if descriptors is not None and args.to != "geometry":
-        raise ChipstackError("--descriptors: only with --to geometry")
+    if descriptors is not None and args.to not in ("geometry", "mesh"):
+        raise ChipstackError("--descriptors: only with --to geometry or --to mesh")
+    if args.formats is not None:
+        import dataclasses
+
+        from packing.config import check_formats
+
+        formats = tuple(f.strip() for f in args.formats.split(",") if f.strip())
+        check_formats(formats, "--formats")
+        scenario = dataclasses.replace(
+            scenario, mesh=dataclasses.replace(scenario.mesh, formats=formats)
+        )
     if args.repeats is not None:
         _ensemble(args, scenario, out, descriptors)
         return
@@ -137,6 +154,12 @@ def _run(args: argparse.Namespace) -> None:
         )
         if "geometry" in manifest:
             _print_geometry(path)
+        for kind, m in manifest.get("mesh", {}).items():
+            print(
+                f"{kind} mesh: {m['elements']:,} elements, {m['nodes']:,} nodes, quality min "
+                f"{m['quality_min']:.3f}, largest chip volume error "
+                f"{100 * m['chip_volume_error_max']:.2f} %; in {m['info']['mesh_time_s']:.1f} s"
+            )
 
 
 def _print_geometry(path) -> None:

@@ -10,7 +10,7 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-__all__ = ["single_run_figures", "ensemble_figures", "comparison_figures"]
+__all__ = ["single_run_figures", "ensemble_figures", "comparison_figures", "mesh_figure"]
 
 _KINDS = ("point", "line", "surface")
 
@@ -118,3 +118,23 @@ def comparison_figures(
     full = ensembles[0]["descriptors"]["layers"]["scalars"]["full_layer"]["mean"]
     figures.plot_layer_comparison(folder / "layer_filling.png", np.array(longest), series, full)
     return ["figures/layer_filling.png"]
+
+
+def mesh_figure(path: Path, mesh) -> list[str]:
+    """The mesh's outer surface coloured by chip (pores hidden), rendered off screen."""
+    import pyvista
+
+    from export import figures
+    from export.mesh_files import to_meshio
+
+    grid = pyvista.from_meshio(to_meshio(mesh))
+    grid = grid.extract_cells(np.flatnonzero(np.asarray(mesh.chip) >= 0))
+    surface = grid.extract_surface(algorithm="dataset_surface")
+    surface.cell_data["chip_id"] = np.asarray(surface.cell_data["chip"])
+    try:
+        # Element edges show the mesh; on a million elements they only darken the picture.
+        figures.render_stack(path, surface, show_edges=surface.n_cells < 100_000)
+    except RuntimeError as exc:
+        log.warning("mesh picture not rendered: %s", exc)
+        return []
+    return [path.name]

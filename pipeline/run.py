@@ -33,8 +33,8 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-STAGES = ("packing", "geometry")  # in order; the meshing issue adds "mesh"
-PLANNED = ("mesh",)
+STAGES = ("packing", "geometry", "mesh")  # in order
+PLANNED: tuple[str, ...] = ()
 MAX_REPEATS = 1000
 
 
@@ -80,7 +80,7 @@ def run_pipeline(
     Returns (run directory, stack, manifest).
     """
     check_stage(to)
-    if to == "geometry":
+    if to != "packing":
         from geometry.describe import check_names
 
         check_names(descriptors)
@@ -112,7 +112,7 @@ def _single_run(
     _write_packing(run, prefix, stack)
     stages = ["packing"]
     geometry_summary = None
-    if to == "geometry":
+    if to in ("geometry", "mesh"):
         from geometry.arrangement import arrangements_from_stack
 
         start = time.perf_counter()
@@ -126,6 +126,12 @@ def _single_run(
         )
         times["geometry"] = round(time.perf_counter() - start, 3)
         stages.append("geometry")
+    mesh_summary = None
+    if to == "mesh":
+        start = time.perf_counter()
+        mesh_summary = _mesh(run.path(f"{prefix}mesh/x").parent, history[-1], scenario, figures)
+        times["mesh"] = round(time.perf_counter() - start, 3)
+        stages.append("mesh")
     times["total"] = round(time.perf_counter() - wall, 3)
     manifest = {
         "tool": "chipstack",
@@ -145,6 +151,8 @@ def _single_run(
     }
     if geometry_summary is not None:
         manifest["geometry"] = geometry_summary
+    if mesh_summary is not None:
+        manifest["mesh"] = mesh_summary
     run.write_json(f"{prefix}manifest.json", manifest)
     return stack, manifest
 
@@ -172,6 +180,62 @@ def _geometry(
         "files": sorted(files),
         "descriptor_time_s": round(sum(description.timings_s.values()), 4),
     }
+
+
+def _mesh(folder: Path, arrangement, scenario: Scenario, figures: bool) -> dict[str, Any]:
+    """Mesh the stack, check the mesh and write its files into ``folder``."""
+    from export.mesh_files import write_mesh
+    from geometry.contacts import find_contacts
+    from meshing import check_mesh, conformal_mesh, voxel_mesh
+    from meshing.checks import assert_valid
+
+    spec = scenario.mesh
+    g = scenario.geometry
+    table = find_contacts(arrangement, g.contact_gap_mm, g.contact_extent_mm)
+    chips = table.chip_b >= 0
+    surface_pairs = np.column_stack([table.chip_a, table.chip_b])[chips & (table.kind == 2)]
+    kinds = ["voxel", "conformal"] if spec.kind == "both" else [spec.kind]
+    summary: dict[str, Any] = {}
+    for kind in kinds:
+        stem = f"stack_{kind}"
+        formats = list(spec.formats)
+        if kind == "voxel":
+            mesh = voxel_mesh(arrangement, spec.voxel_mm, spec.pore_space, g.layer_mm)
+        else:
+            msh = folder / f"{stem}.msh" if "msh" in formats else None
+            mesh = conformal_mesh(
+                arrangement,
+                spec.size_mm,
+                spec.pore_space,
+                g.layer_mm,
+                spec.min_quality,
+                msh_path=msh,
+            )
+            formats = [f for f in formats if f != "msh"]  # gmsh wrote it, physical groups and all
+        report = check_mesh(
+            mesh, arrangement, surface_pairs, spec.min_quality if kind == "conformal" else 0.99
+        )
+        assert_valid(report)
+        files = [p.name for p in write_mesh(folder, stem, mesh, formats)]
+        if kind == "conformal" and "msh" in spec.formats:
+            files.append(f"{stem}.msh")
+        if figures:
+            from pipeline.figures import mesh_figure
+
+            files += mesh_figure(folder / f"{stem}.png", mesh)
+        (folder / f"{stem}_checks.json").write_text(json.dumps(report, indent=2) + "\n")
+        files.append(f"{stem}_checks.json")
+        summary[kind] = {
+            "elements": mesh.n_elements,
+            "nodes": len(mesh.points),
+            "quality_min": round(report["quality_min"], 4),
+            "quality_p1": round(report["quality_p1"], 4),
+            "chip_volume_error_max": report["chip_volume_error_max"],
+            "total_volume_error": report["total_volume_error"],
+            "info": mesh.info,
+            "files": sorted(files),
+        }
+    return summary
 
 
 def describe_run(

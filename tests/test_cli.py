@@ -127,8 +127,12 @@ def test_an_unsettled_batch_is_shown_to_the_user(small_scenario, tmp_path):
 
 
 def test_unknown_stage_and_occupied_output_are_refused(small_scenario, tmp_path):
-    result = run_cli("run", str(small_scenario), "--to", "mesh", "--out", str(tmp_path / "m"))
-    assert result.returncode == 2 and "--to mesh" in result.stderr
+    result = run_cli(
+        "run", str(small_scenario), "--to", "consolidate", "--out", str(tmp_path / "m")
+    )
+    assert result.returncode == 2 and "--to consolidate" in result.stderr
+    assert "valid stages: packing, geometry, mesh" in result.stderr
+    assert not (tmp_path / "m").exists()
     (tmp_path / "busy").mkdir()
     (tmp_path / "busy" / "keep.txt").write_text("x")
     result = run_cli("run", str(small_scenario), "--out", str(tmp_path / "busy"))

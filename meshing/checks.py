@@ -1,0 +1,147 @@
+"""Validity of a volume mesh of the stack: the figures a reviewer of an FE model asks for.
+
+``check_mesh`` returns a plain report (JSON-ready); ``assert_valid`` raises
+:class:`MeshingError` with the first failed criterion. Criteria (documented in the README):
+
+* every element has positive volume;
+* element quality (SICN; 1 for a regular tetrahedron or a cube): minimum and 1st
+  percentile, the minimum above ``min_quality``;
+* the meshed volume of every chip within ``chip_tolerance`` (2 %) of its exact solid after
+  the overlap rule, and of the whole within ``total_tolerance`` (1 %) of the union;
+* no two nodes at the same place;
+* every face shared by at most two elements (one on the boundary, two inside);
+* chips in surface contact share interface faces.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from geometry.arrangement import Arrangement
+from geometry.solids import chip_solid, union_solid
+from meshing.conformal import MeshingError, processing_order
+from meshing.mesh import VolumeMesh
+
+__all__ = ["check_mesh", "assert_valid", "exact_chip_volumes", "element_faces"]
+
+_TET_FACES = ((0, 2, 1), (0, 1, 3), (1, 2, 3), (0, 3, 2))
+_HEX_FACES = ((0, 3, 2, 1), (4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (2, 3, 7, 6), (3, 0, 4, 7))
+
+
+def element_faces(mesh: VolumeMesh) -> tuple[np.ndarray, np.ndarray]:
+    """Every face of every element: (F, k) sorted node ids and (F,) owning element."""
+    local = _TET_FACES if mesh.cell_type == "tetra" else _HEX_FACES
+    faces = np.concatenate([mesh.cells[:, list(f)] for f in local])
+    owner = np.tile(np.arange(mesh.n_elements), len(local))
+    return np.sort(faces, axis=1), owner
+
+
+def exact_chip_volumes(arrangement: Arrangement) -> np.ndarray:
+    """(n,) mm3: each chip's solid minus the chips below it (the overlap rule of meshing)."""
+    order = processing_order(arrangement)
+    volumes = np.zeros(arrangement.n_chips)
+    below = []
+    for chip in order:
+        solid = chip_solid(arrangement, int(chip))
+        if below:
+            solid = solid - union_solid(below)
+        volumes[chip] = solid.volume()
+        below.append(chip_solid(arrangement, int(chip)))
+    return volumes
+
+
+def check_mesh(
+    mesh: VolumeMesh,
+    arrangement: Arrangement,
+    surface_pairs: np.ndarray | None = None,
+    min_quality: float = 0.1,
+    chip_tolerance: float = 0.02,
+    total_tolerance: float = 0.01,
+) -> dict:
+    """The validity report of ``mesh`` (see the module docstring)."""
+    volumes = mesh.element_volumes()
+    quality = np.asarray(mesh.quality)
+    meshed = mesh.chip_volumes()
+    exact = exact_chip_volumes(arrangement)
+    relative = np.abs(meshed - exact) / np.maximum(exact, 1e-12)
+    union = union_solid([chip_solid(arrangement, i) for i in range(arrangement.n_chips)]).volume()
+    total = float(meshed.sum())
+    rounded = np.round(mesh.points / 1e-7).astype(np.int64)
+    duplicates = len(mesh.points) - len(np.unique(rounded, axis=0))
+    faces, owner = element_faces(mesh)
+    order = np.lexsort(faces.T[::-1])
+    faces, owner = faces[order], owner[order]
+    same = np.all(faces[1:] == faces[:-1], axis=1)
+    starts = np.flatnonzero(np.concatenate([[True], ~same]))
+    counts = np.diff(np.concatenate([starts, [len(faces)]]))
+    shared_ok = bool((counts <= 2).all())
+    interfaces = {}
+    if surface_pairs is not None and len(surface_pairs):
+        pair_faces = starts[counts == 2]
+        a = mesh.chip[owner[pair_faces]]
+        b = mesh.chip[owner[pair_faces + 1]]
+        touching = {
+            tuple(sorted(p)) for p in zip(a.tolist(), b.tolist(), strict=True) if p[0] != p[1]
+        }
+        wanted = {tuple(sorted(map(int, p))) for p in surface_pairs}
+        missing = sorted(wanted - touching)
+        interfaces = {
+            "surface_contacts": len(wanted),
+            "sharing_faces": len(wanted) - len(missing),
+            "missing": [list(p) for p in missing[:20]],
+        }
+    report = {
+        "elements": int(mesh.n_elements),
+        "nodes": int(len(mesh.points)),
+        "min_element_volume_mm3": float(volumes.min()),
+        "quality_min": float(quality.min()),
+        "quality_p1": float(np.percentile(quality, 1)),
+        "min_quality": min_quality,
+        "chip_volume_error_max": float(relative.max()),
+        "chip_volume_worst": int(np.argmax(relative)),
+        "total_volume_mm3": total,
+        "union_volume_mm3": float(union),
+        "total_volume_error": float(abs(total - union) / union),
+        "duplicate_nodes": int(duplicates),
+        "faces_shared_by_more_than_two": int((counts > 2).sum()),
+        "interfaces": interfaces,
+    }
+    report["valid"] = bool(
+        volumes.min() > 0
+        and quality.min() >= min_quality
+        and relative.max() <= chip_tolerance
+        and report["total_volume_error"] <= total_tolerance
+        and duplicates == 0
+        and shared_ok
+        and not interfaces.get("missing")
+    )
+    return report
+
+
+def assert_valid(report: dict) -> None:
+    """Raise :class:`MeshingError` naming the first criterion ``report`` fails."""
+    checks = [
+        (report["min_element_volume_mm3"] > 0, "an element has no positive volume"),
+        (
+            report["quality_min"] >= report["min_quality"],
+            f"quality {report['quality_min']:.3g} below {report['min_quality']}",
+        ),
+        (
+            report["chip_volume_error_max"] <= 0.02,
+            f"chip {report['chip_volume_worst']} volume off by "
+            f"{100 * report['chip_volume_error_max']:.2f} % (over 2 %)",
+        ),
+        (
+            report["total_volume_error"] <= 0.01,
+            f"total volume off by {100 * report['total_volume_error']:.2f} % (over 1 %)",
+        ),
+        (report["duplicate_nodes"] == 0, f"{report['duplicate_nodes']} duplicate nodes"),
+        (report["faces_shared_by_more_than_two"] == 0, "faces shared by more than two elements"),
+        (
+            not report["interfaces"].get("missing"),
+            f"chips in surface contact without shared faces: {report['interfaces'].get('missing')}",
+        ),
+    ]
+    for ok, problem in checks:
+        if not ok:
+            raise MeshingError(f"mesh check failed: {problem}")

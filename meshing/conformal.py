@@ -1,0 +1,324 @@
+"""Conformal tetrahedral mesh of the stack with gmsh (OpenCASCADE kernel).
+
+Every chip is its own volume; where chips touch, the volumes share their interface (the
+OpenCASCADE ``fragment`` makes the shared faces one entity, so their nodes are shared).
+The physics leaves chips a few hundredths of a millimetre into each other: the overlap
+goes to the chip that came to rest first, taken as the lower one (the chips are ordered
+by the height of their lowest point; the upper chip is cut by the lower). Optionally the
+pore space (``pore_space="box"``: the box over the chips' footprint from the conveyor to
+the top of the stack, minus the chips) is meshed as its own region.
+
+gmsh is a global session: it is only ever used inside :class:`GmshSession`.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import logging
+import os
+import re
+import sys
+import tempfile
+import threading
+import time
+
+import numpy as np
+
+from geometry.arrangement import Arrangement
+from geometry.overlaps import find_overlaps
+from meshing.mesh import PORE, VolumeMesh
+from meshing.voxel import chip_attributes
+from packing.errors import ChipstackError, InputError
+
+__all__ = ["GmshSession", "MeshingError", "conformal_mesh", "processing_order"]
+
+log = logging.getLogger(__name__)
+_LOCK = threading.Lock()
+_ON_PLANE_MM = 1e-6
+
+
+class MeshingError(ChipstackError):
+    """The stack cannot be meshed as asked (the message names the chips involved)."""
+
+
+class GmshSession:
+    """``with GmshSession() as gmsh:`` a fresh gmsh model, finalised on exit even on error.
+
+    gmsh keeps one global state per process, so sessions cannot nest or overlap.
+    """
+
+    def __init__(self, threads: int = 1) -> None:
+        self.threads = threads
+
+    def __enter__(self):
+        import gmsh
+
+        if not _LOCK.acquire(blocking=False):
+            raise RuntimeError("a gmsh session is already open in this process")
+        try:
+            gmsh.initialize(readConfigFiles=False, interruptible=False)
+            gmsh.option.setNumber("General.Terminal", 0)
+            gmsh.option.setNumber("General.NumThreads", self.threads)
+            gmsh.model.add("stack")
+        except Exception:
+            _LOCK.release()
+            raise
+        self._gmsh = gmsh
+        return gmsh
+
+    def __exit__(self, *exc: object) -> None:
+        try:
+            self._gmsh.finalize()
+        finally:
+            _LOCK.release()
+
+
+def processing_order(arrangement: Arrangement) -> np.ndarray:
+    """Chips from the bottom up: by the height of their lowest point, then by index."""
+    return np.lexsort((np.arange(arrangement.n_chips), arrangement.bounds[:, 0, 2]))
+
+
+def _add_chip(occ, arrangement: Arrangement, chip: int) -> int:
+    shape = arrangement.shapes[arrangement.shape_index[chip]]
+    if shape.kind != "box":
+        raise InputError(
+            f"chip {chip}: conformal meshing supports box chips only (shape {shape.name!r}); "
+            "use the voxel mesh (mesh.kind = 'voxel')"
+        )
+    hx, hy, hz = (float(v) for v in shape.half_extents)
+    tag = occ.addBox(-hx, -hy, -hz, 2 * hx, 2 * hy, 2 * hz)
+    matrix = np.hstack([arrangement.rotations[chip], arrangement.positions[chip][:, None]])
+    occ.affineTransform([(3, tag)], [float(v) for v in matrix.ravel()])
+    return tag
+
+
+def conformal_mesh(
+    arrangement: Arrangement,
+    size_mm: float = 1.5,
+    pore_space: str = "none",
+    layer_mm: float = 2.0,
+    min_quality: float = 0.1,
+    threads: int = 2,
+    msh_path=None,
+) -> VolumeMesh:
+    """Tetrahedral mesh of the stack (see the module docstring).
+
+    size_mm: largest element edge. min_quality: the smallest acceptable SICN (gmsh's
+    signed inverse condition number, 1 for a regular tetrahedron); a mesh with a worse
+    element raises :class:`MeshingError` naming the chips that hold them. msh_path: where
+    to write the gmsh 4 file (with physical groups) once the mesh is accepted.
+    """
+    if pore_space not in ("none", "box"):
+        raise InputError(f"pore_space: must be 'none' or 'box', got {pore_space!r}")
+    if not (np.isfinite(size_mm) and size_mm > 0):
+        raise InputError(f"size_mm: must be positive, got {size_mm!r}")
+    start = time.perf_counter()
+    n = arrangement.n_chips
+    order = processing_order(arrangement)
+    rank = np.empty(n, dtype=np.int64)
+    rank[order] = np.arange(n)
+    overlaps = find_overlaps(arrangement)
+    cut_by: dict[int, list[int]] = {}
+    for (i, j), volume in zip(overlaps.pairs, overlaps.penetration_mm3, strict=True):
+        if volume > 0:
+            lower, upper = (int(i), int(j)) if rank[i] < rank[j] else (int(j), int(i))
+            cut_by.setdefault(upper, []).append(lower)
+    with GmshSession(threads) as gmsh:
+        occ = gmsh.model.occ
+        tags = [_add_chip(occ, arrangement, chip) for chip in range(n)]
+        for upper in sorted(cut_by, key=lambda c: rank[c]):
+            tools = [(3, tags[lower]) for lower in cut_by[upper]]
+            out, _ = occ.cut([(3, tags[upper])], tools, removeObject=True, removeTool=False)
+            if len(out) != 1:
+                raise MeshingError(
+                    f"chips {[upper, *cut_by[upper]]}: resolving their overlap splits chip "
+                    f"{upper} into {len(out)} pieces; use the voxel mesh (mesh.kind = 'voxel')"
+                )
+            tags[upper] = out[0][1]
+        objects = [(3, t) for t in tags]
+        top = float(arrangement.bounds[:, 1, 2].max())
+        if pore_space == "box":
+            lo = arrangement.bounds[:, 0, :2].min(axis=0)
+            hi = arrangement.bounds[:, 1, :2].max(axis=0)
+            objects.append((3, occ.addBox(lo[0], lo[1], 0.0, *(hi - lo), top)))
+        _, mapping = occ.fragment(objects[:1], objects[1:])
+        occ.synchronize()
+        owner: dict[int, int] = {}
+        for k, entities in enumerate(mapping[:n]):
+            for _, volume in entities:
+                if volume in owner:  # an overlap the cuts missed: the lower chip keeps it
+                    if rank[k] < rank[owner[volume]]:
+                        owner[volume] = k
+                else:
+                    owner[volume] = k
+        pores = []
+        if pore_space == "box":
+            pores = [v for _, v in mapping[n] if v not in owner]
+        model = gmsh.model
+        for chip in range(n):
+            volumes = [v for v, k in owner.items() if k == chip]
+            if not volumes:
+                raise MeshingError(f"chip {chip}: vanished when the stack was fragmented")
+            model.setPhysicalName(3, model.addPhysicalGroup(3, volumes, chip + 1), f"chip_{chip}")
+        if pores:
+            model.setPhysicalName(3, model.addPhysicalGroup(3, pores, n + 1), "pore")
+        _surface_groups(gmsh, n + 2)
+        option = gmsh.option.setNumber
+        option("Mesh.MeshSizeMax", float(size_mm))
+        option("Mesh.MeshSizeMin", float(size_mm) / 20)
+        option("Mesh.Algorithm", 6)
+        option("Mesh.Algorithm3D", 10)
+        option("Mesh.Optimize", 1)
+        geometry_s = time.perf_counter() - start
+        _generate(gmsh, arrangement, owner)
+        mesh = _extract(gmsh, arrangement, owner, n, layer_mm)
+        bad = mesh.quality < min_quality
+        if bad.any():
+            chips = sorted({int(c) for c in mesh.chip[bad]})
+            shown = ", ".join(map(str, chips[:12])) + (" ..." if len(chips) > 12 else "")
+            raise MeshingError(
+                f"conformal mesh: {int(bad.sum())} elements below quality {min_quality:g} "
+                f"(worst {mesh.quality.min():.2g}) in chips {shown}, where chips nearly touch; "
+                "use the voxel mesh (mesh.kind = 'voxel')"
+            )
+        if msh_path is not None:
+            option("Mesh.Binary", 1)
+            gmsh.write(str(msh_path))
+    info = dict(mesh.info)
+    info.update(
+        size_mm=size_mm,
+        pore_space=pore_space,
+        overlaps_cut=sum(len(v) for v in cut_by.values()),
+        geometry_time_s=round(geometry_s, 3),
+        mesh_time_s=round(time.perf_counter() - start, 3),
+    )
+    return VolumeMesh(**{**mesh.__dict__, "info": info})
+
+
+def _generate(gmsh, arrangement: Arrangement, owner: dict[int, int]) -> None:
+    """Mesh in 3-D; a failure becomes a :class:`MeshingError` naming the chips at fault.
+
+    The mesher's own diagnostics (printed from C) are captured, not shown, and searched
+    for the place or the surfaces where it failed.
+    """
+    with tempfile.TemporaryFile(mode="w+") as captured:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        saved = os.dup(1), os.dup(2)
+        os.dup2(captured.fileno(), 1)
+        os.dup2(captured.fileno(), 2)
+        try:
+            gmsh.model.mesh.generate(3)
+            failure = None
+        except Exception as exc:  # gmsh raises a bare Exception with its last error
+            failure = str(exc)
+        finally:
+            ctypes.CDLL(None).fflush(None)
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            os.close(saved[0])
+            os.close(saved[1])
+        if failure is None:
+            return
+        captured.seek(0)
+        text = captured.read() + "\n" + failure
+    chips: set[int] = set()
+    for match in re.finditer(r"point \(([-+\d.eE]+),\s*([-+\d.eE]+),\s*([-+\d.eE]+)\)", text):
+        point = np.array([float(v) for v in match.groups()])
+        near = np.all(
+            (arrangement.bounds[:, 0] - 0.1 <= point) & (point <= arrangement.bounds[:, 1] + 0.1),
+            axis=1,
+        )
+        chips.update(int(c) for c in np.flatnonzero(near))
+    for match in re.finditer(r"surface (\d+)", text):
+        for volume in gmsh.model.getAdjacencies(2, int(match.group(1)))[0]:
+            if int(volume) in owner:
+                chips.add(owner[int(volume)])
+    where = ", ".join(map(str, sorted(chips)[:12])) if chips else "unknown"
+    reason = failure.splitlines()[0] if failure else "failed"
+    raise MeshingError(
+        f"conformal mesh failed ({reason}) near chips {where}, where chips nearly touch; "
+        "use the voxel mesh (mesh.kind = 'voxel')"
+    )
+
+
+def _surface_groups(gmsh, first_tag: int) -> None:
+    """Physical surfaces: bottom (on the conveyor), top (facing up), lateral (the rest)."""
+    model = gmsh.model
+    boundary = model.getBoundary(model.getEntities(3), combined=True, oriented=False)
+    groups: dict[str, list[int]] = {"bottom": [], "top": [], "lateral": []}
+    for _, surface in boundary:
+        surface = abs(surface)
+        box = model.getBoundingBox(2, surface)
+        if box[5] <= _ON_PLANE_MM:
+            groups["bottom"].append(surface)
+            continue
+        u, v = model.getParametrizationBounds(2, surface)
+        normal = model.getNormal(surface, [(u[0] + u[1]) / 2, (v[0] + v[1]) / 2])
+        groups["top" if abs(normal[2]) > 0.5 and _faces_up(gmsh, surface) else "lateral"].append(
+            surface
+        )
+    for k, (name, surfaces) in enumerate(groups.items()):
+        if surfaces:
+            model.setPhysicalName(2, model.addPhysicalGroup(2, surfaces, first_tag + k), name)
+
+
+def _faces_up(gmsh, surface: int) -> bool:
+    """Whether the solid lies below this exterior surface (its outside faces up)."""
+    model = gmsh.model
+    (up,) = model.getAdjacencies(2, surface)[0][:1] or (None,)
+    if up is None:
+        return False
+    box = model.getBoundingBox(3, int(up))
+    face = model.getBoundingBox(2, surface)
+    return (face[2] + face[5]) / 2 >= (box[2] + box[5]) / 2
+
+
+def _extract(gmsh, arrangement: Arrangement, owner: dict[int, int], n: int, layer_mm: float):
+    model = gmsh.model
+    node_tags, coords, _ = model.mesh.getNodes()
+    points = np.asarray(coords, dtype=float).reshape(-1, 3)
+    index = np.full(int(node_tags.max()) + 1, -1, dtype=np.int64)
+    index[node_tags] = np.arange(len(node_tags))
+    cells, chips, elements = [], [], []
+    for _, volume in model.getEntities(3):
+        types, tags, nodes = model.mesh.getElements(3, volume)
+        for t, et, en in zip(types, tags, nodes, strict=True):
+            if t != 4:  # 4-node tetrahedra only
+                raise MeshingError(f"volume {volume}: gmsh made element type {t}, not tetrahedra")
+            cells.append(index[np.asarray(en, dtype=np.int64).reshape(-1, 4)])
+            chips.append(np.full(len(et), owner.get(volume, PORE), dtype=np.int64))
+            elements.append(np.asarray(et))
+    cells = np.concatenate(cells)
+    chip = np.concatenate(chips)
+    quality = np.asarray(model.mesh.getElementQualities(np.concatenate(elements), "minSICN"))
+    used = np.unique(cells)
+    remap = np.full(len(points), -1, dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    points, cells = points[used], remap[cells]
+    batch_of, layer_of, fibres_of = chip_attributes(arrangement, layer_mm)
+    solid = chip >= 0
+    safe = np.maximum(chip, 0)
+    z = points[:, 2]
+    lateral = np.zeros(len(points), dtype=bool)
+    for axis in (0, 1):
+        lateral |= np.abs(points[:, axis] - points[:, axis].min()) <= _ON_PLANE_MM
+        lateral |= np.abs(points[:, axis] - points[:, axis].max()) <= _ON_PLANE_MM
+    return VolumeMesh(
+        points=points,
+        cell_type="tetra",
+        cells=cells,
+        chip=chip,
+        batch=np.where(solid, batch_of[safe], 0),
+        layer=np.where(solid, layer_of[safe], PORE),
+        fibres=np.where(solid[:, None, None], fibres_of[safe], 0.0),
+        quality=quality,
+        node_sets={
+            "bottom": np.flatnonzero(z <= z.min() + _ON_PLANE_MM),
+            "top": np.flatnonzero(z >= z.max() - _ON_PLANE_MM),
+            "lateral": np.flatnonzero(lateral),
+        },
+        n_chips=n,
+        kind="conformal",
+        info={},
+    )
