@@ -12,9 +12,9 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install --quiet -e '.[test]'
 	touch $(STAMP)
 
-# The furthest stage that exists yet is `geometry`; this becomes `--to mesh` with the meshing stage.
+# The paper scenario through every stage: deposition, descriptors, voxel mesh.
 run: $(STAMP)
-	$(BIN)/pipeline run --to geometry --out runs/paper-squares --seed 0 --overwrite
+	$(BIN)/pipeline run --to mesh --out runs/paper-squares --seed 0 --overwrite
 
 test: $(STAMP)
 	$(BIN)/ruff check .
@@ -24,6 +24,7 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_packing.py
 	$(BIN)/python benchmarks/bench_geometry.py
+	$(BIN)/python benchmarks/bench_meshing.py
 
 clean:
 	rm -rf $(VENV) runs

@@ -158,7 +158,10 @@ def conformal_mesh(
         for chip in range(n):
             volumes = [v for v, k in owner.items() if k == chip]
             if not volumes:
-                raise MeshingError(f"chip {chip}: vanished when the stack was fragmented")
+                raise MeshingError(
+                    f"chip {chip}: lost when the stack was fragmented (it nearly coincides "
+                    "with another chip); use the voxel mesh (mesh.kind = 'voxel')"
+                )
             model.setPhysicalName(3, model.addPhysicalGroup(3, volumes, chip + 1), f"chip_{chip}")
         if pores:
             model.setPhysicalName(3, model.addPhysicalGroup(3, pores, n + 1), "pore")

@@ -1,0 +1,290 @@
+"""Meshes of the stack: analytic volumes, validity criteria, files read back, a real solver."""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+
+import meshio
+import numpy as np
+import pytest
+import pyvista
+from scipy.spatial.transform import Rotation
+
+from export.mesh_files import MESH_FORMATS, write_mesh
+from geometry.arrangement import Arrangement
+from geometry.contacts import find_contacts
+from meshing import PORE, MeshingError, check_mesh, conformal_mesh, voxel_mesh
+from meshing.checks import element_faces, exact_chip_volumes
+from packing.config import ChipSpec
+from packing.shapes import box_shape
+
+SQUARE = box_shape(ChipSpec())
+
+
+def arrange(poses, target=60.0) -> Arrangement:
+    """poses: (centre, yaw in degrees) of flat chips, or (centre, scipy Rotation)."""
+    positions = np.array([p for p, _ in poses], dtype=float)
+    rotations = [
+        r if isinstance(r, Rotation) else Rotation.from_euler("z", r, degrees=True)
+        for _, r in poses
+    ]
+    quats = np.array([r.as_quat() for r in rotations])
+    n = len(poses)
+    return Arrangement((SQUARE,), np.zeros(n, int), positions, quats, np.arange(n) // 6 + 1, target)
+
+
+def layup() -> Arrangement:
+    """17 chips laid exactly: a 3 x 3 bottom layer edge to edge, a 2 x 2 layer over its
+    joints, a row of three, and one chip turned 45 degrees on top."""
+    poses = [((-20 + 20 * i, -20 + 20 * j, 1.0), 0.0) for i in range(3) for j in range(3)]
+    poses += [((-10 + 20 * i, -10 + 20 * j, 3.0), 0.0) for i in range(2) for j in range(2)]
+    poses += [((-20 + 20 * i, 0.0, 5.0), 90.0 if i == 1 else 0.0) for i in range(3)]
+    poses += [((0.0, 0.0, 7.0), 45.0)]
+    return arrange(poses)
+
+
+def surface_pairs(a: Arrangement) -> np.ndarray:
+    t = find_contacts(a)
+    keep = (t.kind == 2) & (t.chip_b >= 0)
+    return np.column_stack([t.chip_a, t.chip_b])[keep]
+
+
+@pytest.fixture(scope="module")
+def conformal_layup():
+    return conformal_mesh(layup(), size_mm=1.5)
+
+
+# -- voxel mesh ------------------------------------------------------------------------------
+def test_voxel_mesh_of_an_aligned_chip_is_exact():
+    mesh = voxel_mesh(arrange([((0, 0, 1.0), 0.0)]), voxel_mm=0.5)
+    assert mesh.n_elements == 40 * 40 * 4
+    assert mesh.chip_volumes() == pytest.approx([800.0])
+    assert len(mesh.points) == 41 * 41 * 5  # neighbouring voxels share their nodes
+    assert (mesh.element_volumes() > 0).all()
+    assert np.allclose(mesh.points[mesh.node_sets["bottom"], 2], 0.0)
+
+
+def test_voxel_mesh_labels_pores_and_shares_interfaces():
+    a = arrange([((0, 0, 1.0), 0.0), ((5, 5, 3.0), 0.0)])
+    mesh = voxel_mesh(a, voxel_mm=1.0, pore_space="box")
+    assert set(np.unique(mesh.chip)) == {PORE, 0, 1}
+    box = 25 * 25 * 4  # footprint of both chips, conveyor to top
+    assert mesh.n_elements == box
+    pore = mesh.element_volumes()[mesh.chip == PORE].sum()
+    assert pore == pytest.approx(box - 1600)
+    report = check_mesh(mesh, a, surface_pairs(a), min_quality=0.99)
+    assert report["valid"], report
+    assert report["interfaces"] == {"surface_contacts": 1, "sharing_faces": 1, "missing": []}
+
+
+def test_voxel_mesh_cell_data_follows_the_chip():
+    tilt = Rotation.from_euler("zy", (30, 10), degrees=True)
+    a = arrange([((0, 0, 1.0), 0.0), ((0, 0, 6.0), tilt)])
+    mesh = voxel_mesh(a, voxel_mm=0.5)
+    second = mesh.chip == 1
+    assert (mesh.batch[second] == 1).all() and (mesh.layer[second] == 3).all()
+    expected = tilt.apply([1.0, 0.0, 0.0])
+    assert np.allclose(mesh.fibres[second, 0], expected)
+    assert np.allclose(mesh.fibres[~second, 1], [0.0, 1.0, 0.0])
+
+
+# -- conformal mesh --------------------------------------------------------------------------
+def test_conformal_mesh_of_an_exact_layup_passes_every_check(conformal_layup):
+    a = layup()
+    report = check_mesh(conformal_layup, a, surface_pairs(a), min_quality=0.1)
+    assert report["valid"], report
+    assert report["quality_min"] > 0.3
+    assert report["chip_volume_error_max"] < 1e-9  # planar faces: exact
+    assert report["interfaces"]["sharing_faces"] == report["interfaces"]["surface_contacts"] > 10
+
+
+def test_touching_chips_share_nodes_not_copies(conformal_layup):
+    mesh = conformal_layup
+    faces, owner = element_faces(mesh)
+    keys, counts = np.unique(faces, axis=0, return_counts=True)
+    assert counts.max() == 2
+    # the interface between chips 0 and 9 (9 lies over the joint of 0, 1, 3, 4)
+    shared = {tuple(f) for f, o in zip(faces.tolist(), owner, strict=True) if mesh.chip[o] == 0}
+    above = {tuple(f) for f, o in zip(faces.tolist(), owner, strict=True) if mesh.chip[o] == 9}
+    area = 0.0
+    for face in shared & above:
+        p = mesh.points[list(face)]
+        area += np.linalg.norm(np.cross(p[1] - p[0], p[2] - p[0])) / 2
+    assert area == pytest.approx(100.0, rel=1e-6)  # a 10 x 10 mm quarter of chip 9
+
+
+def test_overlap_goes_to_the_lower_chip():
+    # the upper chip sank 0.1 mm into the lower one (listed second: order is by height)
+    a = arrange([((0, 0, 2.9), 0.0), ((0, 0, 1.0), 0.0)])
+    mesh = conformal_mesh(a, size_mm=2.0)
+    assert exact_chip_volumes(a) == pytest.approx([800.0 - 400 * 0.1, 800.0])
+    assert mesh.chip_volumes() == pytest.approx([760.0, 800.0], rel=1e-9)
+    report = check_mesh(mesh, a, surface_pairs(a))
+    assert report["valid"], report
+
+
+def test_conformal_pore_space_fills_the_box(conformal_layup):
+    mesh = conformal_mesh(layup(), size_mm=2.0, pore_space="box")
+    volumes = mesh.element_volumes()
+    box = 60 * 60 * 8.0
+    assert volumes.sum() == pytest.approx(box, rel=1e-9)
+    assert volumes[mesh.chip >= 0].sum() == pytest.approx(17 * 800.0, rel=1e-9)
+
+
+def test_conformal_failure_names_the_chips_and_suggests_voxels():
+    # two chips 0.0001 mm apart across a tilted corner: a sliver the mesher cannot resolve
+    tilt = Rotation.from_euler("xy", (0.02, 0.01), degrees=True)
+    a = arrange([((0, 0, 1.0), 0.0), ((19.0, 3.0, 3.0002), tilt)])
+    with pytest.raises(MeshingError, match=r"chips .*1.*voxel"):
+        conformal_mesh(a, size_mm=1.0, min_quality=0.3)
+
+
+def test_bad_mesh_parameters_are_refused():
+    a = layup()
+    with pytest.raises(Exception, match="pore_space"):
+        voxel_mesh(a, pore_space="all")
+    with pytest.raises(Exception, match="size_mm"):
+        conformal_mesh(a, size_mm=0.0)
+
+
+def test_checks_catch_a_broken_mesh(conformal_layup):
+    a = layup()
+    mesh = conformal_layup
+    flipped = mesh.cells.copy()
+    flipped[0, [0, 1]] = flipped[0, [1, 0]]
+    broken = type(mesh)(**{**mesh.__dict__, "cells": flipped})
+    assert not check_mesh(broken, a)["valid"]
+    points = np.vstack([mesh.points, mesh.points[:1]])
+    dup = type(mesh)(**{**mesh.__dict__, "points": points})
+    assert check_mesh(dup, a)["duplicate_nodes"] == 1
+
+
+# -- files -----------------------------------------------------------------------------------
+@pytest.mark.parametrize("kind", ["conformal", "voxel"])
+def test_every_format_reads_back(tmp_path, kind, conformal_layup):
+    mesh = conformal_layup if kind == "conformal" else voxel_mesh(layup(), 1.0)
+    files = write_mesh(tmp_path, "stack", mesh, MESH_FORMATS.names())
+    assert {p.name for p in files} >= {
+        "stack.vtu",
+        "stack.pvd",
+        "stack.msh",
+        "stack.inp",
+        "stack.xdmf",
+        "stack.h5",
+    }
+    vtu = pyvista.read(tmp_path / "stack.vtu")
+    assert vtu.n_cells == mesh.n_elements
+    assert np.array_equal(vtu.cell_data["chip"], mesh.chip)
+    assert np.allclose(vtu.cell_data["fibre_1"], mesh.fibres[:, 0])
+    for name in ("stack.vtu", "stack.msh", "stack.xdmf", "stack.inp"):
+        back = meshio.read(tmp_path / name)
+        assert sum(len(c.data) for c in back.cells) == mesh.n_elements, name
+        assert np.allclose(back.points, mesh.points), name
+    text = (tmp_path / "stack.inp").read_text()
+    assert len(re.findall(r"\*ELSET, ELSET=CHIP_\d{4}", text)) == 17
+    assert len(re.findall(r"\*ORIENTATION, NAME=OR_\d{4}", text)) == 17
+    assert "*NSET, NSET=BOTTOM" in text and "*NSET, NSET=TOP" in text
+
+
+# -- a real downstream solver ----------------------------------------------------------------
+def _compress(tmp_path, mesh, name: str) -> float:
+    """Platen compression in CalculiX: bottom clamped, top moved down by 1 % of the height.
+    Returns the compressive force on the top platen (N)."""
+    folder = tmp_path / name
+    folder.mkdir()
+    write_mesh(folder, "stack", mesh, ["inp"])
+    height = float(mesh.points[:, 2].max())
+    (folder / "job.inp").write_text(
+        "*INCLUDE, INPUT=stack.inp\n*STEP\n*STATIC\n*BOUNDARY\nBOTTOM, 1, 3, 0.0\n"
+        f"TOP, 1, 2, 0.0\nTOP, 3, 3, {-0.01 * height}\n"
+        "*NODE PRINT, NSET=TOP, TOTALS=ONLY\nRF\n*END STEP\n"
+    )
+    result = subprocess.run(
+        ["ccx", "-i", "job"],
+        cwd=folder,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env={**os.environ, "OMP_NUM_THREADS": "2"},
+    )
+    assert result.returncode == 0 and "Job finished" in result.stdout, result.stdout[-2000:]
+    totals = re.findall(
+        r"total force.*\n\s*\n?\s*(\S+)\s+(\S+)\s+(\S+)", (folder / "job.dat").read_text()
+    )
+    assert totals, (folder / "job.dat").read_text()[-1000:]
+    return -float(totals[-1][2])
+
+
+@pytest.mark.skipif(
+    shutil.which("ccx") is None and not os.environ.get("CHIPSTACK_REQUIRE_CCX"),
+    reason="CalculiX (ccx) is not installed; .ci/run installs it and CI runs this test",
+)
+def test_calculix_compresses_both_meshes_to_the_same_force(tmp_path):
+    a = layup()
+    conformal = conformal_mesh(a, size_mm=1.5, pore_space="box")
+    voxel = voxel_mesh(a, voxel_mm=1.0, pore_space="box")
+    forces = {m.kind: _compress(tmp_path, m, m.kind) for m in (conformal, voxel)}
+    for force in forces.values():
+        assert np.isfinite(force) and force > 0
+    ratio = forces["conformal"] / forces["voxel"]
+    assert 0.8 <= ratio <= 1.2, forces
+
+
+# -- the command line ------------------------------------------------------------------------
+def test_run_to_mesh_writes_checked_files(tmp_path, small_scenario):
+    from conftest import run_cli
+
+    out = tmp_path / "run"
+    result = run_cli(
+        "run", str(small_scenario), "--to", "mesh", "--out", str(out), "--formats", "vtu,inp"
+    )
+    assert result.returncode == 0, result.stderr
+    assert "voxel mesh:" in result.stdout
+    names = {p.name for p in (out / "mesh").iterdir()}
+    assert {
+        "stack_voxel.vtu",
+        "stack_voxel.pvd",
+        "stack_voxel.inp",
+        "stack_voxel.png",
+        "stack_voxel_checks.json",
+    } <= names
+    assert "stack_voxel.msh" not in names
+    import json
+
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["stages_completed"] == ["packing", "geometry", "mesh"]
+    assert manifest["mesh"]["voxel"]["chip_volume_error_max"] < 0.02
+    grid = pyvista.read(out / "mesh/stack_voxel.vtu")
+    assert set(np.unique(grid.cell_data["chip"])) == set(range(24))
+
+
+def test_unknown_format_lists_the_valid_ones(tmp_path, small_scenario):
+    from conftest import run_cli
+
+    out = tmp_path / "run"
+    result = run_cli(
+        "run", str(small_scenario), "--to", "mesh", "--out", str(out), "--formats", "vtu,stl"
+    )
+    assert result.returncode == 2
+    assert result.stderr.strip() == (
+        "pipeline: error: --formats: unknown mesh format 'stl'; valid formats: inp, msh, vtu, xdmf"
+    )
+    assert not out.exists()
+
+
+def test_a_stack_that_cannot_be_meshed_conformally_is_one_clear_line(tmp_path, small_scenario):
+    """The small physics stack (seed 3) leaves chips a few hundredths of a millimetre apart;
+    the conformal mesher fails there and says which chips, and what to use instead."""
+    from conftest import run_cli
+
+    small_scenario.write_text(small_scenario.read_text() + '[mesh]\nkind = "conformal"\n')
+    out = tmp_path / "run"
+    result = run_cli("run", str(small_scenario), "--to", "mesh", "--out", str(out), "--quiet")
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in result.stderr, result.stderr
+    assert re.search(r"chips \d+", lines[0]) and "mesh.kind = 'voxel'" in lines[0]
+    assert not out.exists() and not list(tmp_path.glob(".run.partial-*"))
