@@ -53,6 +53,12 @@ def _parser() -> argparse.ArgumentParser:
         help="comma-separated descriptors for the geometry stage (default: all)",
     )
     run.add_argument(
+        "--workers", type=int, default=None, help="local Dask workers (default: one per core)"
+    )
+    run.add_argument(
+        "--scheduler", default=None, help="address of a running Dask scheduler to use instead"
+    )
+    run.add_argument(
         "--formats",
         default=None,
         help="comma-separated mesh files to write with --to mesh: msh, vtu, inp, xdmf",
@@ -113,6 +119,8 @@ def _run(args: argparse.Namespace) -> None:
     if args.repeats is not None:
         _ensemble(args, scenario, out, descriptors)
         return
+    if args.workers is not None or args.scheduler is not None:
+        raise ChipstackError("--workers, --scheduler: only with --repeats (a single run is local)")
     n_batches = -(-scenario.deposition.chips // scenario.deposition.batch_size)
     bars: list[tqdm] = []  # drawn at the first batch, so early errors stay one line
 
@@ -196,14 +204,13 @@ def _ensemble(args: argparse.Namespace, scenario, out: str, descriptors) -> None
 
     bars: list[tqdm] = []
 
-    def progress(done: int, total: int) -> None:
+    def progress(finished: int, total: int) -> None:
+        """``finished`` more runs are done (the first call: those resumed from disk)."""
         if not bars:
             bars.append(
                 tqdm(total=total, desc="repeats", unit="run", disable=args.quiet, file=sys.stderr)
             )
-            bars[0].update(done)
-        else:
-            bars[0].update(1)
+        bars[0].update(finished)
 
     try:
         path, manifest = run_ensemble(
@@ -215,12 +222,17 @@ def _ensemble(args: argparse.Namespace, scenario, out: str, descriptors) -> None
             progress=progress,
             command=sys.argv,
             descriptors=descriptors,
+            workers=args.workers,
+            scheduler=args.scheduler,
         )
     finally:
         for bar in bars:
             bar.close()
     if args.quiet:
         return
+    resumed = len(manifest["resumed_runs"])
+    if resumed:
+        print(f"resumed: {resumed} runs were already written")
     print(f"{args.repeats} repeats in {manifest['wall_time_s']['total']:.1f} s; written to {path}")
     if "geometry" in manifest["stages_completed"]:
         import json
@@ -285,6 +297,8 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(
         level=logging.INFO if verbose else logging.WARNING, handlers=[handler], force=True
     )
+    # Dask reports lost workers and retried tasks itself; the ensemble reports what matters.
+    logging.getLogger("distributed").setLevel(logging.INFO if verbose else logging.CRITICAL)
     try:
         if args.command == "run":
             _run(args)

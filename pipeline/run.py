@@ -8,6 +8,7 @@ import logging
 import platform
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from importlib import metadata
 from pathlib import Path
@@ -93,6 +94,36 @@ def run_pipeline(
     return Path(out), stack, manifest
 
 
+@dataclass(frozen=True)
+class RepeatResult:
+    """What one run computed (in a worker): the stack and, beyond packing, its description."""
+
+    scenario: Scenario
+    stack: Stack
+    description: Any
+    history: Any
+    times: dict[str, float]
+    started_utc: str
+
+
+def compute_run(scenario: Scenario, to: str, descriptors: Sequence[str] | None) -> RepeatResult:
+    """Deposit (and describe) one stack; pure computation, so it can run on any worker."""
+    started = datetime.now(UTC).isoformat(timespec="seconds")
+    wall = time.perf_counter()
+    stack = deposit(scenario)
+    times = {"packing": round(time.perf_counter() - wall, 3)}
+    description = history = None
+    if to in ("geometry", "mesh"):
+        from geometry.arrangement import arrangements_from_stack
+        from geometry.describe import describe
+
+        start = time.perf_counter()
+        history = arrangements_from_stack(stack)
+        description = describe(history, scenario.geometry, descriptors)
+        times["geometry"] = round(time.perf_counter() - start, 3)
+    return RepeatResult(scenario, stack, description, history, times, started)
+
+
 def _single_run(
     run: RunDirectory,
     prefix: str,
@@ -103,36 +134,57 @@ def _single_run(
     descriptors,
     figures: bool,
 ) -> tuple[Stack, dict[str, Any]]:
-    started = datetime.now(UTC)
+    started = datetime.now(UTC).isoformat(timespec="seconds")
     wall = time.perf_counter()
     stack = deposit(scenario, progress=progress)
     times = {"packing": round(time.perf_counter() - wall, 3)}
-    resolved = dumps_toml(scenario)
-    run.write_text(f"{prefix}scenario.toml", resolved)
-    _write_packing(run, prefix, stack)
-    stages = ["packing"]
-    geometry_summary = None
+    description = history = None
     if to in ("geometry", "mesh"):
         from geometry.arrangement import arrangements_from_stack
+        from geometry.describe import describe
 
         start = time.perf_counter()
         history = arrangements_from_stack(stack)
-        geometry_summary = _geometry(
-            run.path(f"{prefix}geometry/descriptors.json").parent,
-            history,
+        description = describe(history, scenario.geometry, descriptors)
+        times["geometry"] = round(time.perf_counter() - start, 3)
+    result = RepeatResult(scenario, stack, description, history, times, started)
+    manifest = write_run(run.path, prefix, result, to, command, figures)
+    return stack, manifest
+
+
+def write_run(
+    path: Callable[[str], Path],
+    prefix: str,
+    result: RepeatResult,
+    to: str,
+    command: list[str] | None,
+    figures: bool,
+) -> dict[str, Any]:
+    """Write one run's files under ``prefix`` (``path(name)`` gives where) and its manifest."""
+    scenario, stack = result.scenario, result.stack
+    times = dict(result.times)
+    wall = time.perf_counter()
+    resolved = dumps_toml(scenario)
+    path(f"{prefix}scenario.toml").write_text(resolved, encoding="utf-8")
+    _write_packing(path, prefix, stack)
+    stages = ["packing"]
+    geometry_summary = None
+    if result.description is not None:
+        geometry_summary = _write_geometry(
+            path(f"{prefix}geometry/descriptors.json").parent,
+            result.description,
+            result.history,
             scenario,
-            descriptors,
             figures,
         )
-        times["geometry"] = round(time.perf_counter() - start, 3)
         stages.append("geometry")
     mesh_summary = None
     if to == "mesh":
         start = time.perf_counter()
-        mesh_summary = _mesh(run.path(f"{prefix}mesh/x").parent, history[-1], scenario, figures)
+        mesh_summary = _mesh(path(f"{prefix}mesh/x").parent, result.history[-1], scenario, figures)
         times["mesh"] = round(time.perf_counter() - start, 3)
         stages.append("mesh")
-    times["total"] = round(time.perf_counter() - wall, 3)
+    times["writing"] = round(time.perf_counter() - wall, 3)
     manifest = {
         "tool": "chipstack",
         "kind": "run",
@@ -143,7 +195,7 @@ def _single_run(
         "scenario_sha256": hashlib.sha256(resolved.encode()).hexdigest(),
         "seed": scenario.seed,
         "stages_completed": stages,
-        "started_utc": started.isoformat(timespec="seconds"),
+        "started_utc": result.started_utc,
         "finished_utc": datetime.now(UTC).isoformat(timespec="seconds"),
         "wall_time_s": times,
         "warnings": list(stack.warnings),
@@ -153,8 +205,8 @@ def _single_run(
         manifest["geometry"] = geometry_summary
     if mesh_summary is not None:
         manifest["mesh"] = mesh_summary
-    run.write_json(f"{prefix}manifest.json", manifest)
-    return stack, manifest
+    path(f"{prefix}manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    return manifest
 
 
 def _geometry(
@@ -165,10 +217,16 @@ def _geometry(
     figures: bool,
 ) -> dict[str, Any]:
     """Describe a stack and write the geometry stage's files into ``folder``."""
-    from export.descriptors import write_description
     from geometry.describe import describe
 
     description = describe(history, scenario.geometry, descriptors)
+    return _write_geometry(folder, description, history, scenario, figures)
+
+
+def _write_geometry(folder: Path, description, history, scenario: Scenario, figures: bool):
+    """Write a computed description's files into ``folder``; returns the manifest entry."""
+    from export.descriptors import write_description
+
     extra = {"scenario": scenario.name, "seed": scenario.seed, "chips": history[-1].n_chips}
     files = write_description(folder, description, history[-1], extra)
     if figures:
@@ -278,69 +336,130 @@ def run_ensemble(
     progress: Callable[[int, int], None] | None = None,
     command: list[str] | None = None,
     descriptors: Sequence[str] | None = None,
+    workers: int | None = None,
+    scheduler: str | None = None,
 ) -> tuple[Path, dict[str, Any]]:
     """``repeats`` independent runs (seeds derived from the scenario's) and their statistics.
 
-    Each repeat is a complete run in ``out/repeat_NN``; ``out/ensemble.json`` holds, for
-    every descriptor, the mean and 95 % confidence interval over the repeats.
+    The runs go through the execution layer (Dask: a local cluster, or ``scheduler``).
+    Each finished run is written to ``out/repeat_K`` as it arrives, so an interrupted
+    ensemble started again with the same arguments resumes where it stopped;
+    ``out/ensemble.json`` then holds, for every descriptor, the mean and 95 % confidence
+    interval over the repeats. A run that raises is reported with its seed; the others
+    complete.
     """
     from geometry.describe import check_names
     from geometry.ensemble import summarize_runs
+    from pipeline.execution import Executor
+    from pipeline.rundir import EnsembleDirectory
 
     check_stage(to)
     if not 2 <= repeats <= MAX_REPEATS:
         raise InputError(f"--repeats: must be between 2 and {MAX_REPEATS}, got {repeats}")
+    if to == "mesh":
+        raise InputError("--to mesh: not with --repeats (mesh a single run)")
     if to == "geometry":
         check_names(descriptors)
-    run = RunDirectory(out, overwrite=overwrite)
-    run.check()
     seeds = [derive_seed(scenario.seed, k) for k in range(repeats)]
+    width = len(str(repeats - 1))
+    names = [f"repeat_{k:0{width}d}" for k in range(repeats)]
+    identity = {
+        "scenario_sha256": hashlib.sha256(dumps_toml(scenario).encode()).hexdigest(),
+        "seed": scenario.seed,
+        "repeats": repeats,
+        "to": to,
+        "descriptors": list(descriptors) if descriptors else None,
+    }
+    folder = EnsembleDirectory(out, identity, overwrite=overwrite)
     started = datetime.now(UTC)
     wall = time.perf_counter()
-    width = len(str(repeats - 1))
-    with run:
-        sections = []
-        warnings = []
-        for k, seed in enumerate(seeds):
-            prefix = f"repeat_{k:0{width}d}/"
-            stack, manifest = _single_run(
-                run, prefix, scenario.with_seed(seed), to, None, command, descriptors, False
-            )
-            warnings += [f"repeat {k} (seed {seed}): {w}" for w in stack.warnings]
-            if to == "geometry":
-                described = json.loads(run.path(f"{prefix}geometry/descriptors.json").read_text())
-                sections.append(described)
-            if progress:
-                progress(k + 1, repeats)
-        summary = None
-        if to == "geometry":
-            summary = summarize_runs(sections, seeds)
-            run.write_json("ensemble.json", summary)
+    done = folder.finished(names)
+    failures: dict[int, str] = {}
+    warnings: list[str] = []
+    todo = [k for k in range(repeats) if names[k] not in done]
+
+    def on_result(k: int, result: RepeatResult) -> None:
+        with folder.run(names[k]) as path:
+            write_run(path, "", result, to, command, False)
+        if progress:
+            progress(1, repeats)
+
+    def on_error(k: int, error: BaseException) -> None:
+        message = f"{type(error).__name__}: {error}".splitlines()[0]
+        failures[k] = message
+        log.warning("repeat %d (seed %d) failed: %s", k, seeds[k], message)
+        if progress:
+            progress(1, repeats)
+
+    if todo:
+        with Executor(workers=workers, scheduler=scheduler) as executor:
+            if progress:  # drawn once connected, so a bad --scheduler stays one line
+                progress(len(done), repeats)
+            arguments = [(scenario.with_seed(seeds[k]), to, descriptors) for k in todo]
+
+            def shift(callback):
+                return lambda j, value: callback(todo[j], value)
+
+            executor.run(compute_run, arguments, shift(on_result), shift(on_error))
+            n_workers = executor.n_workers
+    else:
+        n_workers = 0
+        if progress:
+            progress(len(done), repeats)
+    good = [k for k in range(repeats) if k not in failures]
+    for k in good:
+        manifest = json.loads(folder.file(f"{names[k]}/manifest.json").read_text())
+        warnings += [f"repeat {k} (seed {seeds[k]}): {w}" for w in manifest.get("warnings", [])]
+    summary = None
+    if to == "geometry" and len(good) >= 2:
+        sections = [
+            json.loads(folder.file(f"{names[k]}/geometry/descriptors.json").read_text())
+            for k in good
+        ]
+        summary = summarize_runs(sections, [seeds[k] for k in good])
+        summary["runs"] = [names[k] for k in good]
+    elif to == "geometry":
+        raise InputError(
+            f"--repeats: only {len(good)} of {repeats} runs succeeded; no statistics "
+            f"(failures: {'; '.join(f'repeat {k}: {m}' for k, m in failures.items())})"
+        )
+    manifest = {
+        "tool": "chipstack",
+        "kind": "ensemble",
+        "command": command or [],
+        "versions": _versions(),
+        "scenario": scenario.name,
+        "seed": scenario.seed,
+        "repeats": repeats,
+        "seeds": seeds,
+        "seed_rule": "numpy SeedSequence([seed, index]).generate_state(1)[0]",
+        "runs": [names[k] for k in good],
+        "resumed_runs": sorted(done),
+        "failed_runs": [
+            {"repeat": k, "seed": seeds[k], "error": failures[k]} for k in sorted(failures)
+        ],
+        "workers": n_workers,
+        "scheduler": scheduler or "local",
+        "stages_completed": ["packing"] + (["geometry"] if to == "geometry" else []),
+        "started_utc": started.isoformat(timespec="seconds"),
+        "finished_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+        "wall_time_s": {"total": round(time.perf_counter() - wall, 3)},
+        "warnings": warnings,
+    }
+
+    def finish(path: Callable[[str], Path]) -> None:
+        if summary is not None:
+            path("ensemble.json").write_text(json.dumps(summary, indent=2) + "\n")
             from pipeline.figures import ensemble_figures
 
-            ensemble_figures(run.path("figures/x").parent, summary)
-        manifest = {
-            "tool": "chipstack",
-            "kind": "ensemble",
-            "command": command or [],
-            "versions": _versions(),
-            "scenario": scenario.name,
-            "seed": scenario.seed,
-            "repeats": repeats,
-            "seeds": seeds,
-            "seed_rule": "numpy SeedSequence([seed, index]).generate_state(1)[0]",
-            "runs": [f"repeat_{k:0{width}d}" for k in range(repeats)],
-            "stages_completed": ["packing"] + (["geometry"] if to == "geometry" else []),
-            "started_utc": started.isoformat(timespec="seconds"),
-            "finished_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-            "wall_time_s": {"total": round(time.perf_counter() - wall, 3)},
-            "warnings": warnings,
-        }
-        run.write_json("manifest.json", manifest)
+            ensemble_figures(path("figures/x").parent, summary)
+        path("manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
+
+    folder.complete(finish)
     return Path(out), manifest
 
 
-def _write_packing(run: RunDirectory, prefix: str, stack: Stack) -> None:
+def _write_packing(path: Callable[[str], Path], prefix: str, stack: Stack) -> None:
     from export import (
         stack_polydata,
         write_contacts_csv,
@@ -352,8 +471,8 @@ def _write_packing(run: RunDirectory, prefix: str, stack: Stack) -> None:
     series = []
     for result in stack.batches:
         tag = f"batch_{result.batch:02d}"
-        write_poses_csv(run.path(f"{prefix}packing/poses_after_{tag}.csv"), stack, result)
-        write_contacts_csv(run.path(f"{prefix}packing/contacts_after_{tag}.csv"), result)
+        write_poses_csv(path(f"{prefix}packing/poses_after_{tag}.csv"), stack, result)
+        write_contacts_csv(path(f"{prefix}packing/contacts_after_{tag}.csv"), result)
         n = len(result.positions)
         mesh = stack_polydata(
             stack.shapes,
@@ -362,9 +481,9 @@ def _write_packing(run: RunDirectory, prefix: str, stack: Stack) -> None:
             result.quaternions,
             stack.batch[:n],
         )
-        write_stack_vtp(run.path(f"{prefix}packing/stack_after_{tag}.vtp"), mesh)
+        write_stack_vtp(path(f"{prefix}packing/stack_after_{tag}.vtp"), mesh)
         series.append((float(result.batch), f"stack_after_{tag}.vtp"))
-    write_pvd(run.path(f"{prefix}packing/stack.pvd"), series)
+    write_pvd(path(f"{prefix}packing/stack.pvd"), series)
 
 
 def _packing_summary(stack: Stack) -> dict[str, Any]:

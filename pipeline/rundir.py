@@ -6,6 +6,7 @@ so a failed or interrupted run leaves nothing half-written under the requested n
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -14,7 +15,7 @@ from typing import Any
 
 from packing.errors import InputError
 
-__all__ = ["RunDirectory", "StageWriter"]
+__all__ = ["RunDirectory", "StageWriter", "EnsembleDirectory"]
 
 
 def _nearest_existing(path: Path) -> Path:
@@ -45,6 +46,20 @@ class RunDirectory:
     def check(self) -> None:
         """Refuse early (before any work) if the target cannot or must not be written."""
         out = f"--out {self.given!r}"
+        self.check_location()
+        try:
+            if self.target.exists():
+                entries = list(self.target.iterdir())
+                if entries and not self.overwrite:
+                    raise InputError(f"{out}: directory exists and is not empty (use --overwrite)")
+                if entries and not (self.target / "manifest.json").is_file():
+                    raise InputError(f"{out}: not an earlier run (no manifest.json); not replaced")
+        except OSError as exc:
+            raise InputError(f"{out}: {exc.strerror or exc}") from None
+
+    def check_location(self) -> None:
+        """Refuse the current directory, its parents, links, files and unwritable places."""
+        out = f"--out {self.given!r}"
         try:
             if self.target.name in ("", ".", ".."):
                 raise InputError(f"{out}: not a usable run directory name")
@@ -53,14 +68,8 @@ class RunDirectory:
                 raise InputError(f"{out}: is the current directory or one of its parents")
             if self.target.is_symlink():
                 raise InputError(f"{out}: is a symbolic link; give the real directory")
-            if self.target.exists():
-                if not self.target.is_dir():
-                    raise InputError(f"{out}: exists and is not a directory")
-                entries = list(self.target.iterdir())
-                if entries and not self.overwrite:
-                    raise InputError(f"{out}: directory exists and is not empty (use --overwrite)")
-                if entries and not (self.target / "manifest.json").is_file():
-                    raise InputError(f"{out}: not an earlier run (no manifest.json); not replaced")
+            if self.target.exists() and not self.target.is_dir():
+                raise InputError(f"{out}: exists and is not a directory")
             ancestor = _nearest_existing(self.target.parent)
             if not ancestor.is_dir() or not os.access(ancestor, os.W_OK | os.X_OK):
                 raise InputError(f"{out}: cannot write under {str(ancestor)!r}")
@@ -157,3 +166,107 @@ class StageWriter:
         temporary = path.with_name(f".{path.name}.tmp-{os.getpid()}")
         temporary.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
         os.replace(temporary, path)
+
+
+class EnsembleDirectory:
+    """An ensemble's directory, written run by run so an interrupted ensemble resumes.
+
+    While unfinished it holds ``ensemble-state.json`` (what the ensemble is: scenario hash,
+    seed, repeats, ...). Each run is built hidden and renamed to ``repeat_K`` when written;
+    the ensemble's own files are moved in at the end, and the state file removed. Started
+    again with the same arguments, the ensemble skips the runs already there.
+    """
+
+    STATE = "ensemble-state.json"
+
+    def __init__(self, target: str | Path, identity: dict[str, Any], overwrite: bool = False):
+        self.given = str(target)
+        self.identity = identity
+        self.target = Path(target).expanduser().absolute()
+        self._created = False
+        out = f"--out {self.given!r}"
+        checker = RunDirectory(target, overwrite=True)
+        checker.check_location()
+        self.target = checker.target
+        self.resuming = False
+        if self.target.exists():
+            entries = list(self.target.iterdir())
+            state = self.target / self.STATE
+            if state.is_file():
+                try:
+                    known = json.loads(state.read_text())
+                except (OSError, json.JSONDecodeError):
+                    known = None
+                if known == identity:
+                    self.resuming = True
+                    self._created = True
+                elif not overwrite:
+                    raise InputError(
+                        f"{out}: holds an unfinished ensemble of other settings "
+                        "(use --overwrite to start again)"
+                    )
+                else:
+                    self._clear()
+            elif entries:
+                if not overwrite:
+                    raise InputError(f"{out}: directory exists and is not empty (use --overwrite)")
+                if not (self.target / "manifest.json").is_file():
+                    raise InputError(f"{out}: not an earlier run (no manifest.json); not replaced")
+                self._clear()
+
+    def _clear(self) -> None:
+        shutil.rmtree(self.target)
+
+    def _ensure(self) -> None:
+        if self._created:
+            return
+        try:
+            self.target.mkdir(parents=True, exist_ok=True)
+            StageWriter.replace_json(self.target / self.STATE, self.identity)
+        except OSError as exc:
+            raise InputError(f"--out {self.given!r}: cannot create ({exc.strerror})") from None
+        self._created = True
+
+    def finished(self, names: list[str]) -> set[str]:
+        """The runs already written (from an interrupted earlier start)."""
+        if not self.resuming:
+            return set()
+        return {n for n in names if (self.target / n / "manifest.json").is_file()}
+
+    def file(self, name: str) -> Path:
+        return self.target / name
+
+    @contextlib.contextmanager
+    def run(self, name: str):
+        """Yields ``path(relative name) -> Path`` inside a hidden folder renamed to ``name``."""
+        self._ensure()
+        partial = self.target / f".{name}.partial-{os.getpid()}"
+        shutil.rmtree(partial, ignore_errors=True)
+
+        def path(relative: str) -> Path:
+            p = partial / relative
+            p.parent.mkdir(parents=True, exist_ok=True)
+            return p
+
+        try:
+            yield path
+            final = self.target / name
+            if final.exists():
+                shutil.rmtree(final)
+            os.replace(partial, final)
+        except BaseException:
+            shutil.rmtree(partial, ignore_errors=True)
+            raise
+
+    def complete(self, finish) -> None:
+        """Write the ensemble's own files with ``finish(path)`` and mark it finished."""
+        with self.run(".complete") as path:
+            finish(path)
+        staged = self.target / ".complete"
+        for item in staged.iterdir():
+            destination = self.target / item.name
+            if destination.is_dir():
+                shutil.rmtree(destination)
+            os.replace(item, destination)
+        staged.rmdir()
+        (self.target / self.STATE).unlink(missing_ok=True)

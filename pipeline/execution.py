@@ -1,0 +1,97 @@
+"""The execution layer: every command that runs many simulations submits them here.
+
+Built on Dask distributed: by default a local cluster of one single-threaded worker
+process per core (``workers`` to size it), or an existing cluster (``scheduler``: the
+address of a ``dask scheduler``, local or on an HPC system through dask-jobqueue). Runs
+are independent tasks; a worker lost mid-run has its task rescheduled on another.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import uuid
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from packing.config import printable
+from packing.errors import InputError
+
+__all__ = ["Executor", "CONNECT_TIMEOUT_S"]
+
+log = logging.getLogger(__name__)
+CONNECT_TIMEOUT_S = 5.0
+
+
+class Executor:
+    """``with Executor(workers=2) as ex: ex.run(task, args, on_result, on_error)``."""
+
+    def __init__(self, workers: int | None = None, scheduler: str | None = None) -> None:
+        if workers is not None and workers < 1:
+            raise InputError(f"--workers: must be at least 1, got {workers}")
+        if workers is not None and scheduler is not None:
+            raise InputError("--workers: not with --scheduler (the cluster has its workers)")
+        self.workers = workers
+        self.scheduler = scheduler
+        self._client = None
+        self._cluster = None
+
+    def __enter__(self) -> Executor:
+        from distributed import Client, LocalCluster
+
+        if self.scheduler is not None:
+            address = self.scheduler
+            try:
+                self._client = Client(address, timeout=f"{CONNECT_TIMEOUT_S}s")
+            except (OSError, TimeoutError, ValueError) as exc:
+                raise InputError(
+                    f"--scheduler {printable(address)}: cannot reach the scheduler "
+                    f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
+                ) from None
+        else:
+            n = self.workers or os.cpu_count() or 1
+            self._cluster = LocalCluster(
+                n_workers=n,
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=None,
+                silence_logs=logging.ERROR,
+            )
+            self._client = Client(self._cluster)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._client is not None:
+            self._client.close()
+        if self._cluster is not None:
+            self._cluster.close()
+
+    @property
+    def n_workers(self) -> int:
+        return len(self._client.scheduler_info()["workers"]) if self._client else 0
+
+    def run(
+        self,
+        task: Callable[..., Any],
+        arguments: Sequence[tuple],
+        on_result: Callable[[int, Any], None],
+        on_error: Callable[[int, BaseException], None],
+    ) -> None:
+        """Run ``task(*arguments[k])`` for every k; report each result or error as it comes.
+
+        Results arrive in completion order; ``on_result`` is called in this process, so it
+        can write files as they arrive.
+        """
+        from distributed import as_completed
+
+        futures = {
+            self._client.submit(task, *args, pure=False, key=f"run-{k}-{uuid.uuid4().hex}"): k
+            for k, args in enumerate(arguments)
+        }
+        for future in as_completed(futures):
+            k = futures[future]
+            if future.status == "error":
+                on_error(k, future.exception())
+            else:
+                on_result(k, future.result())
+            future.release()
