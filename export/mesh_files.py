@@ -83,19 +83,41 @@ def write_vtu(path: Path, mesh: VolumeMesh) -> list[Path]:
     return [path, pvd]
 
 
+_GMSH_TYPE = {"tetra": 4, "hexahedron": 5}  # gmsh and VTK share these node orders
+
+
 @_format("msh")
 def write_msh(path: Path, mesh: VolumeMesh) -> list[Path]:
-    """gmsh 4.1 (binary): physical volume k + 1 for chip k (named chip_K), n + 1 for pores."""
-    import meshio
+    """gmsh 4.1 (binary): one discrete volume and physical group per chip (tag k + 1,
+    named chip_K) and one for the pores (tag n + 1, named pore)."""
+    from meshing.conformal import GmshSession
 
     path = Path(path)
-    m = to_meshio(mesh)
-    physical = np.where(mesh.chip >= 0, mesh.chip + 1, mesh.n_chips + 1).astype(np.int32)
-    m.cell_data = {"gmsh:physical": [physical], "gmsh:geometrical": [physical]}
-    m.field_data = {f"chip_{k}": np.array([k + 1, 3]) for k in np.unique(mesh.chip[mesh.chip >= 0])}
-    if (mesh.chip == PORE).any():
-        m.field_data["pore"] = np.array([mesh.n_chips + 1, 3])
-    meshio.write(path, m, file_format="gmsh", binary=True)
+    physical = np.where(mesh.chip >= 0, mesh.chip + 1, mesh.n_chips + 1).astype(np.int64)
+    order = np.argsort(physical, kind="stable")
+    tags, starts = np.unique(physical[order], return_index=True)
+    blocks = np.split(order, starts[1:])
+    with GmshSession() as gmsh:
+        model = gmsh.model
+        for tag in tags:
+            model.addDiscreteEntity(3, int(tag))
+        # Every node lives on the first volume; elements of the others refer to them.
+        model.mesh.addNodes(
+            3, int(tags[0]), np.arange(1, len(mesh.points) + 1), mesh.points.ravel()
+        )
+        first = 1
+        for tag, block in zip(tags, blocks, strict=True):
+            model.mesh.addElementsByType(
+                int(tag),
+                _GMSH_TYPE[mesh.cell_type],
+                np.arange(first, first + len(block)),
+                (mesh.cells[block] + 1).ravel(),
+            )
+            first += len(block)
+            name = f"chip_{tag - 1}" if tag <= mesh.n_chips else "pore"
+            model.setPhysicalName(3, model.addPhysicalGroup(3, [int(tag)], int(tag)), name)
+        gmsh.option.setNumber("Mesh.Binary", 1)
+        gmsh.write(str(path))
     return [path]
 
 
@@ -157,8 +179,8 @@ def write_inp(path: Path, mesh: VolumeMesh) -> list[Path]:
                 f.write("*SOLID SECTION, ELSET=PORE, MATERIAL=PORE\n")
                 continue
             a, b = mesh.fibres[members[0], 0], mesh.fibres[members[0], 1]
-            if abs(a @ b) > 1 - 1e-6:  # one fibre direction: any second in-plane axis
-                b = np.cross(a, [0.0, 0.0, 1.0]) if abs(a[2]) < 0.9 else np.cross(a, [1, 0, 0])
+            if abs(a @ b) > 1 - 1e-6:  # one fibre direction: the in-plane normal to it
+                b = np.cross(mesh.normals[members[0]], a)
             f.write(f"*ORIENTATION, NAME=OR_{chip:04d}, SYSTEM=RECTANGULAR\n")
             f.write(", ".join(f"{v:.9g}" for v in (*a, *b)) + "\n")
             f.write(

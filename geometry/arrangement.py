@@ -100,6 +100,14 @@ class Arrangement:
         out.setflags(write=False)
         return out
 
+    def bottom_up_order(self) -> np.ndarray:
+        """(n,) chip indices from the bottom up: by the height of the lowest point, then index.
+
+        The rule for overlaps the physics left: the lower chip, the one that came to rest
+        first, keeps the shared material (voxel image, voxel and conformal meshes).
+        """
+        return np.lexsort((np.arange(self.n_chips), self.bounds[:, 0, 2]))
+
     def inside_target(self) -> np.ndarray:
         """(n,) bool: the chip's centre of mass lies over the target square."""
         return (np.abs(self.positions[:, :2]) <= self.target_size_mm / 2).all(axis=1)

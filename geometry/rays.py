@@ -91,21 +91,22 @@ def pixel_grid(arrangement: Arrangement, pixel_mm: float) -> PixelGrid:
 
 
 def column_intervals(
-    arrangement: Arrangement, x: np.ndarray, y: np.ndarray
+    arrangement: Arrangement, x: np.ndarray, y: np.ndarray, order: np.ndarray | None = None
 ) -> Iterator[tuple[int, slice, slice, np.ndarray, np.ndarray]]:
     """Where vertical lines through a grid of points cross each convex piece of each chip.
 
     ``x`` (nx,) and ``y`` (ny,) are sorted, evenly spaced coordinates (mm). Yields, per piece,
     (chip, x slice, y slice, bottom, top): the (sx, sy) block of lines that can meet the piece
     and, on each, the heights (mm) where it enters and leaves; ``bottom >= top`` where the
-    line misses the piece.
+    line misses the piece. Chips come in index order, or in ``order`` when given.
     """
     if len(x) == 0 or len(y) == 0:
         return
     step_x = x[1] - x[0] if len(x) > 1 else 1.0
     step_y = y[1] - y[0] if len(y) > 1 else 1.0
     bounds = arrangement.bounds
-    for chip in range(arrangement.n_chips):
+    for chip in range(arrangement.n_chips) if order is None else order:
+        chip = int(chip)
         shape = arrangement.shapes[arrangement.shape_index[chip]]
         sx = _covered(x, step_x, bounds[chip, 0, 0], bounds[chip, 1, 0])
         sy = _covered(y, step_y, bounds[chip, 0, 1], bounds[chip, 1, 1])

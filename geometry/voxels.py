@@ -3,7 +3,8 @@
 A voxel belongs to a chip when its centre lies inside the chip's exact solid (the same
 convex pieces the manifold3d solids are built from, tested along vertical lines through
 the voxel centres). Where the physics left two chips interpenetrating, the voxel goes to
-the chip deposited first (lower index), the rule the meshing stage also follows.
+the lower chip, the one that came to rest first (see
+:meth:`Arrangement.bottom_up_order`), the rule the meshing stage also follows.
 The grid is aligned on the target's corner and the conveyor (z = 0) and covers every chip.
 """
 
@@ -68,7 +69,8 @@ def voxelize(arrangement: Arrangement, voxel_mm: float = 0.5) -> VoxelImage:
     y = origin[1] + voxel_mm * (np.arange(shape[1]) + 0.5)
     z = voxel_mm * (np.arange(shape[2]) + 0.5)
     bounds = arrangement.bounds
-    for chip, sx, sy, bottom, top in column_intervals(arrangement, x, y):
+    order = arrangement.bottom_up_order()
+    for chip, sx, sy, bottom, top in column_intervals(arrangement, x, y, order):
         k0 = max(0, math.ceil(bounds[chip, 0, 2] / voxel_mm - 0.5))
         k1 = min(shape[2], math.floor(bounds[chip, 1, 2] / voxel_mm - 0.5) + 1)
         if k1 <= k0:

@@ -74,8 +74,8 @@ class GmshSession:
 
 
 def processing_order(arrangement: Arrangement) -> np.ndarray:
-    """Chips from the bottom up: by the height of their lowest point, then by index."""
-    return np.lexsort((np.arange(arrangement.n_chips), arrangement.bounds[:, 0, 2]))
+    """Chips from the bottom up (see :meth:`Arrangement.bottom_up_order`)."""
+    return arrangement.bottom_up_order()
 
 
 def _add_chip(occ, arrangement: Arrangement, chip: int) -> int:
@@ -98,13 +98,15 @@ def conformal_mesh(
     pore_space: str = "none",
     layer_mm: float = 2.0,
     min_quality: float = 0.1,
-    threads: int = 2,
+    threads: int = 1,
     msh_path=None,
 ) -> VolumeMesh:
     """Tetrahedral mesh of the stack (see the module docstring).
 
-    size_mm: largest element edge. min_quality: the smallest acceptable SICN (gmsh's
-    signed inverse condition number, 1 for a regular tetrahedron); a mesh with a worse
+    size_mm: largest element edge. threads: gmsh threads (1, the default, gives the same
+    mesh every time; more are faster but not reproducible). min_quality: the smallest
+    acceptable SICN (gmsh's signed inverse condition number, 1 for a regular
+    tetrahedron); a mesh with a worse
     element raises :class:`MeshingError` naming the chips that hold them. msh_path: where
     to write the gmsh 4 file (with physical groups) once the mesh is accepted.
     """
@@ -299,7 +301,7 @@ def _extract(gmsh, arrangement: Arrangement, owner: dict[int, int], n: int, laye
     remap = np.full(len(points), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
     points, cells = points[used], remap[cells]
-    batch_of, layer_of, fibres_of = chip_attributes(arrangement, layer_mm)
+    batch_of, layer_of, fibres_of, normals_of = chip_attributes(arrangement, layer_mm)
     solid = chip >= 0
     safe = np.maximum(chip, 0)
     z = points[:, 2]
@@ -315,6 +317,7 @@ def _extract(gmsh, arrangement: Arrangement, owner: dict[int, int], n: int, laye
         batch=np.where(solid, batch_of[safe], 0),
         layer=np.where(solid, layer_of[safe], PORE),
         fibres=np.where(solid[:, None, None], fibres_of[safe], 0.0),
+        normals=np.where(solid[:, None], normals_of[safe], 0.0),
         quality=quality,
         node_sets={
             "bottom": np.flatnonzero(z <= z.min() + _ON_PLANE_MM),

@@ -19,7 +19,8 @@ class VolumeMesh:
     cells: (M, k) node indices. chip: (M,) chip index of each element, ``PORE`` (-1) for the
     pore space. batch, layer: (M,) the chip's batch (1-based) and layer (by its centre of
     mass; -1 for pores). fibres: (M, 2, 3) the chip's fibre directions in the world frame
-    (zeros for pores; a chip with one direction repeats it). quality: (M,) element quality
+    (zeros for pores; a chip with one direction repeats it). normals: (M, 3) the chip's
+    normal (its local z) in the world frame, zeros for pores. quality: (M,) element quality
     (gmsh's SICN; 1 for a cube). node_sets: named node index arrays (``bottom``: on the
     conveyor, ``top``: on the top platen plane, ``lateral``: on the sides of the domain).
     kind: "conformal" or "voxel". info: how it was made (sizes, tolerances, timings).
@@ -32,6 +33,7 @@ class VolumeMesh:
     batch: np.ndarray
     layer: np.ndarray
     fibres: np.ndarray
+    normals: np.ndarray
     quality: np.ndarray
     node_sets: dict[str, np.ndarray]
     n_chips: int
@@ -39,7 +41,7 @@ class VolumeMesh:
     info: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        for name in ("points", "cells", "chip", "batch", "layer", "fibres", "quality"):
+        for name in ("points", "cells", "chip", "batch", "layer", "fibres", "normals", "quality"):
             getattr(self, name).setflags(write=False)
 
     @property

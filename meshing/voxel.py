@@ -25,11 +25,13 @@ __all__ = ["voxel_mesh", "chip_attributes"]
 _CORNERS = np.array(
     [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (0, 0, 1), (1, 0, 1), (1, 1, 1), (0, 1, 1)]
 )
-MAX_ELEMENTS = 30_000_000
+# About 1 kB per element at the peak (mesh, checks, writers): 8 million is 8 GB.
+MAX_ELEMENTS = 8_000_000
 
 
 def chip_attributes(arrangement: Arrangement, layer_mm: float) -> tuple[np.ndarray, ...]:
-    """Per chip: batch (n,), layer by centre of mass (n,), two fibre directions (n, 2, 3)."""
+    """Per chip: batch (n,), layer by centre of mass (n,), two fibre directions (n, 2, 3)
+    and the chip's normal (n, 3), in the world frame."""
     n = arrangement.n_chips
     layer = np.maximum(np.floor(arrangement.positions[:, 2] / layer_mm), 0).astype(np.int64)
     vectors, owners = fibre_directions_world(arrangement)
@@ -38,7 +40,8 @@ def chip_attributes(arrangement: Arrangement, layer_mm: float) -> tuple[np.ndarr
         mine = vectors[owners == chip]
         fibres[chip, 0] = mine[0]
         fibres[chip, 1] = mine[1] if len(mine) > 1 else mine[0]
-    return arrangement.batch.astype(np.int64), layer, fibres
+    normals = np.array(arrangement.rotations)[:, :, 2].reshape(n, 3)
+    return arrangement.batch.astype(np.int64), layer, fibres, normals
 
 
 def voxel_mesh(
@@ -78,11 +81,12 @@ def voxel_mesh(
     uj, uk = np.divmod(rest, nz)
     points = np.column_stack([ui, uj, uk]) * voxel_mm + np.asarray(image.origin_mm)
     chip = labels[i, j, k].astype(np.int64) - 1  # void (0) becomes PORE (-1)
-    batch_of, layer_of, fibres_of = chip_attributes(arrangement, layer_mm)
+    batch_of, layer_of, fibres_of, normals_of = chip_attributes(arrangement, layer_mm)
     solid = chip >= 0
     batch = np.where(solid, batch_of[np.maximum(chip, 0)], 0)
     layer = np.where(solid, layer_of[np.maximum(chip, 0)], PORE)
     fibres = np.where(solid[:, None, None], fibres_of[np.maximum(chip, 0)], 0.0)
+    normals = np.where(solid[:, None], normals_of[np.maximum(chip, 0)], 0.0)
     z = points[:, 2]
     lateral = np.zeros(len(points), dtype=bool)
     for axis in (0, 1):
@@ -101,6 +105,7 @@ def voxel_mesh(
         batch=batch,
         layer=layer,
         fibres=fibres,
+        normals=normals,
         quality=np.ones(len(cells)),
         node_sets=node_sets,
         n_chips=arrangement.n_chips,

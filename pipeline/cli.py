@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 
 from packing.errors import ChipstackError
@@ -163,6 +164,9 @@ def _run(args: argparse.Namespace) -> None:
         if "geometry" in manifest:
             _print_geometry(path)
         for kind, m in manifest.get("mesh", {}).items():
+            if "error" in m:
+                print(f"{kind} mesh: not written (see the warning above)")
+                continue
             print(
                 f"{kind} mesh: {m['elements']:,} elements, {m['nodes']:,} nodes, quality min "
                 f"{m['quality_min']:.3f}, largest chip volume error "
@@ -225,6 +229,14 @@ def _ensemble(args: argparse.Namespace, scenario, out: str, descriptors) -> None
             workers=args.workers,
             scheduler=args.scheduler,
         )
+    except KeyboardInterrupt:
+        for bar in bars:
+            bar.close()
+        sys.stderr.write(
+            f"pipeline: interrupted; the runs already written are kept in {out}: "
+            "run the same command to resume\n"
+        )
+        raise SystemExit(130) from None
     finally:
         for bar in bars:
             bar.close()
@@ -233,7 +245,13 @@ def _ensemble(args: argparse.Namespace, scenario, out: str, descriptors) -> None
     resumed = len(manifest["resumed_runs"])
     if resumed:
         print(f"resumed: {resumed} runs were already written")
-    print(f"{args.repeats} repeats in {manifest['wall_time_s']['total']:.1f} s; written to {path}")
+    failed = len(manifest["failed_runs"])
+    if failed:
+        print(f"{failed} of {args.repeats} runs failed (see the warnings and the manifest)")
+    seconds = manifest["wall_time_s"]["total"]
+    print(
+        f"{args.repeats - failed} of {args.repeats} repeats in {seconds:.1f} s; written to {path}"
+    )
     if "geometry" in manifest["stages_completed"]:
         import json
         from pathlib import Path
@@ -298,7 +316,9 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.INFO if verbose else logging.WARNING, handlers=[handler], force=True
     )
     # Dask reports lost workers and retried tasks itself; the ensemble reports what matters.
-    logging.getLogger("distributed").setLevel(logging.INFO if verbose else logging.CRITICAL)
+    # Set through its configuration (read when distributed is imported, also by workers).
+    if not verbose:
+        os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "critical")
     try:
         if args.command == "run":
             _run(args)
@@ -312,6 +332,12 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         sys.stderr.write("pipeline: interrupted; nothing was written\n")
         return 130
+    except MemoryError:
+        sys.stderr.write(
+            "pipeline: error: out of memory; choose a coarser mesh.voxel_mm or geometry.voxel_mm, "
+            "or fewer chips (nothing was written)\n"
+        )
+        return EXIT_BAD_INPUT
     return 0
 
 

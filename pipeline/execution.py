@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
 import uuid
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -21,6 +22,36 @@ __all__ = ["Executor", "CONNECT_TIMEOUT_S"]
 
 log = logging.getLogger(__name__)
 CONNECT_TIMEOUT_S = 5.0
+
+
+def _connect(address: str):
+    """A client of the scheduler at ``address``, or a one-line error within the deadline.
+
+    The connection runs in a daemon thread with a hard deadline: a service that accepts
+    the connection but never speaks Dask would otherwise hang the handshake.
+    """
+    from distributed import Client
+
+    outcome: dict[str, object] = {}
+
+    def connect() -> None:
+        try:
+            outcome["client"] = Client(address, timeout=f"{CONNECT_TIMEOUT_S}s")
+        except BaseException as exc:  # reported below, whatever the library raised
+            outcome["error"] = exc
+
+    thread = threading.Thread(target=connect, daemon=True)
+    thread.start()
+    thread.join(CONNECT_TIMEOUT_S + 3.0)
+    if "client" in outcome:
+        return outcome["client"]
+    error = outcome.get("error")
+    reason = (
+        f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"
+        if error is not None
+        else f"no Dask handshake within {CONNECT_TIMEOUT_S + 3.0:g} s"
+    )
+    raise InputError(f"--scheduler {printable(address)}: cannot reach the scheduler ({reason})")
 
 
 class Executor:
@@ -40,14 +71,7 @@ class Executor:
         from distributed import Client, LocalCluster
 
         if self.scheduler is not None:
-            address = self.scheduler
-            try:
-                self._client = Client(address, timeout=f"{CONNECT_TIMEOUT_S}s")
-            except (OSError, TimeoutError, ValueError) as exc:
-                raise InputError(
-                    f"--scheduler {printable(address)}: cannot reach the scheduler "
-                    f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
-                ) from None
+            self._client = _connect(self.scheduler)
         else:
             n = self.workers or os.cpu_count() or 1
             self._cluster = LocalCluster(
@@ -55,7 +79,8 @@ class Executor:
                 threads_per_worker=1,
                 processes=True,
                 dashboard_address=None,
-                silence_logs=logging.ERROR,
+                scheduler_kwargs={"dashboard": False},
+                silence_logs=logging.CRITICAL,
             )
             self._client = Client(self._cluster)
         return self

@@ -18,7 +18,7 @@ import numpy as np
 
 from packing import BatchResult, Scenario, Stack, deposit
 from packing.config import printable
-from packing.errors import InputError
+from packing.errors import InputError, SimulationError
 from packing.overlap import vertex_heights_mm
 from pipeline.rundir import RunDirectory, StageWriter
 from pipeline.scenario_files import dumps_toml
@@ -244,7 +244,7 @@ def _mesh(folder: Path, arrangement, scenario: Scenario, figures: bool) -> dict[
     """Mesh the stack, check the mesh and write its files into ``folder``."""
     from export.mesh_files import write_mesh
     from geometry.contacts import find_contacts
-    from meshing import check_mesh, conformal_mesh, voxel_mesh
+    from meshing import MeshingError, check_mesh, conformal_mesh, voxel_mesh
     from meshing.checks import assert_valid
 
     spec = scenario.mesh
@@ -261,14 +261,22 @@ def _mesh(folder: Path, arrangement, scenario: Scenario, figures: bool) -> dict[
             mesh = voxel_mesh(arrangement, spec.voxel_mm, spec.pore_space, g.layer_mm)
         else:
             msh = folder / f"{stem}.msh" if "msh" in formats else None
-            mesh = conformal_mesh(
-                arrangement,
-                spec.size_mm,
-                spec.pore_space,
-                g.layer_mm,
-                spec.min_quality,
-                msh_path=msh,
-            )
+            try:
+                mesh = conformal_mesh(
+                    arrangement,
+                    spec.size_mm,
+                    spec.pore_space,
+                    g.layer_mm,
+                    spec.min_quality,
+                    msh_path=msh,
+                )
+            except MeshingError as exc:
+                if spec.kind != "both":
+                    raise
+                # Both were asked for: the voxel mesh stands; the failure is reported.
+                log.warning("%s", exc)
+                summary[kind] = {"error": str(exc)}
+                continue
             formats = [f for f in formats if f != "msh"]  # gmsh wrote it, physical groups and all
         report = check_mesh(
             mesh, arrangement, surface_pairs, spec.min_quality if kind == "conformal" else 0.99
@@ -410,6 +418,11 @@ def run_ensemble(
     for k in good:
         manifest = json.loads(folder.file(f"{names[k]}/manifest.json").read_text())
         warnings += [f"repeat {k} (seed {seeds[k]}): {w}" for w in manifest.get("warnings", [])]
+    if not good:
+        raise SimulationError(
+            f"--repeats: all {repeats} runs failed (first: repeat {min(failures)}, seed "
+            f"{seeds[min(failures)]}: {failures[min(failures)]})"
+        )
     summary = None
     if to == "geometry" and len(good) >= 2:
         sections = [

@@ -189,6 +189,7 @@ class EnsembleDirectory:
         checker.check_location()
         self.target = checker.target
         self.resuming = False
+        self._clear_first = False
         if self.target.exists():
             entries = list(self.target.iterdir())
             state = self.target / self.STATE
@@ -197,22 +198,24 @@ class EnsembleDirectory:
                     known = json.loads(state.read_text())
                 except (OSError, json.JSONDecodeError):
                     known = None
-                if known == identity:
+                if overwrite:
+                    self._clear_first = True
+                elif known == identity:
                     self.resuming = True
                     self._created = True
-                elif not overwrite:
+                else:
                     raise InputError(
                         f"{out}: holds an unfinished ensemble of other settings "
                         "(use --overwrite to start again)"
                     )
-                else:
-                    self._clear()
             elif entries:
-                if not overwrite:
-                    raise InputError(f"{out}: directory exists and is not empty (use --overwrite)")
                 if not (self.target / "manifest.json").is_file():
                     raise InputError(f"{out}: not an earlier run (no manifest.json); not replaced")
-                self._clear()
+                if not overwrite:
+                    raise InputError(
+                        f"{out}: holds a finished run or ensemble (use --overwrite to replace it)"
+                    )
+                self._clear_first = True
 
     def _clear(self) -> None:
         shutil.rmtree(self.target)
@@ -221,6 +224,9 @@ class EnsembleDirectory:
         if self._created:
             return
         try:
+            if self._clear_first:  # only now: a failure before any result keeps the old one
+                self._clear()
+                self._clear_first = False
             self.target.mkdir(parents=True, exist_ok=True)
             StageWriter.replace_json(self.target / self.STATE, self.identity)
         except OSError as exc:
@@ -231,6 +237,8 @@ class EnsembleDirectory:
         """The runs already written (from an interrupted earlier start)."""
         if not self.resuming:
             return set()
+        for stale in self.target.glob(".*.partial-*"):  # left by a killed earlier start
+            shutil.rmtree(stale, ignore_errors=True)
         return {n for n in names if (self.target / n / "manifest.json").is_file()}
 
     def file(self, name: str) -> Path:

@@ -92,6 +92,58 @@ def test_an_unreachable_scheduler_is_one_line_within_ten_seconds(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+def test_a_scheduler_that_never_answers_is_one_line_within_ten_seconds(tmp_path):
+    import socket
+
+    with socket.socket() as listener:  # accepts connections, never speaks Dask
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        address = f"tcp://127.0.0.1:{listener.getsockname()[1]}"
+        start = time.perf_counter()
+        result = run_cli(
+            "run",
+            str(_scenario(tmp_path)),
+            "--to",
+            "packing",
+            "--repeats",
+            "2",
+            "--scheduler",
+            address,
+            "--out",
+            str(tmp_path / "out"),
+        )
+        assert time.perf_counter() - start < 10
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and address in lines[0], result.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_overwrite_keeps_the_old_ensemble_until_a_new_run_is_written(tmp_path):
+    scenario = str(_scenario(tmp_path))
+    out = tmp_path / "ens"
+    args = [
+        "run",
+        scenario,
+        "--to",
+        "packing",
+        "--repeats",
+        "2",
+        "--workers",
+        "1",
+        "--out",
+        str(out),
+        "--quiet",
+    ]
+    assert run_cli(*args).returncode == 0
+    before = (out / "manifest.json").read_bytes()
+    refused = run_cli(*args)
+    assert refused.returncode == 2 and "--overwrite" in refused.stderr
+    failed = run_cli(*args[:-1], "--overwrite", "--scheduler", "tcp://127.0.0.1:9")
+    assert failed.returncode == 2
+    assert (out / "manifest.json").read_bytes() == before
+
+
 def test_bad_worker_flags_are_refused(tmp_path):
     scenario = str(_scenario(tmp_path))
     for args, word in (
@@ -146,7 +198,8 @@ def test_an_interrupted_ensemble_resumes_where_it_stopped(tmp_path):
         "run", scenario, "--to", "geometry", "--repeats", "8", "--workers", "1", "--out", str(out)
     )
     assert result.returncode == 0, result.stderr
-    assert f"resumed: {len(kept)}" in result.stdout or "resumed:" in result.stdout
+    resumed = json.loads((out / "manifest.json").read_text())["resumed_runs"]
+    assert f"resumed: {len(resumed)} runs" in result.stdout
     manifest = json.loads((out / "manifest.json").read_text())
     assert len(manifest["runs"]) == 8 and len(manifest["resumed_runs"]) >= len(kept)
     for name, content in kept.items():

@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 from export.mesh_files import MESH_FORMATS, write_mesh
 from geometry.arrangement import Arrangement
 from geometry.contacts import find_contacts
-from meshing import PORE, MeshingError, check_mesh, conformal_mesh, voxel_mesh
+from meshing import PORE, GmshSession, MeshingError, check_mesh, conformal_mesh, voxel_mesh
 from meshing.checks import element_faces, exact_chip_volumes
 from packing.config import ChipSpec
 from packing.shapes import box_shape
@@ -126,6 +126,14 @@ def test_overlap_goes_to_the_lower_chip():
     assert report["valid"], report
 
 
+def test_voxel_mesh_follows_the_same_overlap_rule():
+    a = arrange([((0, 0, 2.7), 0.0), ((0, 0, 1.0), 0.0)])  # chip 0 sank 0.3 mm into chip 1
+    mesh = voxel_mesh(a, voxel_mm=0.1)
+    assert exact_chip_volumes(a) == pytest.approx([800.0 - 400 * 0.3, 800.0])
+    assert mesh.chip_volumes() == pytest.approx([680.0, 800.0], rel=1e-6)
+    assert check_mesh(mesh, a, min_quality=0.99)["valid"]
+
+
 def test_conformal_pore_space_fills_the_box(conformal_layup):
     mesh = conformal_mesh(layup(), size_mm=2.0, pore_space="box")
     volumes = mesh.element_volumes()
@@ -183,10 +191,47 @@ def test_every_format_reads_back(tmp_path, kind, conformal_layup):
         back = meshio.read(tmp_path / name)
         assert sum(len(c.data) for c in back.cells) == mesh.n_elements, name
         assert np.allclose(back.points, mesh.points), name
+    with GmshSession() as gmsh:  # gmsh itself opens the file, one volume per chip
+        gmsh.open(str(tmp_path / "stack.msh"))
+        groups = gmsh.model.getPhysicalGroups(3)
+        names = {gmsh.model.getPhysicalName(3, tag) for _, tag in groups}
+    assert names == {f"chip_{k}" for k in range(17)}
+    physical = meshio.read(tmp_path / "stack.msh").cell_data["gmsh:physical"]
+    assert sorted(np.unique(np.concatenate(physical))) == list(range(1, 18))
     text = (tmp_path / "stack.inp").read_text()
     assert len(re.findall(r"\*ELSET, ELSET=CHIP_\d{4}", text)) == 17
     assert len(re.findall(r"\*ORIENTATION, NAME=OR_\d{4}", text)) == 17
     assert "*NSET, NSET=BOTTOM" in text and "*NSET, NSET=TOP" in text
+
+
+def test_inp_orientation_follows_a_tilted_unidirectional_chip(tmp_path):
+    uni = box_shape(ChipSpec(fibre_directions_deg=(0.0,)))
+    tilt = Rotation.from_euler("xz", (30, 20), degrees=True)
+    a = Arrangement((uni,), [0], [[0, 0, 12.0]], [tilt.as_quat()], [1], 60.0)
+    write_mesh(tmp_path, "uni", voxel_mesh(a, 1.0), ["inp"])
+    lines = (tmp_path / "uni.inp").read_text().splitlines()
+    row = lines[lines.index("*ORIENTATION, NAME=OR_0000, SYSTEM=RECTANGULAR") + 1]
+    values = np.array([float(v) for v in row.split(",")])
+    axis_1, in_plane = values[:3], values[3:]
+    axis_3 = np.cross(axis_1, in_plane)
+    assert np.allclose(axis_1, tilt.apply([1.0, 0, 0]))
+    assert np.allclose(axis_3 / np.linalg.norm(axis_3), tilt.apply([0, 0, 1.0]))
+
+
+def test_both_meshes_keep_the_voxel_one_when_the_conformal_fails(tmp_path, small_scenario):
+    from conftest import run_cli
+
+    small_scenario.write_text(small_scenario.read_text() + '[mesh]\nkind = "both"\n')
+    out = tmp_path / "run"
+    result = run_cli("run", str(small_scenario), "--to", "mesh", "--out", str(out), "--quiet")
+    assert result.returncode == 0, result.stderr
+    assert "warning: conformal mesh failed" in result.stderr
+    import json
+
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert "error" in manifest["mesh"]["conformal"] and "elements" in manifest["mesh"]["voxel"]
+    assert (out / "mesh/stack_voxel.inp").is_file()
+    assert not list((out / "mesh").glob("stack_conformal*"))
 
 
 # -- a real downstream solver ----------------------------------------------------------------
