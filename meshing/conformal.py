@@ -143,7 +143,10 @@ def conformal_mesh(
             lo = arrangement.bounds[:, 0, :2].min(axis=0)
             hi = arrangement.bounds[:, 1, :2].max(axis=0)
             objects.append((3, occ.addBox(lo[0], lo[1], 0.0, *(hi - lo), top)))
-        _, mapping = occ.fragment(objects[:1], objects[1:])
+        if len(objects) > 1:
+            _, mapping = occ.fragment(objects[:1], objects[1:])
+        else:  # one chip: nothing to fragment
+            mapping = [objects]
         occ.synchronize()
         owner: dict[int, int] = {}
         for k, entities in enumerate(mapping[:n]):

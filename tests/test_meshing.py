@@ -333,3 +333,9 @@ def test_a_stack_that_cannot_be_meshed_conformally_is_one_clear_line(tmp_path, s
     assert len(lines) == 1 and "Traceback" not in result.stderr, result.stderr
     assert re.search(r"chips \d+", lines[0]) and "mesh.kind = 'voxel'" in lines[0]
     assert not out.exists() and not list(tmp_path.glob(".run.partial-*"))
+
+
+def test_a_single_chip_meshes_conformally():
+    mesh = conformal_mesh(arrange([((0, 0, 1.0), 30.0)]), size_mm=2.0)
+    assert mesh.chip_volumes() == pytest.approx([800.0], rel=1e-9)
+    assert mesh.quality.min() > 0.3
