@@ -106,11 +106,16 @@ class RepeatResult:
     started_utc: str
 
 
-def compute_run(scenario: Scenario, to: str, descriptors: Sequence[str] | None) -> RepeatResult:
+def compute_run(
+    scenario: Scenario,
+    to: str,
+    descriptors: Sequence[str] | None,
+    progress: Callable[[int, BatchResult], None] | None = None,
+) -> RepeatResult:
     """Deposit (and describe) one stack; pure computation, so it can run on any worker."""
     started = datetime.now(UTC).isoformat(timespec="seconds")
     wall = time.perf_counter()
-    stack = deposit(scenario)
+    stack = deposit(scenario, progress=progress)
     times = {"packing": round(time.perf_counter() - wall, 3)}
     description = history = None
     if to in ("geometry", "mesh"):
@@ -134,22 +139,9 @@ def _single_run(
     descriptors,
     figures: bool,
 ) -> tuple[Stack, dict[str, Any]]:
-    started = datetime.now(UTC).isoformat(timespec="seconds")
-    wall = time.perf_counter()
-    stack = deposit(scenario, progress=progress)
-    times = {"packing": round(time.perf_counter() - wall, 3)}
-    description = history = None
-    if to in ("geometry", "mesh"):
-        from geometry.arrangement import arrangements_from_stack
-        from geometry.describe import describe
-
-        start = time.perf_counter()
-        history = arrangements_from_stack(stack)
-        description = describe(history, scenario.geometry, descriptors)
-        times["geometry"] = round(time.perf_counter() - start, 3)
-    result = RepeatResult(scenario, stack, description, history, times, started)
+    result = compute_run(scenario, to, descriptors, progress)
     manifest = write_run(run.path, prefix, result, to, command, figures)
-    return stack, manifest
+    return result.stack, manifest
 
 
 def write_run(
