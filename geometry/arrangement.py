@@ -80,11 +80,6 @@ class Arrangement:
         matrices.setflags(write=False)
         return matrices
 
-    def world_vertices(self, chip: int) -> np.ndarray:
-        """(V, 3) mm, the corners of one chip in the world frame."""
-        shape = self.shapes[self.shape_index[chip]]
-        return shape.vertices @ self.rotations[chip].T + self.positions[chip]
-
     @cached_property
     def bounds(self) -> np.ndarray:
         """(n, 2, 3) mm, axis-aligned bounding box (low, high corners) of every chip."""
@@ -108,20 +103,15 @@ class Arrangement:
         """
         return np.lexsort((np.arange(self.n_chips), self.bounds[:, 0, 2]))
 
+    def bottom_up_rank(self) -> np.ndarray:
+        """(n,) each chip's place in :meth:`bottom_up_order` (0: the lowest)."""
+        rank = np.empty(self.n_chips, dtype=np.int64)
+        rank[self.bottom_up_order()] = np.arange(self.n_chips)
+        return rank
+
     def inside_target(self) -> np.ndarray:
         """(n,) bool: the chip's centre of mass lies over the target square."""
         return (np.abs(self.positions[:, :2]) <= self.target_size_mm / 2).all(axis=1)
-
-    def first(self, n: int) -> Arrangement:
-        """The first ``n`` chips (those deposited up to some batch), with other poses."""
-        return Arrangement(
-            self.shapes,
-            self.shape_index[:n],
-            self.positions[:n],
-            self.quaternions[:n],
-            self.batch[:n],
-            self.target_size_mm,
-        )
 
 
 def arrangements_from_stack(stack) -> list[Arrangement]:

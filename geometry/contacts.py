@@ -35,6 +35,7 @@ __all__ = [
     "patch_extents",
     "find_contacts",
     "contact_counts",
+    "candidate_pairs",
 ]
 
 KINDS = ("point", "line", "surface")
@@ -125,12 +126,14 @@ class ContactTable:
         return len(self.chip_a)
 
 
-def _candidate_pairs(arrangement: Arrangement, margin_mm: float) -> np.ndarray:
-    """(k, 2) pairs i < j whose bounding boxes, grown by ``margin_mm``, overlap."""
-    n = arrangement.n_chips
-    if n < 2:
+def candidate_pairs(bounds: np.ndarray, margin_mm: float) -> np.ndarray:
+    """(k, 2) pairs i < j whose bounding boxes, grown by ``margin_mm``, overlap.
+
+    ``bounds`` (n, 2, d) mm: low and high corners in d dimensions (3 for solids, 2 for
+    footprints on the conveyor).
+    """
+    if len(bounds) < 2:
         return np.empty((0, 2), dtype=int)
-    bounds = arrangement.bounds
     centres = bounds.mean(axis=1)
     half = (bounds[:, 1] - bounds[:, 0]) / 2
     reach = 2 * np.linalg.norm(half, axis=1).max() + margin_mm
@@ -166,7 +169,7 @@ def find_contacts(
         return solids[chip]
 
     rows = []
-    for a, b in _candidate_pairs(arrangement, gap_mm):
+    for a, b in candidate_pairs(bounds, gap_mm):
         patch = solid(a) ^ solid(b)
         if patch.is_empty():
             continue

@@ -16,7 +16,7 @@ import manifold3d as m3
 import numpy as np
 
 from geometry.arrangement import Arrangement
-from geometry.contacts import _candidate_pairs
+from geometry.contacts import candidate_pairs
 from geometry.solids import chip_solid, shape_pieces
 
 __all__ = ["Overlaps", "footprint", "find_overlaps"]
@@ -62,17 +62,8 @@ def find_overlaps(arrangement: Arrangement) -> Overlaps:
     """Projected overlap areas and interpenetration volumes of every pair of chips."""
     n = arrangement.n_chips
     bounds = arrangement.bounds
-    # Footprints overlap only if the plan bounding boxes do: use the 3-D pair search with
-    # the z extent made irrelevant.
-    flat = Arrangement(
-        arrangement.shapes,
-        arrangement.shape_index,
-        np.column_stack([arrangement.positions[:, :2], np.zeros(n)]),
-        arrangement.quaternions,
-        arrangement.batch,
-        arrangement.target_size_mm,
-    )
-    candidates = _candidate_pairs(flat, 0.0) if n > 1 else np.empty((0, 2), dtype=int)
+    # Footprints overlap only if the plan bounding boxes do.
+    candidates = candidate_pairs(bounds[:, :, :2], 0.0)
     shadows: dict[int, m3.CrossSection] = {}
 
     def shadow(chip: int) -> m3.CrossSection:

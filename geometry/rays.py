@@ -53,13 +53,6 @@ class PixelGrid:
         inside_y = np.abs(self.y) <= half
         return inside_x[:, None] & inside_y[None, :]
 
-    def index_range(self, low: float, high: float, axis: int) -> slice:
-        """Pixels whose centres lie in [low, high] along ``axis`` (0: x, 1: y)."""
-        origin, n = (self.x0, self.nx) if axis == 0 else (self.y0, self.ny)
-        first = max(0, math.ceil((low - origin) / self.pixel_mm - 0.5))
-        last = min(n, math.floor((high - origin) / self.pixel_mm - 0.5) + 1)
-        return slice(first, max(first, last))
-
 
 def pixel_grid(arrangement: Arrangement, pixel_mm: float) -> PixelGrid:
     """A grid aligned on the target's corner that covers the target and every chip.

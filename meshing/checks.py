@@ -18,8 +18,9 @@ from __future__ import annotations
 import numpy as np
 
 from geometry.arrangement import Arrangement
-from geometry.solids import chip_solid, union_solid
-from meshing.conformal import MeshingError, processing_order
+from geometry.contacts import candidate_pairs
+from geometry.solids import chip_solids, union_solid
+from meshing.conformal import MeshingError
 from meshing.mesh import VolumeMesh
 
 __all__ = ["check_mesh", "assert_valid", "exact_chip_volumes", "element_faces"]
@@ -37,16 +38,16 @@ def element_faces(mesh: VolumeMesh) -> tuple[np.ndarray, np.ndarray]:
 
 
 def exact_chip_volumes(arrangement: Arrangement) -> np.ndarray:
-    """(n,) mm3: each chip's solid minus the chips below it (the overlap rule of meshing)."""
-    order = processing_order(arrangement)
-    volumes = np.zeros(arrangement.n_chips)
-    below = []
-    for chip in order:
-        solid = chip_solid(arrangement, int(chip))
-        if below:
-            solid = solid - union_solid(below)
-        volumes[chip] = solid.volume()
-        below.append(chip_solid(arrangement, int(chip)))
+    """(n,) mm3: each chip's solid minus the lower chips it overlaps (the meshing rule)."""
+    solids = chip_solids(arrangement)
+    volumes = np.array([s.volume() for s in solids])
+    rank = arrangement.bottom_up_rank()
+    below: dict[int, list[int]] = {}
+    for i, j in candidate_pairs(arrangement.bounds, 0.0).tolist():  # any shape, exact below
+        lower, upper = (i, j) if rank[i] < rank[j] else (j, i)
+        below.setdefault(upper, []).append(lower)
+    for upper, lowers in below.items():
+        volumes[upper] = (solids[upper] - union_solid([solids[k] for k in lowers])).volume()
     return volumes
 
 
@@ -64,7 +65,7 @@ def check_mesh(
     meshed = mesh.chip_volumes()
     exact = exact_chip_volumes(arrangement)
     relative = np.abs(meshed - exact) / np.maximum(exact, 1e-12)
-    union = union_solid([chip_solid(arrangement, i) for i in range(arrangement.n_chips)]).volume()
+    union = union_solid(chip_solids(arrangement)).volume()
     total = float(meshed.sum())
     rounded = np.round(mesh.points / 1e-7).astype(np.int64)
     duplicates = len(mesh.points) - len(np.unique(rounded, axis=0))

@@ -25,12 +25,11 @@ import time
 import numpy as np
 
 from geometry.arrangement import Arrangement
-from geometry.overlaps import find_overlaps
-from meshing.mesh import PORE, VolumeMesh
-from meshing.voxel import chip_attributes
+from meshing.mesh import PORE, VolumeMesh, boundary_node_sets, element_attributes
 from packing.errors import ChipstackError, InputError
+from packing.overlap import penetrating_pairs
 
-__all__ = ["GmshSession", "MeshingError", "conformal_mesh", "processing_order"]
+__all__ = ["GmshSession", "MeshingError", "conformal_mesh", "overlapping_pairs"]
 
 log = logging.getLogger(__name__)
 _LOCK = threading.Lock()
@@ -73,9 +72,14 @@ class GmshSession:
             _LOCK.release()
 
 
-def processing_order(arrangement: Arrangement) -> np.ndarray:
-    """Chips from the bottom up (see :meth:`Arrangement.bottom_up_order`)."""
-    return arrangement.bottom_up_order()
+def overlapping_pairs(arrangement: Arrangement) -> list[tuple[int, int]]:
+    """(lower, upper) chips that interpenetrate, lower first in the bottom-up order: the
+    lower one keeps the shared material (see :meth:`Arrangement.bottom_up_order`).
+    Exact for boxes (separating axes), the only chips this mesher takes."""
+    half = np.array([arrangement.shapes[k].half_extents for k in arrangement.shape_index])
+    pairs, _ = penetrating_pairs(arrangement.positions, arrangement.quaternions, half)
+    rank = arrangement.bottom_up_rank()
+    return [(int(i), int(j)) if rank[i] < rank[j] else (int(j), int(i)) for i, j in pairs.tolist()]
 
 
 def _add_chip(occ, arrangement: Arrangement, chip: int) -> int:
@@ -116,15 +120,10 @@ def conformal_mesh(
         raise InputError(f"size_mm: must be positive, got {size_mm!r}")
     start = time.perf_counter()
     n = arrangement.n_chips
-    order = processing_order(arrangement)
-    rank = np.empty(n, dtype=np.int64)
-    rank[order] = np.arange(n)
-    overlaps = find_overlaps(arrangement)
+    rank = arrangement.bottom_up_rank()
     cut_by: dict[int, list[int]] = {}
-    for (i, j), volume in zip(overlaps.pairs, overlaps.penetration_mm3, strict=True):
-        if volume > 0:
-            lower, upper = (int(i), int(j)) if rank[i] < rank[j] else (int(j), int(i))
-            cut_by.setdefault(upper, []).append(lower)
+    for lower, upper in overlapping_pairs(arrangement):
+        cut_by.setdefault(upper, []).append(lower)
     with GmshSession(threads) as gmsh:
         occ = gmsh.model.occ
         tags = [_add_chip(occ, arrangement, chip) for chip in range(n)]
@@ -304,29 +303,14 @@ def _extract(gmsh, arrangement: Arrangement, owner: dict[int, int], n: int, laye
     remap = np.full(len(points), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
     points, cells = points[used], remap[cells]
-    batch_of, layer_of, fibres_of, normals_of = chip_attributes(arrangement, layer_mm)
-    solid = chip >= 0
-    safe = np.maximum(chip, 0)
-    z = points[:, 2]
-    lateral = np.zeros(len(points), dtype=bool)
-    for axis in (0, 1):
-        lateral |= np.abs(points[:, axis] - points[:, axis].min()) <= _ON_PLANE_MM
-        lateral |= np.abs(points[:, axis] - points[:, axis].max()) <= _ON_PLANE_MM
     return VolumeMesh(
         points=points,
         cell_type="tetra",
         cells=cells,
         chip=chip,
-        batch=np.where(solid, batch_of[safe], 0),
-        layer=np.where(solid, layer_of[safe], PORE),
-        fibres=np.where(solid[:, None, None], fibres_of[safe], 0.0),
-        normals=np.where(solid[:, None], normals_of[safe], 0.0),
+        **element_attributes(arrangement, chip, layer_mm),
         quality=quality,
-        node_sets={
-            "bottom": np.flatnonzero(z <= z.min() + _ON_PLANE_MM),
-            "top": np.flatnonzero(z >= z.max() - _ON_PLANE_MM),
-            "lateral": np.flatnonzero(lateral),
-        },
+        node_sets=boundary_node_sets(points, _ON_PLANE_MM),
         n_chips=n,
         kind="conformal",
         info={},

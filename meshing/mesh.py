@@ -6,7 +6,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["VolumeMesh", "PORE"]
+from geometry.arrangement import Arrangement
+from geometry.orientation import fibre_directions_world
+
+__all__ = ["VolumeMesh", "PORE", "chip_attributes", "element_attributes", "boundary_node_sets"]
 
 PORE = -1  # chip id of elements in the pore space (void or matrix-rich region)
 
@@ -68,3 +71,48 @@ class VolumeMesh:
 
 def _tet_volumes(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->i", np.cross(b - a, c - a), d - a) / 6.0
+
+
+def chip_attributes(arrangement: Arrangement, layer_mm: float) -> tuple[np.ndarray, ...]:
+    """Per chip: batch (n,), layer by centre of mass (n,), two fibre directions (n, 2, 3)
+    and the chip's normal (n, 3), in the world frame."""
+    n = arrangement.n_chips
+    layer = np.maximum(np.floor(arrangement.positions[:, 2] / layer_mm), 0).astype(np.int64)
+    vectors, owners = fibre_directions_world(arrangement)
+    fibres = np.zeros((n, 2, 3))
+    for chip in range(n):
+        mine = vectors[owners == chip]
+        fibres[chip, 0] = mine[0]
+        fibres[chip, 1] = mine[1] if len(mine) > 1 else mine[0]
+    normals = np.array(arrangement.rotations)[:, :, 2].reshape(n, 3)
+    return arrangement.batch.astype(np.int64), layer, fibres, normals
+
+
+def element_attributes(
+    arrangement: Arrangement, chip: np.ndarray, layer_mm: float
+) -> dict[str, np.ndarray]:
+    """batch, layer, fibres and normals of each element from its chip (``PORE``: none)."""
+    batch_of, layer_of, fibres_of, normals_of = chip_attributes(arrangement, layer_mm)
+    solid = chip >= 0
+    safe = np.maximum(chip, 0)
+    return {
+        "batch": np.where(solid, batch_of[safe], 0),
+        "layer": np.where(solid, layer_of[safe], PORE),
+        "fibres": np.where(solid[:, None, None], fibres_of[safe], 0.0),
+        "normals": np.where(solid[:, None], normals_of[safe], 0.0),
+    }
+
+
+def boundary_node_sets(points: np.ndarray, tolerance_mm: float = 1e-6) -> dict[str, np.ndarray]:
+    """Nodes on the domain's faces: ``bottom`` (lowest plane, the conveyor platen),
+    ``top`` (highest plane, the upper platen) and ``lateral`` (the four sides)."""
+    z = points[:, 2]
+    lateral = np.zeros(len(points), dtype=bool)
+    for axis in (0, 1):
+        lateral |= np.abs(points[:, axis] - points[:, axis].min()) <= tolerance_mm
+        lateral |= np.abs(points[:, axis] - points[:, axis].max()) <= tolerance_mm
+    return {
+        "bottom": np.flatnonzero(z <= z.min() + tolerance_mm),
+        "top": np.flatnonzero(z >= z.max() - tolerance_mm),
+        "lateral": np.flatnonzero(lateral),
+    }

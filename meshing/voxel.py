@@ -14,12 +14,11 @@ import time
 import numpy as np
 
 from geometry.arrangement import Arrangement
-from geometry.orientation import fibre_directions_world
 from geometry.voxels import voxelize
-from meshing.mesh import PORE, VolumeMesh
+from meshing.mesh import VolumeMesh, boundary_node_sets, element_attributes
 from packing.errors import InputError
 
-__all__ = ["voxel_mesh", "chip_attributes"]
+__all__ = ["voxel_mesh"]
 
 # VTK hexahedron corner order as (di, dj, dk) offsets of the voxel's corner nodes.
 _CORNERS = np.array(
@@ -27,21 +26,6 @@ _CORNERS = np.array(
 )
 # About 1 kB per element at the peak (mesh, checks, writers): 8 million is 8 GB.
 MAX_ELEMENTS = 8_000_000
-
-
-def chip_attributes(arrangement: Arrangement, layer_mm: float) -> tuple[np.ndarray, ...]:
-    """Per chip: batch (n,), layer by centre of mass (n,), two fibre directions (n, 2, 3)
-    and the chip's normal (n, 3), in the world frame."""
-    n = arrangement.n_chips
-    layer = np.maximum(np.floor(arrangement.positions[:, 2] / layer_mm), 0).astype(np.int64)
-    vectors, owners = fibre_directions_world(arrangement)
-    fibres = np.zeros((n, 2, 3))
-    for chip in range(n):
-        mine = vectors[owners == chip]
-        fibres[chip, 0] = mine[0]
-        fibres[chip, 1] = mine[1] if len(mine) > 1 else mine[0]
-    normals = np.array(arrangement.rotations)[:, :, 2].reshape(n, 3)
-    return arrangement.batch.astype(np.int64), layer, fibres, normals
 
 
 def voxel_mesh(
@@ -81,33 +65,14 @@ def voxel_mesh(
     uj, uk = np.divmod(rest, nz)
     points = np.column_stack([ui, uj, uk]) * voxel_mm + np.asarray(image.origin_mm)
     chip = labels[i, j, k].astype(np.int64) - 1  # void (0) becomes PORE (-1)
-    batch_of, layer_of, fibres_of, normals_of = chip_attributes(arrangement, layer_mm)
-    solid = chip >= 0
-    batch = np.where(solid, batch_of[np.maximum(chip, 0)], 0)
-    layer = np.where(solid, layer_of[np.maximum(chip, 0)], PORE)
-    fibres = np.where(solid[:, None, None], fibres_of[np.maximum(chip, 0)], 0.0)
-    normals = np.where(solid[:, None], normals_of[np.maximum(chip, 0)], 0.0)
-    z = points[:, 2]
-    lateral = np.zeros(len(points), dtype=bool)
-    for axis in (0, 1):
-        lateral |= np.isclose(points[:, axis], points[:, axis].min())
-        lateral |= np.isclose(points[:, axis], points[:, axis].max())
-    node_sets = {
-        "bottom": np.flatnonzero(np.isclose(z, z.min())),
-        "top": np.flatnonzero(np.isclose(z, z.max())),
-        "lateral": np.flatnonzero(lateral),
-    }
     return VolumeMesh(
         points=points,
         cell_type="hexahedron",
         cells=cells.astype(np.int64),
         chip=chip,
-        batch=batch,
-        layer=layer,
-        fibres=fibres,
-        normals=normals,
+        **element_attributes(arrangement, chip, layer_mm),
         quality=np.ones(len(cells)),
-        node_sets=node_sets,
+        node_sets=boundary_node_sets(points),
         n_chips=arrangement.n_chips,
         kind="voxel",
         info={

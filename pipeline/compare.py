@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -11,6 +10,7 @@ from geometry.ensemble import compare_ensembles
 from packing.config import printable
 from packing.errors import InputError
 from pipeline.rundir import RunDirectory
+from pipeline.stackfiles import read_json
 
 __all__ = ["load_ensemble", "compare_runs", "comparison_table"]
 
@@ -30,10 +30,7 @@ def load_ensemble(path: str | Path) -> dict[str, Any]:
         raise InputError(
             f"{shown}: no ensemble.json (run `pipeline run SCENARIO --to geometry --repeats N`)"
         )
-    try:
-        data = json.loads(file.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError(f"{file}: unreadable ensemble file ({exc})") from None
+    data = read_json(file, "ensemble file")
     problem = _ensemble_problem(data)
     if problem:
         raise InputError(f"{file}: not a valid ensemble file ({problem})")

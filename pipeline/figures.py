@@ -23,12 +23,10 @@ def single_run_figures(folder: Path, description, arrangement) -> list[str]:
     written = []
     records = description.records
     if "contacts" in records:
-        history = records["contacts"]
-        mean = {
-            kind: np.array([np.sum(t.kind == k) / max(t.n_chips, 1) for t in history.tables])
-            for k, kind in enumerate(_KINDS)
-        }
-        figures.plot_contact_types(folder / "contact_types.png", np.array(history.batches), mean)
+        profiles = description.sections["contacts"]["profiles"]
+        mean = {kind: np.array(profiles[f"{kind}_per_chip_by_batch"]["values"]) for kind in _KINDS}
+        batches = np.array(profiles["point_per_chip_by_batch"]["index"])
+        figures.plot_contact_types(folder / "contact_types.png", batches, mean)
         written.append("figures/contact_types.png")
     if "thickness" in records:
         grid = records["thickness"].grid

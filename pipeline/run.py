@@ -173,7 +173,11 @@ def write_run(
     mesh_summary = None
     if to == "mesh":
         start = time.perf_counter()
-        mesh_summary = _mesh(path(f"{prefix}mesh/x").parent, result.history[-1], scenario, figures)
+        records = result.description.records if result.description is not None else {}
+        contacts = records["contacts"].tables[-1] if "contacts" in records else None
+        mesh_summary = _mesh(
+            path(f"{prefix}mesh/x").parent, result.history[-1], scenario, figures, contacts
+        )
         times["mesh"] = round(time.perf_counter() - start, 3)
         stages.append("mesh")
     times["writing"] = round(time.perf_counter() - wall, 3)
@@ -232,8 +236,13 @@ def _write_geometry(folder: Path, description, history, scenario: Scenario, figu
     }
 
 
-def _mesh(folder: Path, arrangement, scenario: Scenario, figures: bool) -> dict[str, Any]:
-    """Mesh the stack, check the mesh and write its files into ``folder``."""
+def _mesh(
+    folder: Path, arrangement, scenario: Scenario, figures: bool, table=None
+) -> dict[str, Any]:
+    """Mesh the stack, check the mesh and write its files into ``folder``.
+
+    ``table``: the stack's contacts when the geometry stage already found them.
+    """
     from export.mesh_files import write_mesh
     from geometry.contacts import find_contacts
     from meshing import MeshingError, check_mesh, conformal_mesh, voxel_mesh
@@ -241,7 +250,8 @@ def _mesh(folder: Path, arrangement, scenario: Scenario, figures: bool) -> dict[
 
     spec = scenario.mesh
     g = scenario.geometry
-    table = find_contacts(arrangement, g.contact_gap_mm, g.contact_extent_mm)
+    if table is None:
+        table = find_contacts(arrangement, g.contact_gap_mm, g.contact_extent_mm)
     chips = table.chip_b >= 0
     surface_pairs = np.column_stack([table.chip_a, table.chip_b])[chips & (table.kind == 2)]
     kinds = ["voxel", "conformal"] if spec.kind == "both" else [spec.kind]

@@ -16,9 +16,17 @@ from packing.errors import InputError
 from packing.shapes import make_shape
 from pipeline.scenario_files import load_scenario
 
-__all__ = ["load_run"]
+__all__ = ["load_run", "read_json"]
 
 _POSES = re.compile(r"poses_after_batch_(\d+)\.csv")
+
+
+def read_json(path: Path, what: str):
+    """The parsed JSON file at ``path``, or a one-line error naming it as ``what``."""
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"{path}: unreadable {what} ({exc})") from None
 
 
 def load_run(run_dir: str | Path) -> tuple[Scenario, list[Arrangement], dict]:
@@ -33,10 +41,7 @@ def load_run(run_dir: str | Path) -> tuple[Scenario, list[Arrangement], dict]:
     manifest_path = run / "manifest.json"
     if not manifest_path.is_file():
         raise InputError(f"{shown}: not a run directory (no manifest.json)")
-    try:
-        manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError(f"{manifest_path}: unreadable manifest ({exc})") from None
+    manifest = read_json(manifest_path, "manifest")
     stages = manifest.get("stages_completed") if isinstance(manifest, dict) else None
     if stages is not None and not (
         isinstance(stages, list) and all(isinstance(s, str) for s in stages)
