@@ -687,3 +687,59 @@ def _render(pyvista, mesh, conveyor, colour_by, style, what, scalars, window_siz
         return plotter.screenshot(return_img=True)
     finally:
         plotter.close()
+
+
+def plot_drops(path: object, xy: np.ndarray, statistics: Mapping, yaw_deg: float = 0.0) -> Path:
+    """Fig. 15: final positions of dropped chips (mm) with the disc holding 95 % of them
+    and the chip's corner directions at release (dashed), the 4-fold axis (solid)."""
+    from matplotlib.patches import Circle
+
+    path = _path(path)
+    xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+    if not np.isfinite(xy).all():
+        raise InputError("xy: positions hold NaN or infinite values")
+    figure, ax = _new_figure((5.2, 5.2))
+    radius = float(statistics["disc95_mm"])
+    ax.add_patch(
+        Circle(
+            (0, 0),
+            radius,
+            fill=False,
+            color="tab:red",
+            lw=1.5,
+            label=f"95 % disc, r = {radius:.1f} mm",
+        )
+    )
+    ax.scatter(xy[:, 0], xy[:, 1], s=14, color="tab:red", alpha=0.8, label="final positions")
+    reach = max(radius, float(np.abs(xy).max(initial=1.0))) * 1.1
+    for k in range(4):
+        angle = math.radians(yaw_deg + 45 + 90 * k)
+        ax.plot(
+            [0, reach * math.cos(angle)],
+            [0, reach * math.sin(angle)],
+            ls="--",
+            color="0.5",
+            lw=0.8,
+            label="corner directions" if k == 0 else None,
+        )
+        axis = math.radians(float(statistics["axis_deg"]) + 90 * k)
+        ax.plot(
+            [0, reach * math.cos(axis)],
+            [0, reach * math.sin(axis)],
+            color="tab:blue",
+            lw=0.8,
+            label="4-fold axis of the scatter" if k == 0 else None,
+        )
+    ax.set_xlim(-reach, reach)
+    ax.set_ylim(-reach, reach)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_title(
+        f"{statistics['drops']} drops: anisotropy {statistics['anisotropy']:.2f} "
+        f"(p = {statistics['anisotropy_p']:.2g})",
+        fontsize=9,
+    )
+    ax.legend(loc="upper right", fontsize=7)
+    _save(figure, path)
+    return path

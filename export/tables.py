@@ -83,3 +83,35 @@ def write_contacts_csv(path: Path, result: BatchResult) -> None:
                     f"{c.distance[k]:.6f}",
                 ]
             )
+
+
+DROP_COLUMNS = (
+    "drop",
+    "shape",
+    "x_mm",
+    "y_mm",
+    "z_mm",
+    "qx",
+    "qy",
+    "qz",
+    "qw",
+    "tilt_x_rad",
+    "tilt_y_rad",
+    "distance_mm",
+    "settled",
+)
+
+
+def write_drops_csv(path: Path, drops) -> None:
+    """One row per drop of a :class:`packing.drop.DropResult`: final pose and release tilts."""
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(DROP_COLUMNS)
+        for k in range(drops.n_drops):
+            x, y, z = drops.positions[k]
+            writer.writerow(
+                [k, drops.shapes[k].name, repr(float(x)), repr(float(y)), repr(float(z))]
+                + [repr(float(v)) for v in drops.quaternions[k]]
+                + [repr(float(v)) for v in drops.tilts_rad[k]]
+                + [repr(float(np.hypot(x, y))), int(bool(drops.settled[k]))]
+            )

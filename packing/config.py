@@ -10,10 +10,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
+
+import numpy as np
 
 from packing.errors import InputError
 
@@ -25,6 +28,8 @@ __all__ = [
     "OutputSpec",
     "GeometrySpec",
     "MeshSpec",
+    "DropSpec",
+    "ContainerSpec",
     "Scenario",
     "scenario_from_dict",
     "scenario_to_dict",
@@ -101,16 +106,66 @@ def _one_of(*names: str):
     return check
 
 
+SHAPE_NAMES = ("box", "polygon", "star", "random_polygon", "beam", "fibre", "file")
+LENGTH_UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "um": 1e-3, "in": 25.4}
+
+
 @dataclass(frozen=True)
 class ChipSpec:
-    """The chip: a flat plate. Lengths in mm, fibre directions in degrees in the chip plane."""
+    """A chip shape and its size. Lengths in mm, fibre directions in degrees in the chip
+    plane; which keys a shape reads is listed in the README (Chip shapes)."""
 
-    shape: str = _key("box", "", "chip shape from the shape registry (`box`: square or rectangle)")
-    length_mm: float = _key(20.0, "mm", "in-plane length (local x)", _length)
-    width_mm: float = _key(20.0, "mm", "in-plane width (local y)", _length)
-    thickness_mm: float = _key(2.0, "mm", "thickness (local z)", _length)
+    shape: str = _key("box", "", f"chip shape from the shape registry: {', '.join(SHAPE_NAMES)}")
+    length_mm: float = _key(
+        20.0,
+        "mm",
+        "box, beam, fibre: length (local x); polygon, star, random_polygon: diameter of "
+        "the circle through the corners",
+        _length,
+    )
+    width_mm: float = _key(20.0, "mm", "box, beam: width (local y)", _length)
+    thickness_mm: float = _key(
+        2.0, "mm", "thickness (local z); a cylindrical beam or fibre's diameter", _length
+    )
+    sides: int = _key(
+        6, "", "polygon: sides; star: points; random_polygon: corners", _between(3, 64)
+    )
+    inner_ratio: float = _key(
+        0.5, "", "star: radius of the notches over the radius of the tips", _between(0.05, 0.95)
+    )
+    convex: bool = _key(True, "", "random_polygon: convex outline (else star-shaped)")
+    irregularity: float = _key(
+        0.5,
+        "",
+        "random_polygon (non-convex): corner radii uniform in [1 - irregularity, 1] x radius",
+        _between(0.0, 0.9),
+    )
+    section: str = _key(
+        "box", "", "beam, fibre: cross-section `box` or `cylinder`", _one_of("box", "cylinder")
+    )
+    file: str = _key("", "", "file: an STL, OBJ or PLY file (relative to the scenario file)")
+    units: str = _key(
+        "mm",
+        "",
+        f"file: the length unit of the file's coordinates ({', '.join(LENGTH_UNITS_MM)})",
+        _one_of(*LENGTH_UNITS_MM),
+    )
+    size_distribution: str = _key(
+        "fixed",
+        "",
+        "in-plane size factor per chip: `fixed` (1), `uniform` (1 +- spread), `normal` "
+        "(mean 1, sd spread) or `lognormal` (median 1, log-sd spread); thickness is kept",
+        _one_of("fixed", "uniform", "normal", "lognormal"),
+    )
+    size_spread: float = _key(0.0, "", "spread of the size factor", _between(0.0, 0.9))
+    weight: float = _key(
+        1.0, "", "in a `[[mix]]`: relative frequency of this chip", _between(0.0, 1e9)
+    )
     fibre_directions_deg: tuple[float, ...] = _key(
-        (0.0, 90.0), "deg", "fibre directions in the chip plane from local x (twill: two)"
+        (),
+        "deg",
+        "fibre directions in the chip plane from local x ([]: the shape's own, woven "
+        "twill [0, 90] for plates, [0] along beams and fibres)",
     )
 
 
@@ -198,6 +253,48 @@ class OutputSpec:
 
 
 @dataclass(frozen=True)
+class DropSpec:
+    """The single-chip drop experiment (kind `drop`; paper section 4.2)."""
+
+    drops: int = _key(50, "", "independent drops, each onto an empty target", _between(1, 100000))
+    height_mm: float = _key(
+        200.0, "mm", "height of the chip's centre above the target at release", _length
+    )
+    tilt_deg: float = _key(
+        5.7296,
+        "deg",
+        "tilts about x and about y are drawn uniform in [-tilt, tilt] (paper: 0.1 rad)",
+        _between(0.0, 90.0),
+    )
+    yaw_deg: float = _key(
+        0.0, "deg", "rotation about z at release (0: sides along x and y)", _between(-360, 360)
+    )
+
+
+@dataclass(frozen=True)
+class ContainerSpec:
+    """Filling a cylindrical container (kind `container`; paper section 5)."""
+
+    radius_mm: float = _key(25.0, "mm", "inner radius of the cylinder", _length)
+    height_mm: float = _key(100.0, "mm", "height of the cylinder wall", _length)
+    wall_segments: int = _key(
+        64, "", "flat panels approximating the round wall", _between(12, 1024)
+    )
+    release_radius: float = _key(
+        0.5,
+        "",
+        "chip centres are released over a disc of this fraction of the radius",
+        _between(0.0, 1.0),
+    )
+    release_gap_mm: tuple[float, float] = _key(
+        (5.0, 30.0),
+        "mm",
+        "range of the clearance between the rim and a released chip's lowest possible point",
+        _range(0.0, MAX_LENGTH_MM),
+    )
+
+
+@dataclass(frozen=True)
 class GeometrySpec:
     """How the geometry stage describes the stack (see README: Descriptors)."""
 
@@ -253,15 +350,34 @@ class Scenario:
     """A complete, validated scenario."""
 
     name: str = _key("scenario", "", "name used in outputs and file names", _name)
-    kind: str = _key("stack", "", "scenario kind (`stack`: batch deposition)", _one_of("stack"))
+    kind: str = _key(
+        "stack",
+        "",
+        "`stack`: batch deposition on a square target; `drop`: single-chip drops; "
+        "`container`: filling a cylinder",
+        _one_of("stack", "drop", "container"),
+    )
     seed: int = _key(0, "", "seed of every random draw (the CLI's --seed overrides it)")
     chip: ChipSpec = field(default_factory=ChipSpec)
+    mix: tuple[ChipSpec, ...] = _key(
+        (),
+        "",
+        "a mix of chips, `[[mix]]` tables with the `[chip]` keys and a `weight` each; "
+        "used instead of `[chip]`",
+    )
     deposition: DepositionSpec = field(default_factory=DepositionSpec)
     physics: PhysicsSpec = field(default_factory=PhysicsSpec)
     settling: SettlingSpec = field(default_factory=SettlingSpec)
     output: OutputSpec = field(default_factory=OutputSpec)
     geometry: GeometrySpec = field(default_factory=GeometrySpec)
     mesh: MeshSpec = field(default_factory=MeshSpec)
+    drop: DropSpec = field(default_factory=DropSpec)
+    container: ContainerSpec = field(default_factory=ContainerSpec)
+
+    @property
+    def chips(self) -> tuple[ChipSpec, ...]:
+        """The chip specs drawn from: the mix, or the single `[chip]`."""
+        return self.mix or (self.chip,)
 
     def with_seed(self, seed: int) -> Scenario:
         return dataclasses.replace(self, seed=seed)
@@ -275,6 +391,8 @@ _SECTIONS: dict[str, type] = {
     "output": OutputSpec,
     "geometry": GeometrySpec,
     "mesh": MeshSpec,
+    "drop": DropSpec,
+    "container": ContainerSpec,
 }
 
 
@@ -287,6 +405,10 @@ def _coerce(path: str, value: Any, annotation: str) -> Any:
     if annotation == "str":
         if not isinstance(value, str):
             raise bad("a string")
+        return value
+    if annotation == "bool":
+        if not isinstance(value, bool):
+            raise bad("true or false")
         return value
     if annotation == "int":
         if isinstance(value, bool) or not isinstance(value, int):
@@ -333,6 +455,16 @@ def _build(cls: type, table: Mapping[str, Any], prefix: str) -> Any:
             continue
         if name not in table:
             continue
+        if str(f.type) == "tuple[ChipSpec, ...]":
+            items = table[name]
+            if not isinstance(items, list) or not all(isinstance(t, Mapping) for t in items):
+                raise InputError(f"{path}: expected [[{name}]] tables")
+            if not items:
+                raise InputError(f"{path}: give at least one [[{name}]] table")
+            values[name] = tuple(
+                _build(ChipSpec, item, f"{name}[{i}]") for i, item in enumerate(items)
+            )
+            continue
         value = _coerce(path, table[name], str(f.type))
         check = f.metadata.get("check")
         problem = check(value) if check else None
@@ -342,14 +474,33 @@ def _build(cls: type, table: Mapping[str, Any], prefix: str) -> Any:
     return cls(**values)
 
 
-def scenario_from_dict(data: Mapping[str, Any]) -> Scenario:
+def scenario_from_dict(data: Mapping[str, Any], base_dir: str | None = None) -> Scenario:
     """Validate a nested mapping (a parsed TOML file) into a :class:`Scenario`.
 
+    ``base_dir``: where relative geometry-file paths start (the scenario file's folder).
     Raises :class:`InputError` naming the first bad key.
     """
+    if isinstance(data, Mapping) and "chip" in data and "mix" in data:
+        raise InputError("mix: give either [chip] or [[mix]] tables, not both")
     scenario = _build(Scenario, data, "")
+    scenario = _resolve_files(scenario, base_dir)
     _check_consistency(scenario)
     return scenario
+
+
+def _resolve_files(scenario: Scenario, base_dir: str | None) -> Scenario:
+    """Geometry-file paths made absolute, so the resolved scenario works from anywhere."""
+
+    def resolve(spec: ChipSpec) -> ChipSpec:
+        if not spec.file or os.path.isabs(spec.file):
+            return spec
+        return dataclasses.replace(
+            spec, file=os.path.abspath(os.path.join(base_dir or os.getcwd(), spec.file))
+        )
+
+    return dataclasses.replace(
+        scenario, chip=resolve(scenario.chip), mix=tuple(resolve(c) for c in scenario.mix)
+    )
 
 
 MESH_FORMAT_NAMES = ("inp", "msh", "vtu", "xdmf")  # export.mesh_files registers these
@@ -367,11 +518,54 @@ def check_formats(formats: tuple[str, ...], key: str) -> None:
             )
 
 
+def _chip_key(s: Scenario, index: int) -> str:
+    return f"mix[{index}]" if s.mix else "chip"
+
+
+def _check_chip(spec: ChipSpec, key: str) -> None:
+    """Sizes that make a chip of this shape; the builder checks the rest (files, outlines)."""
+    plate = spec.shape in ("box", "polygon", "star", "random_polygon")
+    if spec.shape == "box" and spec.thickness_mm >= min(spec.length_mm, spec.width_mm):
+        raise InputError(f"{key}.thickness_mm: a chip must be thinner than it is long and wide")
+    if plate and spec.shape != "box" and spec.thickness_mm >= spec.length_mm:
+        raise InputError(f"{key}.thickness_mm: a chip must be thinner than it is across")
+    if spec.shape in ("beam", "fibre"):
+        if spec.section == "box" and spec.width_mm > spec.length_mm:
+            raise InputError(f"{key}.width_mm: a {spec.shape} must not be wider than it is long")
+        if spec.section == "box" and spec.thickness_mm > spec.width_mm:
+            raise InputError(
+                f"{key}.thickness_mm: a {spec.shape} must not be thicker than it is wide"
+            )
+        if spec.thickness_mm >= spec.length_mm:
+            raise InputError(f"{key}.thickness_mm: a {spec.shape} must be longer than it is thick")
+    if spec.shape == "file" and not spec.file:
+        raise InputError(f"{key}.file: give the geometry file of a `file` chip")
+    if spec.shape != "file" and spec.file:
+        raise InputError(f'{key}.file: only read when shape = "file" (shape is {spec.shape!r})')
+    if spec.size_distribution != "fixed" and spec.size_spread == 0:
+        raise InputError(f"{key}.size_spread: a {spec.size_distribution} size needs a spread > 0")
+
+
+def nominal_extent_mm(spec: ChipSpec) -> tuple[float, float]:
+    """(largest in-plane extent, circumradius) in mm of a chip of nominal size (file chips:
+    from the file). Used to check it fits the target and clears the floor at release."""
+    if spec.shape == "file":
+        from packing.shapes import make_shape
+
+        shape = make_shape(spec)
+        across = 2 * float(np.linalg.norm(shape.vertices[:, :2], axis=1).max())
+        return across, shape.circumradius_mm
+    if spec.shape in ("box", "beam", "fibre"):
+        width = spec.width_mm if spec.shape == "box" or spec.section == "box" else spec.thickness_mm
+        across = math.hypot(spec.length_mm, width)
+        return across, 0.5 * math.hypot(across, spec.thickness_mm)
+    return spec.length_mm, 0.5 * math.hypot(spec.length_mm, spec.thickness_mm)
+
+
 def _check_consistency(s: Scenario) -> None:
     from packing.presets import PRESETS
     from packing.shapes import SHAPES
 
-    SHAPES.get(s.chip.shape, key="chip.shape")
     PRESETS.get(s.physics.preset, key="physics.preset")
     d = s.deposition
     if d.batch_size > d.chips:
@@ -380,10 +574,26 @@ def _check_consistency(s: Scenario) -> None:
         )
     if s.seed < 0:
         raise InputError(f"seed: must not be negative (got {s.seed})")
-    if s.chip.thickness_mm >= min(s.chip.length_mm, s.chip.width_mm):
-        raise InputError("chip.thickness_mm: a chip must be thinner than it is long and wide")
-    if not s.chip.fibre_directions_deg:
-        raise InputError("chip.fibre_directions_deg: give at least one fibre direction")
+    if s.mix and sum(c.weight for c in s.mix) <= 0:
+        raise InputError("mix: the weights sum to 0; give at least one chip a positive weight")
+    largest_radius = 0.0
+    for index, spec in enumerate(s.chips):
+        key = _chip_key(s, index)
+        SHAPES.get(spec.shape, key=f"{key}.shape")
+        _check_chip(spec, key)
+        across, radius = nominal_extent_mm(spec)
+        grow = 1 + spec.size_spread if spec.size_distribution == "uniform" else 1.0
+        largest_radius = max(largest_radius, radius * grow)
+        if s.kind == "stack" and across * grow > d.target_size_mm:
+            raise InputError(
+                f"{key}.length_mm: the chip ({across * grow:.1f} mm across) is larger than "
+                f"the target (deposition.target_size_mm = {d.target_size_mm:g} mm)"
+            )
+        if s.kind == "container" and across * grow > 2 * s.container.radius_mm:
+            raise InputError(
+                f"{key}.length_mm: the chip ({across * grow:.1f} mm) is longer than the "
+                f"container is wide (2 x container.radius_mm = {2 * s.container.radius_mm:g} mm)"
+            )
     for name in ("friction", "restitution"):
         value = getattr(s.physics, name)
         if value != -1.0 and not 0 <= value <= 10:
@@ -391,13 +601,14 @@ def _check_consistency(s: Scenario) -> None:
                 f"physics.{name}: must be between 0 and 10 (or -1 to keep the "
                 f"preset's), got {value!r}"
             )
-    circumradius = 0.5 * math.dist(
-        (0, 0, 0), (s.chip.length_mm, s.chip.width_mm, s.chip.thickness_mm)
-    )
-    if d.release_height_mm[0] <= circumradius:
+    if s.kind == "stack" and d.release_height_mm[0] <= largest_radius:
         raise InputError(
             "deposition.release_height_mm: the lowest release height must clear the chip's "
-            f"circumradius ({circumradius:.1f} mm) so no release pose touches the floor"
+            f"circumradius ({largest_radius:.1f} mm) so no release pose touches the floor"
+        )
+    if s.kind == "drop" and s.drop.height_mm <= largest_radius:
+        raise InputError(
+            f"drop.height_mm: must clear the chip's circumradius ({largest_radius:.1f} mm)"
         )
     if s.settling.hold_time_s >= s.settling.max_time_s:
         raise InputError("settling.hold_time_s: must be shorter than settling.max_time_s")

@@ -17,6 +17,7 @@ have settled; the next batch is released then. A batch still moving at
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Callable
@@ -26,18 +27,19 @@ from scipy.spatial.transform import Rotation
 
 from packing.config import Scenario
 from packing.errors import InputError
-from packing.overlap import box_penetration_depth, floor_penetration_mm, penetrating_pairs
+from packing.overlap import box_penetration_depth, floor_penetration_mm
 from packing.presets import PRESETS
-from packing.shapes import ChipShape, make_shape
+from packing.shapes import VARIES_PER_CHIP, ChipShape, make_shape
 from packing.stack import BatchResult, Stack
 from packing.world import ChipWorld
 
-__all__ = ["deposit", "release_poses"]
+__all__ = ["deposit", "release_poses", "draw_shapes"]
 
 log = logging.getLogger(__name__)
 
 WAKE_MARGIN_MM = 0.5
 CHECK_INTERVAL_S = 0.005  # how often speeds are read (simulated time)
+SPILL_MARGIN_MM = 5.0  # beyond the wall's outer face: spilled out of a container
 _MAX_PLACEMENT_TRIES = 2000
 
 
@@ -60,57 +62,141 @@ def _unit_quaternions(n: int, rng: np.random.Generator) -> np.ndarray:
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
+def draw_shapes(
+    scenario: Scenario, n: int, rng: np.random.Generator, cache: dict | None = None
+) -> list[ChipShape]:
+    """The shapes of ``n`` chips: a chip spec drawn by weight, a size factor drawn from its
+    distribution, then the shape (random outlines drawn anew for every chip).
+
+    ``cache`` keeps shapes that do not vary between chips, so they are built once.
+    """
+    specs = scenario.chips
+    cache = {} if cache is None else cache
+    weights = np.array([c.weight for c in specs], dtype=float)
+    choice = (
+        rng.choice(len(specs), size=n, p=weights / weights.sum())
+        if len(specs) > 1
+        else (np.zeros(n, dtype=int))
+    )
+    shapes = []
+    for k in choice:
+        spec = specs[k]
+        size = _size_factor(spec, rng)
+        key = (k, size)
+        if spec.shape in VARIES_PER_CHIP or key not in cache:
+            shape = make_shape(spec, rng, size)
+            if spec.shape in VARIES_PER_CHIP:
+                shapes.append(shape)
+                continue
+            cache[key] = shape
+        shapes.append(cache[key])
+    return shapes
+
+
+def _size_factor(spec, rng: np.random.Generator) -> float:
+    """In-plane size factor of one chip (1 for `fixed`); see ``ChipSpec.size_distribution``."""
+    spread = spec.size_spread
+    if spec.size_distribution == "fixed":
+        return 1.0
+    if spec.size_distribution == "uniform":
+        return float(rng.uniform(1 - spread, 1 + spread))
+    for _ in range(1000):
+        if spec.size_distribution == "normal":
+            value = float(rng.normal(1.0, spread))
+        else:
+            value = float(np.exp(rng.normal(0.0, spread)))
+        # A chip under a fifth or over five times nominal is not what a shredder makes.
+        if 0.2 <= value <= 5.0:
+            return value
+    raise InputError("size_spread: the size distribution keeps drawing absurd sizes")
+
+
+def _box_of(shapes: list[ChipShape], positions: np.ndarray, rotations: np.ndarray):
+    """Oriented bounding boxes: centres (n, 3) mm and half sizes (n, 3) mm."""
+    offsets = np.array([s.box_centre for s in shapes]).reshape(-1, 3)
+    half = np.array([s.half_extents for s in shapes]).reshape(-1, 3)
+    return positions + np.einsum("nij,nj->ni", rotations, offsets), half
+
+
 def release_poses(
     scenario: Scenario,
-    shape: ChipShape,
-    n: int,
+    shapes: list[ChipShape],
     rng: np.random.Generator,
-    occupied: tuple[np.ndarray, np.ndarray] | None = None,
+    occupied: tuple[np.ndarray, np.ndarray, list[ChipShape]] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Draw ``n`` non-overlapping release poses: positions (n, 3) mm, quaternions (n, 4).
+    """Draw non-overlapping release poses of ``shapes``: positions (n, 3) mm, quaternions.
 
-    Centres are uniform over the release square and the height range; a pose that
-    overlaps an already placed chip (or one in ``occupied``) is drawn again.
+    Stacks: centres uniform over the release square and the height range. Containers:
+    over a disc above the rim. A pose whose bounding box overlaps that of an already
+    placed chip (or one in ``occupied``: positions, quaternions, shapes) is drawn again.
     """
     d = scenario.deposition
-    half = d.release_side_mm / 2
-    # Every chip a new pose must not overlap: the pile, then this batch as it is placed.
+    n = len(shapes)
     m = 0 if occupied is None else len(occupied[0])
     placed_pos, placed_rot = np.empty((m + n, 3)), np.empty((m + n, 3, 3))
+    placed_half = np.empty((m + n, 3))
     if m:
-        placed_pos[:m] = occupied[0]
-        placed_rot[:m] = Rotation.from_quat(occupied[1]).as_matrix()
+        rotations = Rotation.from_quat(occupied[1]).as_matrix()
+        placed_pos[:m], placed_half[:m] = _box_of(occupied[2], occupied[0], rotations)
+        placed_rot[:m] = rotations
     positions, quaternions = np.empty((n, 3)), np.empty((n, 4))
-    reach = 2 * shape.circumradius_mm
-    for i in range(n):
-        others, others_rot = placed_pos[: m + i], placed_rot[: m + i]
+    for i, shape in enumerate(shapes):
+        others, others_rot, others_half = (
+            placed_pos[: m + i],
+            placed_rot[: m + i],
+            placed_half[: m + i],
+        )
+        reach = shape.circumradius_mm + (
+            np.linalg.norm(others_half, axis=1) if m + i else np.empty(0)
+        )
         for _ in range(_MAX_PLACEMENT_TRIES):
-            centre = np.array([*rng.uniform(-half, half, 2), rng.uniform(*d.release_height_mm)])
+            position = _release_point(scenario, shape, rng)
             rotation = _random_rotations(scenario, 1, rng)
             matrix = rotation.as_matrix()[0]
-            near = np.flatnonzero(np.linalg.norm(others - centre, axis=1) < reach)
+            box_centre, box_half = _box_of([shape], position[None], matrix[None])
+            near = np.flatnonzero(np.linalg.norm(others - box_centre, axis=1) < reach)
             if near.size == 0:
                 break
             depth = box_penetration_depth(
-                np.repeat(centre[None], near.size, 0),
+                np.repeat(box_centre, near.size, 0),
                 np.repeat(matrix[None], near.size, 0),
-                shape.half_extents,
+                np.repeat(box_half, near.size, 0),
                 others[near],
                 others_rot[near],
-                shape.half_extents,
+                others_half[near],
             )
             if depth.max() == 0:
                 break
         else:
             raise InputError(
-                "deposition: cannot release "
-                f"{n} chips without overlap in a {d.release_side_mm:g} mm square between "
-                f"{d.release_height_mm[0]:g} and {d.release_height_mm[1]:g} mm; "
-                "widen release_height_mm or lower batch_size"
+                f"deposition: cannot release {n} chips without overlap ("
+                + (
+                    "over the container; lower deposition.batch_size or widen "
+                    "container.release_gap_mm)"
+                    if scenario.kind == "container"
+                    else f"in a {d.release_side_mm:g} mm square between "
+                    f"{d.release_height_mm[0]:g} and {d.release_height_mm[1]:g} mm; "
+                    "widen release_height_mm or lower batch_size)"
+                )
             )
-        positions[i], quaternions[i] = centre, rotation.as_quat()[0]
-        placed_pos[m + i], placed_rot[m + i] = centre, matrix
+        positions[i], quaternions[i] = position, rotation.as_quat()[0]
+        placed_pos[m + i], placed_half[m + i] = box_centre[0], box_half[0]
+        placed_rot[m + i] = matrix
     return positions, quaternions
+
+
+def _release_point(scenario: Scenario, shape: ChipShape, rng: np.random.Generator):
+    d = scenario.deposition
+    clearance = shape.circumradius_mm + 0.1  # no release pose may touch the floor
+    if scenario.kind == "container":
+        c = scenario.container
+        radius = c.release_radius * c.radius_mm * np.sqrt(rng.uniform())
+        angle = rng.uniform(0, 2 * np.pi)
+        height = c.height_mm + clearance + rng.uniform(*c.release_gap_mm)
+        return np.array([radius * np.cos(angle), radius * np.sin(angle), height])
+    half = d.release_side_mm / 2
+    height = max(rng.uniform(*d.release_height_mm), clearance)
+    return np.array([*rng.uniform(-half, half, 2), height])
 
 
 class _RestTracker:
@@ -164,6 +250,60 @@ class _RestTracker:
                 del self.awake[chip], self._anchor[chip]
         return moving
 
+    def remove(self, chip: int) -> None:
+        """Freeze a chip now, whatever its speed."""
+        self.world.freeze(chip)
+        del self.awake[chip], self._anchor[chip]
+
+
+def _settle(world: ChipWorld, new: list[int], scenario: Scenario) -> tuple[bool, int, int, float]:
+    """Step until the chips in ``new`` (and those they wake) have settled or time runs out.
+
+    Returns (settled, steps, wakes, simulated start time). Chips still moving at the cap
+    are frozen where they are.
+    """
+    s = scenario.settling
+    check_steps = max(1, round(CHECK_INTERVAL_S / scenario.physics.time_step_s))
+    check_interval_s = check_steps * scenario.physics.time_step_s
+    hold_checks = max(1, int(np.ceil(s.hold_time_s / check_interval_s)))
+    tracker = _RestTracker(world, s.speed_mm_s * s.hold_time_s, hold_checks)
+    tracker.add(new)
+    start_time, steps, wakes = world.time_s, 0, 0
+    while tracker.awake and world.time_s - start_time < s.max_time_s:
+        world.step(check_steps)
+        steps += check_steps
+        for chip, speed in tracker.update(s.wake_speed_mm_s):
+            # Wake every frozen chip this one can reach before the next check, so an
+            # impact pushes what it hits instead of bouncing off a static chip, and a
+            # chip resting on one that slides away does not stay hanging in the air.
+            reach = WAKE_MARGIN_MM + speed * check_interval_s
+            near = [c for c in world.chips_near(chip, reach) if c not in tracker.awake]
+            woken = world.within(chip, near, reach)
+            for other in woken:
+                world.wake(other)
+            tracker.add(woken)
+            wakes += len(woken)
+        if scenario.kind == "container":
+            _freeze_spilled(world, tracker, scenario.container)
+    awake = sorted(tracker.awake)
+    if awake:
+        for chip in awake:
+            world.freeze(chip)
+    return not awake, steps, wakes, start_time
+
+
+def _freeze_spilled(world: ChipWorld, tracker: _RestTracker, container) -> None:
+    """Chips that fell outside the container wall, below its rim, cannot get back in and
+    take no further part: freeze them where they are (on a bare floor a spilled rod would
+    roll on for many seconds)."""
+    chips = sorted(tracker.awake)
+    if not chips:
+        return
+    positions, _, _ = world.states(chips)
+    outside = np.hypot(positions[:, 0], positions[:, 1]) > container.radius_mm + SPILL_MARGIN_MM
+    for chip in np.asarray(chips)[outside & (positions[:, 2] < container.height_mm)]:
+        tracker.remove(int(chip))
+
 
 def deposit(
     scenario: Scenario,
@@ -171,63 +311,61 @@ def deposit(
 ) -> Stack:
     """Run the batch deposition of ``scenario`` and return the settled :class:`Stack`.
 
-    ``progress`` is called after each batch with (batch number, its result).
+    Kind ``stack``: ``deposition.chips`` chips in batches onto the square target. Kind
+    ``container``: batches poured into the cylinder until it is full (a settled chip's
+    centre of mass inside the wall's footprint at or above the rim) or
+    ``deposition.chips`` have been poured; only the final state is recorded.
+    ``progress`` is called after each batch with (batch number, its result; for
+    containers the result of the last batch only, else ``None``).
     All random draws come from ``numpy.random.default_rng(scenario.seed)``.
     """
-    shape = make_shape(scenario.chip)
     preset = PRESETS.get(scenario.physics.preset, key="physics.preset")
     rng = np.random.default_rng(scenario.seed)
     d, s = scenario.deposition, scenario.settling
-    check_steps = max(1, round(CHECK_INTERVAL_S / scenario.physics.time_step_s))
-    check_interval_s = check_steps * scenario.physics.time_step_s
-    hold_checks = max(1, int(np.ceil(s.hold_time_s / check_interval_s)))
+    container = scenario.kind == "container"
     batch_of: list[int] = []
+    shapes_of: list[ChipShape] = []
     results: list[BatchResult] = []
     warnings: list[str] = []
+    cache: dict = {}
+    full = False
 
     with ChipWorld(preset, scenario.physics) as world:
+        if container:
+            c = scenario.container
+            world.add_container_wall(c.radius_mm, c.height_mm, c.wall_segments)
         n_batches = -(-d.chips // d.batch_size)
         for batch in range(1, n_batches + 1):
             wall_start = time.perf_counter()
             count = min(d.batch_size, d.chips - len(batch_of))
-            occupied = world.poses() if world.n_chips else None
-            positions, quaternions = release_poses(scenario, shape, count, rng, occupied)
-            new = [world.add_chip(shape, p, q) for p, q in zip(positions, quaternions, strict=True)]
+            shapes = draw_shapes(scenario, count, rng, cache)
+            occupied = (*world.poses(), shapes_of) if world.n_chips else None
+            positions, quaternions = release_poses(scenario, shapes, rng, occupied)
+            new = [
+                world.add_chip(shape, p, q)
+                for shape, p, q in zip(shapes, positions, quaternions, strict=True)
+            ]
             batch_of += [batch] * count
-            tracker = _RestTracker(world, s.speed_mm_s * s.hold_time_s, hold_checks)
-            tracker.add(new)
-            start_time, steps, wakes = world.time_s, 0, 0
-            while tracker.awake and world.time_s - start_time < s.max_time_s:
-                world.step(check_steps)
-                steps += check_steps
-                for chip, speed in tracker.update(s.wake_speed_mm_s):
-                    # Wake every frozen chip this one can reach before the next check, so an
-                    # impact pushes what it hits instead of bouncing off a static chip, and a
-                    # chip resting on one that slides away does not stay hanging in the air.
-                    reach = WAKE_MARGIN_MM + speed * check_interval_s
-                    near = [c for c in world.chips_near(chip, reach) if c not in tracker.awake]
-                    woken = world.within(chip, near, reach)
-                    for other in woken:
-                        world.wake(other)
-                    tracker.add(woken)
-                    wakes += len(woken)
-            awake = sorted(tracker.awake)
-            settled = not awake
+            shapes_of += shapes
+            settled, steps, wakes, start_time = _settle(world, new, scenario)
             if not settled:
-                speeds = dict(zip(awake, world.states(awake)[2].tolist(), strict=True))
                 message = (
-                    f"batch {batch} did not settle within {s.max_time_s:g} s of simulated time: "
-                    f"{len(speeds)} chips still moving (fastest {max(speeds.values()):.1f} mm/s, "
-                    f"chips {sorted(speeds)[:10]}); they were frozen where they were"
+                    f"batch {batch} did not settle within {s.max_time_s:g} s of simulated "
+                    "time; the chips still moving were frozen where they were"
                 )
                 log.warning(message)
                 warnings.append(message)
-                for chip in speeds:
-                    world.freeze(chip)
+            if container:
+                full = _container_full(world, scenario)
+            last = batch == n_batches or full
+            if container and not last:
+                if progress is not None:
+                    progress(batch, None)
+                continue
             result = _batch_result(
                 world,
                 scenario,
-                shape,
+                shapes_of,
                 batch,
                 start_time,
                 steps,
@@ -245,21 +383,56 @@ def deposit(
             )
             if progress is not None:
                 progress(batch, result)
-
+            if last:
+                break
+    if container and not full:
+        message = (
+            f"the container is not full after {len(batch_of)} chips (deposition.chips); "
+            "raise deposition.chips"
+        )
+        log.warning(message)
+        warnings.append(message)
+    distinct = list(dict.fromkeys(shapes_of))
+    index = {id(shape): k for k, shape in enumerate(distinct)}
+    distinct = _unique_names(distinct)
     return Stack(
-        shapes=(shape,),
-        shape_index=np.zeros(len(batch_of), dtype=int),
+        shapes=tuple(distinct),
+        shape_index=np.array([index[id(shape)] for shape in shapes_of], dtype=int),
         batch=np.asarray(batch_of),
         batches=tuple(results),
-        target_size_mm=d.target_size_mm,
+        target_size_mm=(2 * scenario.container.radius_mm if container else d.target_size_mm),
         warnings=tuple(warnings),
     )
+
+
+def _unique_names(shapes: list[ChipShape]) -> list[ChipShape]:
+    """Shapes renamed ``name #k`` where several distinct shapes share a name (random
+    outlines), so files can refer to each by name."""
+    counts: dict[str, int] = {}
+    for shape in shapes:
+        counts[shape.name] = counts.get(shape.name, 0) + 1
+    seen: dict[str, int] = {}
+    renamed = []
+    for shape in shapes:
+        if counts[shape.name] > 1:
+            seen[shape.name] = seen.get(shape.name, 0) + 1
+            shape = dataclasses.replace(shape, name=f"{shape.name} #{seen[shape.name]}")
+        renamed.append(shape)
+    return renamed
+
+
+def _container_full(world: ChipWorld, scenario: Scenario) -> bool:
+    """A settled chip's centre of mass lies inside the wall's footprint at or above the rim."""
+    positions, _ = world.poses()
+    c = scenario.container
+    inside = np.hypot(positions[:, 0], positions[:, 1]) <= c.radius_mm
+    return bool((positions[inside, 2] >= c.height_mm).any())
 
 
 def _batch_result(
     world: ChipWorld,
     scenario: Scenario,
-    shape: ChipShape,
+    shapes: list[ChipShape],
     batch: int,
     start_time: float,
     steps: int,
@@ -268,20 +441,34 @@ def _batch_result(
     wall: float,
 ) -> BatchResult:
     positions, quaternions = world.poses()
-    _, depth = penetrating_pairs(positions, quaternions, shape.half_extents)
-    floor = floor_penetration_mm(positions, quaternions, shape.vertices)
-    half = scenario.deposition.target_size_mm / 2
+    contacts = world.contacts(scenario.output.contact_distance_mm)
+    between_chips = contacts.chip_b >= 0
+    chip_depth = float(np.maximum(-contacts.distance[between_chips], 0.0).max(initial=0.0))
+    groups: dict[int, tuple[ChipShape, list[int]]] = {}
+    for k, shape in enumerate(shapes):
+        groups.setdefault(id(shape), (shape, []))[1].append(k)
+    floor = max(
+        (
+            float(floor_penetration_mm(positions[idx], quaternions[idx], shape.vertices).max())
+            for shape, idx in groups.values()
+        ),
+        default=0.0,
+    )
+    if scenario.kind == "container":
+        outside = np.hypot(positions[:, 0], positions[:, 1]) > scenario.container.radius_mm
+    else:
+        outside = (np.abs(positions[:, :2]) > scenario.deposition.target_size_mm / 2).any(axis=1)
     return BatchResult(
         batch=batch,
         positions=positions,
         quaternions=quaternions,
-        contacts=world.contacts(scenario.output.contact_distance_mm),
+        contacts=contacts,
         sim_time_s=world.time_s - start_time,
         wall_time_s=wall,
         steps=steps,
         settled=settled,
         wakes=wakes,
-        max_floor_penetration_mm=float(floor.max(initial=0.0)),
-        max_chip_penetration_mm=float(depth.max(initial=0.0)),
-        outside_target=int((np.abs(positions[:, :2]) > half).any(axis=1).sum()),
+        max_floor_penetration_mm=max(floor, 0.0),
+        max_chip_penetration_mm=chip_depth,
+        outside_target=int(outside.sum()),
     )

@@ -6,6 +6,9 @@ in :mod:`packing.world` and nowhere else.
 ``default`` — physically scaled chips (see the README, "Physics presets", for sources):
   * density 1.70 g/cm3: PA6 (1.14 g/cm3) with 60 wt % E-glass (2.54 g/cm3) by the rule of
     mixtures on volume, 1 / (0.6 / 2.54 + 0.4 / 1.14) = 1.70; a 20 x 20 x 2 mm chip is 1.36 g.
+  * rolling resistance with a 1 um lever arm (a coefficient of 0.001 for a 1 mm radius
+    rod, the order of hard plastics and glass on hard surfaces); it matters only for
+    round rods, which would otherwise roll for ever.
   * rigid (non-penetrating) contacts, Coulomb friction 0.5 (smooth nylon 6 is about 0.3 in
     handbooks; the twill texture and sheared, glass-rich edges of a chip put it higher)
     and restitution 0.3 (an estimate for a thin stiff plate; no measurement found). Both
@@ -39,7 +42,11 @@ class PhysicsPreset:
     name: str
     friction: float
     restitution: float
-    rolling_friction: float = 0.0
+    # Rolling resistance as the lever arm of the normal force (mm): the torque resisting
+    # rolling is this times the normal force (a rolling-resistance coefficient times the
+    # radius). Without it a round rod on a flat floor gains energy in Bullet and never
+    # comes to rest.
+    rolling_resistance_mm: float = 0.0
     spinning_friction: float = 0.0
     density_g_mm3: float | None = 1.70e-3  # mass from volume when set
     mass_g: float | None = None  # fixed mass per chip when set
@@ -63,6 +70,7 @@ PRESETS.register(
         name="default",
         friction=0.5,
         restitution=0.3,
+        rolling_resistance_mm=1e-3,
         density_g_mm3=1.70e-3,
         description="physically scaled PA6/60 wt% glass chips, rigid contacts",
     ),
@@ -76,7 +84,7 @@ PRESETS.register(
         name="paper",
         friction=1.0,
         restitution=1.0,
-        rolling_friction=0.0,
+        rolling_resistance_mm=0.0,
         spinning_friction=0.0,
         density_g_mm3=None,
         mass_g=1.0,

@@ -23,9 +23,12 @@ import ctypes
 import logging
 import os
 import sys
+import tempfile
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import ConvexHull
+from scipy.spatial.transform import Rotation
 
 from packing.config import PhysicsSpec
 from packing.errors import SimulationError
@@ -106,7 +109,11 @@ class ChipWorld:
         self._index_of: dict[int, int] = {}
         self._mass: list[float] = []
         self._radius_units: list[float] = []
-        self._shape_ids: dict[int, int] = {}
+        self._axis_reach_units: list[np.ndarray] = []
+        self._shape_ids: dict[int, tuple[int, ChipShape]] = {}
+        self._shapes: list[ChipShape] = []
+        self._scratch: tempfile.TemporaryDirectory | None = None
+        self._walls: list[int] = []
         self._floor = -1
         self.time_s = 0.0
 
@@ -133,6 +140,9 @@ class ChipWorld:
         if self._client is not None:
             pybullet.disconnect(physicsClientId=self._client)
             self._client = None
+        if self._scratch is not None:
+            self._scratch.cleanup()
+            self._scratch = None
 
     @property
     def client(self) -> int:
@@ -145,7 +155,13 @@ class ChipWorld:
         kwargs: dict[str, float] = dict(
             lateralFriction=self.friction,
             restitution=self.restitution,
-            rollingFriction=p.rolling_friction,
+            # Bullet combines rolling friction as r_a mu_b + r_b mu_a: this gives a lever
+            # arm of exactly rolling_resistance_mm between any two bodies.
+            rollingFriction=(
+                p.rolling_resistance_mm / MM_PER_UNIT / (2 * self.friction)
+                if self.friction > 0
+                else 0.0
+            ),
             spinningFriction=p.spinning_friction,
             linearDamping=0.0,
             angularDamping=0.0,
@@ -153,7 +169,7 @@ class ChipWorld:
         if p.contact_processing_threshold_mm is not None:
             kwargs["contactProcessingThreshold"] = p.contact_processing_threshold_mm / MM_PER_UNIT
         pybullet.changeDynamics(body, -1, physicsClientId=self.client, **kwargs)
-        if p.contact_stiffness_per_g is not None and body != self._floor:
+        if p.contact_stiffness_per_g is not None and body in self._index_of:
             mass = self._mass[self._index_of[body]]
             pybullet.changeDynamics(
                 body,
@@ -163,25 +179,109 @@ class ChipWorld:
                 physicsClientId=self.client,
             )
 
+    def add_container_wall(
+        self, radius_mm: float, height_mm: float, segments: int, thickness_mm: float = 5.0
+    ) -> None:
+        """A static round wall standing on the floor: ``segments`` flat panels whose inner
+        faces touch the circle of ``radius_mm`` (a regular polygon circumscribing it)."""
+        c = self.client
+        angles = 2 * np.pi * (np.arange(segments) + 0.5) / segments
+        half_width = radius_mm * np.tan(np.pi / segments) + thickness_mm  # panels overlap
+        centre_radius = radius_mm + thickness_mm / 2
+        half = np.array([thickness_mm / 2, half_width, height_mm / 2]) / MM_PER_UNIT
+        shape = pybullet.createCollisionShapeArray(
+            shapeTypes=[pybullet.GEOM_BOX] * segments,
+            halfExtents=[half.tolist()] * segments,
+            collisionFramePositions=[
+                [
+                    centre_radius * np.cos(a) / MM_PER_UNIT,
+                    centre_radius * np.sin(a) / MM_PER_UNIT,
+                    height_mm / 2 / MM_PER_UNIT,
+                ]
+                for a in angles
+            ],
+            collisionFrameOrientations=[
+                pybullet.getQuaternionFromEuler([0.0, 0.0, float(a)]) for a in angles
+            ],
+            physicsClientId=c,
+        )
+        wall = pybullet.createMultiBody(0, shape, physicsClientId=c)
+        pybullet.setCollisionFilterGroupMask(wall, -1, _FLOOR, _MOVING, physicsClientId=c)
+        self._apply_contact_model(wall)
+        self._walls.append(wall)
+
     # -- chips -----------------------------------------------------------------------------
     @property
     def n_chips(self) -> int:
         return len(self._bodies)
 
+    def _collision_shape(self, shape: ChipShape) -> int:
+        """The PyBullet collision shape of a chip shape (made once per shape)."""
+        key = id(shape)
+        if key in self._shape_ids:
+            return self._shape_ids[key][0]
+        c = self.client
+        if shape.collision == "box":
+            sid = pybullet.createCollisionShape(
+                pybullet.GEOM_BOX,
+                halfExtents=(shape.half_extents / MM_PER_UNIT).tolist(),
+                collisionFramePosition=(shape.box_centre / MM_PER_UNIT).tolist(),
+                physicsClientId=c,
+            )
+        elif shape.collision == "cylinder":
+            # PyBullet's cylinder runs along z; the fibre's axis is local x.
+            sid = pybullet.createCollisionShape(
+                pybullet.GEOM_CYLINDER,
+                radius=shape.radius_mm / MM_PER_UNIT,
+                height=2 * float(shape.half_extents[0]) / MM_PER_UNIT,
+                collisionFrameOrientation=[0.0, np.sqrt(0.5), 0.0, np.sqrt(0.5)],
+                physicsClientId=c,
+            )
+        elif len(shape.convex_pieces) == 1:
+            sid = pybullet.createCollisionShape(
+                pybullet.GEOM_MESH,
+                vertices=(shape.convex_pieces[0] / MM_PER_UNIT).tolist(),
+                physicsClientId=c,
+            )
+        else:
+            # A compound of convex hulls: PyBullet builds one hull per object of an OBJ file
+            # (its API takes no vertex lists for compounds).
+            if self._scratch is None:
+                self._scratch = tempfile.TemporaryDirectory(prefix="chipstack-shapes-")
+            path = os.path.join(self._scratch.name, f"shape{len(self._shape_ids)}.obj")
+            lines, offset = [], 0
+            for k, piece in enumerate(shape.convex_pieces):
+                # Faces matter: PyBullet hulls only the vertices that faces use.
+                hull = ConvexHull(piece)
+                lines.append(f"o piece{k}")
+                lines += [f"v {x:.17g} {y:.17g} {z:.17g}" for x, y, z in piece / MM_PER_UNIT]
+                lines += [
+                    f"f {a + offset + 1} {b + offset + 1} {c + offset + 1}"
+                    for a, b, c in hull.simplices
+                ]
+                offset += len(piece)
+            with open(path, "w") as f:
+                f.write("\n".join(lines) + "\n")
+            sid = pybullet.createCollisionShape(
+                pybullet.GEOM_MESH, fileName=path, physicsClientId=c
+            )
+        if sid < 0:
+            raise SimulationError(f"shape {shape.name!r}: PyBullet refused its collision shape")
+        self._shape_ids[key] = (sid, shape)  # the shape is kept alive, so its id stays unique
+        return sid
+
+    def _inertia(self, chip: int) -> list[float]:
+        shape = self._shapes[chip]
+        return (self._mass[chip] * shape.inertia_mm2 / MM_PER_UNIT**2).tolist()
+
     def add_chip(self, shape: ChipShape, position_mm: np.ndarray, quaternion: np.ndarray) -> int:
         """Add a chip at rest; returns its chip index (0, 1, ... in order of addition)."""
         c = self.client
-        key = id(shape)
-        if key not in self._shape_ids:
-            self._shape_ids[key] = pybullet.createCollisionShape(
-                pybullet.GEOM_BOX,
-                halfExtents=(shape.half_extents / MM_PER_UNIT).tolist(),
-                physicsClientId=c,
-            )
+        collision = self._collision_shape(shape)
         mass = self.preset.chip_mass_g(shape.volume_mm3)
         body = pybullet.createMultiBody(
             mass,
-            self._shape_ids[key],
+            collision,
             -1,
             (np.asarray(position_mm) / MM_PER_UNIT).tolist(),
             np.asarray(quaternion).tolist(),
@@ -192,7 +292,18 @@ class ChipWorld:
         self._bodies.append(body)
         self._index_of[body] = index
         self._mass.append(mass)
+        self._shapes.append(shape)
         self._radius_units.append(shape.circumradius_mm / MM_PER_UNIT)
+        v = shape.vertices
+        self._axis_reach_units.append(
+            np.array([np.hypot(v[:, (a + 1) % 3], v[:, (a + 2) % 3]).max() for a in range(3)])
+            / MM_PER_UNIT
+        )
+        # The exact principal inertia (PyBullet would take that of the bounding box). The
+        # mass goes with it: alone, the inertia zeroes a maximal-coordinates body's mass.
+        pybullet.changeDynamics(
+            body, -1, mass=mass, localInertiaDiagonal=self._inertia(index), physicsClientId=c
+        )
         self._apply_contact_model(body)
         pybullet.changeDynamics(
             body, -1, activationState=pybullet.ACTIVATION_STATE_DISABLE_SLEEPING, physicsClientId=c
@@ -210,13 +321,14 @@ class ChipWorld:
         self.time_s += n * self.time_step_s
 
     def max_point_speed_mm_s(self, chip: int) -> float:
-        """Upper bound of the speed of any point of the chip: |v| + |w| r (mm/s)."""
+        """Upper bound of the speed of any point of the chip (mm/s); see :meth:`states`."""
         return float(self.states([chip])[2][0])
 
     def states(self, chips: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Positions (k, 3) mm, quaternions (k, 4) and point-speed bounds (k,) mm/s.
 
-        The speed bound is |v| + |w| r with r the chip's circumradius. Raises
+        The speed bound is |v| + sum over the local axes k of |w_k| r_k, with r_k the
+        largest distance of a corner from axis k (triangle inequality). Raises
         :class:`SimulationError` if the solver produced NaN.
         """
         c = self.client
@@ -227,9 +339,15 @@ class ChipWorld:
         quaternions = np.array([p[1] for p in poses], dtype=float).reshape(-1, 4)
         linear = np.array([v[0] for v in velocities], dtype=float).reshape(-1, 3)
         angular = np.array([v[1] for v in velocities], dtype=float).reshape(-1, 3)
-        radius = np.array([self._radius_units[i] for i in chips], dtype=float)
-        speed = np.linalg.norm(linear, axis=1) + np.linalg.norm(angular, axis=1) * radius
-        speed *= MM_PER_UNIT
+        # Bound each turn about a local axis by the farthest point from that axis: a rod
+        # spinning about its own axis moves its surface at w r_rod, not w L / 2.
+        reach = np.array([self._axis_reach_units[i] for i in chips], dtype=float).reshape(-1, 3)
+        if len(chips):
+            local = Rotation.from_quat(quaternions).inv().apply(angular)
+            turning = (np.abs(local) * reach).sum(axis=1)
+        else:
+            turning = np.empty(0)
+        speed = (np.linalg.norm(linear, axis=1) + turning) * MM_PER_UNIT
         if not (np.isfinite(speed).all() and np.isfinite(positions).all()):
             bad = [chips[k] for k in np.flatnonzero(~np.isfinite(speed + positions.sum(1)))]
             raise SimulationError(
@@ -257,6 +375,7 @@ class ChipWorld:
             body,
             -1,
             mass=self._mass[chip],
+            localInertiaDiagonal=self._inertia(chip),
             # Awake and never put to sleep by Bullet (after 2 s at rest it would stop
             # updating contacts); freezing is ours to decide.
             activationState=pybullet.ACTIVATION_STATE_DISABLE_SLEEPING,

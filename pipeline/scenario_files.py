@@ -36,7 +36,7 @@ def load_scenario(source: str | Path | None) -> Scenario:
     if not is_file:
         if str(source) in builtin_names():
             text = (resources.files("pipeline") / "scenarios" / f"{source}.toml").read_text()
-            return _parse(text, f"built-in scenario {source}")
+            return _parse(text, f"built-in scenario {source}", None)
         if is_dir:
             raise InputError(f"{shown}: is a directory, not a scenario file")
         raise InputError(
@@ -46,10 +46,10 @@ def load_scenario(source: str | Path | None) -> Scenario:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{shown}: cannot read scenario file ({exc})") from None
-    return _parse(text, shown)
+    return _parse(text, shown, str(path.resolve().parent))
 
 
-def _parse(text: str, origin: str) -> Scenario:
+def _parse(text: str, origin: str, base_dir: str | None) -> Scenario:
     if not text.strip():
         raise InputError(f"{origin}: the scenario file is empty")
     try:
@@ -57,7 +57,7 @@ def _parse(text: str, origin: str) -> Scenario:
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"{origin}: malformed TOML: {exc}") from None
     try:
-        return scenario_from_dict(data)
+        return scenario_from_dict(data, base_dir)
     except InputError as exc:
         raise InputError(f"{origin}: {exc}") from None
 
@@ -80,8 +80,23 @@ def _toml_value(value: Any) -> str:
 def dumps_toml(scenario: Scenario) -> str:
     """The resolved scenario (every key, defaults filled in) as TOML that loads back equal."""
     data = scenario_to_dict(scenario)
-    lines = [f"{k} = {_toml_value(v)}" for k, v in data.items() if not isinstance(v, dict)]
+
+    def is_tables(value: Any) -> bool:
+        return isinstance(value, list) and any(isinstance(v, dict) for v in value)
+
+    lines = [
+        f"{k} = {_toml_value(v)}"
+        for k, v in data.items()
+        if not isinstance(v, dict) and not is_tables(v) and v != []
+    ]
     for section, table in data.items():
         if isinstance(table, dict):
+            if section == "chip" and data.get("mix"):
+                continue  # a mix replaces [chip]; both may not be given
             lines += ["", f"[{section}]"] + [f"{k} = {_toml_value(v)}" for k, v in table.items()]
+    for section, tables in data.items():
+        if is_tables(tables):
+            for table in tables:
+                lines += ["", f"[[{section}]]"]
+                lines += [f"{k} = {_toml_value(v)}" for k, v in table.items()]
     return "\n".join(lines) + "\n"

@@ -13,7 +13,7 @@ from export.tables import POSE_COLUMNS
 from geometry.arrangement import Arrangement
 from packing.config import MAX_LENGTH_MM, Scenario, printable
 from packing.errors import InputError
-from packing.shapes import make_shape
+from packing.shapes import VARIES_PER_CHIP, make_shape, shape_from_record
 from pipeline.scenario_files import load_scenario
 
 __all__ = ["load_run", "read_json"]
@@ -53,6 +53,10 @@ def load_run(run_dir: str | Path) -> tuple[Scenario, list[Arrangement], dict]:
     if not scenario_path.is_file():
         raise InputError(f"{shown}: no scenario.toml; the packing result cannot be read")
     scenario = load_scenario(str(scenario_path))
+    if scenario.kind != "stack":
+        raise InputError(
+            f"{shown}: a {scenario.kind} run has no stack to describe (see its manifest)"
+        )
     files = sorted(
         (int(m.group(1)), p)
         for p in (run / "packing").glob("poses_after_batch_*.csv")
@@ -63,11 +67,11 @@ def load_run(run_dir: str | Path) -> tuple[Scenario, list[Arrangement], dict]:
     numbers = [n for n, _ in files]
     if numbers != list(range(1, len(files) + 1)):
         raise InputError(f"{run / 'packing'}: batch files must be numbered 1 to N, got {numbers}")
-    shape = make_shape(scenario.chip)
+    shapes = _read_shapes(run / "packing" / "shapes.json", scenario)
     history = []
     previous = 0
     for number, path in files:
-        arrangement = _read_poses(path, shape, scenario.deposition.target_size_mm)
+        arrangement = _read_poses(path, shapes, scenario.deposition.target_size_mm)
         if arrangement.n_chips <= previous:
             raise InputError(
                 f"{path}: {arrangement.n_chips} chips, not more than batch {number - 1}"
@@ -79,7 +83,32 @@ def load_run(run_dir: str | Path) -> tuple[Scenario, list[Arrangement], dict]:
     return scenario, history, manifest
 
 
-def _read_poses(path: Path, shape, target_size_mm: float) -> Arrangement:
+def _read_shapes(path: Path, scenario: Scenario) -> dict:
+    """The run's chip shapes by name (``packing/shapes.json``; runs from before that file
+    existed rebuild their single shape from the scenario)."""
+    if not path.is_file():
+        if len(scenario.chips) == 1 and scenario.chips[0].shape not in VARIES_PER_CHIP:
+            shape = make_shape(scenario.chips[0])
+            return {shape.name: shape}
+        raise InputError(f"{path}: missing; the chip shapes of this run are unknown")
+    data = read_json(path, "shapes file")
+    if not isinstance(data, dict) or data.get("schema") != "chipstack.shapes/1":
+        raise InputError(f"{path}: not a chipstack shapes file (schema chipstack.shapes/1)")
+    records = data.get("shapes")
+    if not isinstance(records, list) or not records:
+        raise InputError(f"{path}: holds no shapes")
+    shapes = {}
+    for k, record in enumerate(records):
+        if not isinstance(record, dict):
+            raise InputError(f"{path}: shape {k} is not a table")
+        shape = shape_from_record(record, f"{path} shape {k}")
+        if shape.name in shapes:
+            raise InputError(f"{path}: shape name {shape.name!r} appears twice")
+        shapes[shape.name] = shape
+    return shapes
+
+
+def _read_poses(path: Path, shapes: dict, target_size_mm: float) -> Arrangement:
     try:
         with open(path, newline="", encoding="utf-8") as f:
             rows = list(csv.reader(f))
@@ -94,16 +123,20 @@ def _read_poses(path: Path, shape, target_size_mm: float) -> Arrangement:
         raise InputError(f"{path}: no chips")
     numbers = np.empty((len(body), 7))
     batch = np.empty(len(body), dtype=np.int64)
+    names = list(shapes)
+    index = {name: k for k, name in enumerate(names)}
+    shape_index = np.empty(len(body), dtype=np.int64)
     for line, row in enumerate(body, start=2):
         if len(row) != len(POSE_COLUMNS):
             raise InputError(f"{path} line {line}: {len(row)} fields, expected {len(POSE_COLUMNS)}")
         if row[0] != str(line - 2):
             raise InputError(f"{path} line {line}: chip {printable(row[0])}, expected {line - 2}")
-        if row[2] != shape.name:
+        if row[2] not in index:
             raise InputError(
-                f"{path} line {line}: shape {printable(row[2])} is not the scenario's "
-                f"{shape.name!r}"
+                f"{path} line {line}: shape {printable(row[2])} is not one of the run's "
+                f"shapes ({', '.join(sorted(index)[:5])})"
             )
+        shape_index[line - 2] = index[row[2]]
         try:
             batch[line - 2] = int(row[1])
             numbers[line - 2] = [float(v) for v in row[3:10]]
@@ -124,8 +157,8 @@ def _read_poses(path: Path, shape, target_size_mm: float) -> Arrangement:
         bad = int(np.argmax(np.abs(norms - 1))) + 2
         raise InputError(f"{path} line {bad}: quaternion is not of unit length")
     return Arrangement(
-        (shape,),
-        np.zeros(len(body), dtype=np.int64),
+        tuple(shapes[name] for name in names),
+        shape_index,
         numbers[:, :3],
         quaternions / norms[:, None],
         batch,

@@ -1,0 +1,145 @@
+"""Chips read from geometry files (STL, OBJ, PLY).
+
+The file is read with trimesh, in the units the scenario states, and checked: it must hold
+one closed (watertight), consistently oriented surface with a positive volume. The chip
+is then centred on its centre of mass and turned to its principal axes of inertia, the
+axis of the largest moment (a plate's normal) becoming local z and the smallest (its
+length) local x, so a chip from a file lies like every other chip.
+
+A convex chip is its own single convex piece, exactly. A non-convex one is split by
+V-HACD (PyBullet's built-in copy) into convex pieces for the physics and the geometry
+stage; the pieces approximate the chip, and a split whose volume is more than
+``MAX_DECOMPOSITION_ERROR`` away from the exact volume is refused.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import tempfile
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from packing.config import LENGTH_UNITS_MM, ChipSpec, printable
+from packing.errors import InputError
+
+__all__ = ["shape_from_file", "FILE_SUFFIXES", "MAX_DECOMPOSITION_ERROR"]
+
+log = logging.getLogger(__name__)
+
+FILE_SUFFIXES = (".stl", ".obj", ".ply")
+MAX_DECOMPOSITION_ERROR = 0.05
+MAX_FACES = 200_000
+
+
+@lru_cache(maxsize=32)
+def _read(path: str, mtime: float, units: str):
+    """(vertices mm, faces, convex pieces) of the file, centred and on principal axes."""
+    import trimesh
+
+    shown = printable(path)
+    suffix = Path(path).suffix.lower()
+    if suffix not in FILE_SUFFIXES:
+        raise InputError(
+            f"{shown}: unsupported geometry file type {suffix or '(none)'!r}; "
+            f"use {', '.join(FILE_SUFFIXES)}"
+        )
+    try:
+        if os.path.getsize(path) == 0:
+            raise InputError(f"{shown}: the geometry file is empty")
+        loaded = trimesh.load(path, force="mesh", process=True)
+    except InputError:
+        raise
+    except Exception as exc:  # trimesh raises many types for malformed files
+        message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise InputError(f"{shown}: unreadable geometry file ({message})") from None
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+        raise InputError(f"{shown}: the geometry file holds no surface")
+    mesh = loaded
+    if len(mesh.faces) > MAX_FACES:
+        raise InputError(f"{shown}: {len(mesh.faces)} faces; at most {MAX_FACES} are accepted")
+    if not np.isfinite(mesh.vertices).all():
+        raise InputError(f"{shown}: vertices hold NaN or infinite values")
+    if mesh.body_count != 1:
+        raise InputError(f"{shown}: holds {mesh.body_count} separate bodies; give one chip")
+    if not mesh.is_watertight:
+        raise InputError(f"{shown}: the surface is not watertight (it has holes or open edges)")
+    if not mesh.is_winding_consistent:
+        raise InputError(f"{shown}: the faces are not consistently oriented")
+    mesh.apply_scale(LENGTH_UNITS_MM[units])
+    if mesh.volume < 0:
+        mesh.invert()
+    if not mesh.volume > 0:
+        raise InputError(f"{shown}: the surface encloses no volume")
+    # Centre of mass at the origin, principal axes along x (smallest moment) to z (largest).
+    mesh.apply_translation(-mesh.center_mass)
+    moments, axes = np.linalg.eigh(mesh.moment_inertia)
+    if np.linalg.det(axes) < 0:
+        axes[:, 0] *= -1
+    vertices = np.asarray(mesh.vertices) @ axes
+    mesh = trimesh.Trimesh(vertices, mesh.faces, process=False)
+    hull = mesh.convex_hull
+    if abs(hull.volume - mesh.volume) <= 1e-6 * hull.volume:
+        pieces = [np.asarray(hull.vertices)]
+    else:
+        pieces = _decompose(mesh, shown)
+    inertia = moments / mesh.volume  # per unit mass for a uniform chip (mm^2)
+    return np.asarray(mesh.vertices), np.asarray(mesh.faces), pieces, float(mesh.volume), inertia
+
+
+def _decompose(mesh, shown: str) -> list[np.ndarray]:
+    import trimesh
+
+    from packing.world import pybullet
+
+    with tempfile.TemporaryDirectory(prefix="chipstack-vhacd-") as tmp:
+        source, target = os.path.join(tmp, "in.obj"), os.path.join(tmp, "out.obj")
+        mesh.export(source)
+        pybullet.vhacd(source, target, os.path.join(tmp, "log.txt"), resolution=200000)
+        parts = trimesh.load(target, force="scene", process=False)
+        geometries = list(parts.geometry.values()) if hasattr(parts, "geometry") else [parts]
+    pieces = [np.asarray(g.convex_hull.vertices) for g in geometries if len(g.vertices) >= 4]
+    if not pieces:
+        raise InputError(f"{shown}: convex decomposition failed (no pieces)")
+    total = sum(trimesh.convex.convex_hull(p).volume for p in pieces)
+    error = abs(total - mesh.volume) / mesh.volume
+    if error > MAX_DECOMPOSITION_ERROR:
+        raise InputError(
+            f"{shown}: its convex decomposition differs from the chip by {100 * error:.1f} % "
+            f"of its volume (at most {100 * MAX_DECOMPOSITION_ERROR:g} % accepted)"
+        )
+    log.info("%s: %d convex pieces, volume within %.2f %%", shown, len(pieces), 100 * error)
+    return pieces
+
+
+def shape_from_file(spec: ChipSpec, size: float = 1.0):
+    """The chip in ``spec.file`` (units ``spec.units``), scaled by ``size`` in its plane."""
+    from packing.shapes import ChipShape, _fibres, _frozen
+
+    path = spec.file
+    try:
+        mtime = os.path.getmtime(path)
+    except OSError:
+        raise InputError(f"chip.file: {printable(path)}: geometry file not found") from None
+    vertices, faces, pieces, volume, inertia = _read(path, mtime, spec.units)
+    scale = np.array([size, size, 1.0])
+    vertices = vertices * scale
+    pieces = tuple(_frozen(p * scale) for p in pieces)
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    name = f"file {Path(path).name}" + (f" x{size:.4g}" if size != 1.0 else "")
+    inertia = inertia * np.array([size**2, size**2, size**2])  # in-plane scaling, roughly
+    return ChipShape(
+        name=name,
+        kind="file",
+        vertices=_frozen(vertices),
+        faces=tuple(tuple(int(v) for v in f) for f in faces),
+        convex_pieces=pieces,
+        fibre_directions=_frozen(_fibres(spec, "file")),
+        volume_mm3=volume * size * size,
+        inertia_mm2=_frozen(inertia),
+        half_extents=_frozen((hi - lo) / 2),
+        box_centre=_frozen((hi + lo) / 2),
+        collision="hull",
+    )
