@@ -1,4 +1,4 @@
-"""Command line: ``pipeline run``, ``pipeline describe`` and ``pipeline compare``.
+"""Command line: ``pipeline run``, ``describe``, ``compare`` and ``validate``.
 
 The only place that prints or exits. Every expected failure (bad input, a physics error)
 becomes one line on stderr and exit status 2.
@@ -80,6 +80,19 @@ def _parser() -> argparse.ArgumentParser:
     compare.add_argument("--overwrite", action="store_true", help="replace an earlier comparison")
     compare.add_argument("--quiet", action="store_true", help="no table on stdout")
     compare.add_argument("-v", "--verbose", action="store_true", help="log progress details")
+    validate = commands.add_parser(
+        "validate", help="rerun the paper's validation cases and print ours beside the paper's"
+    )
+    validate.add_argument("--out", default="runs/validation", help="where to write")
+    validate.add_argument(
+        "--cases", default=None, help="comma-separated: drop, mat, container, mixed (default: all)"
+    )
+    validate.add_argument("--repeats", type=int, default=10, help="repeats per case (paper: 10)")
+    validate.add_argument("--drops", type=int, default=50, help="drops per drop experiment")
+    validate.add_argument("--seed", type=int, default=0, help="seed of the ensembles")
+    validate.add_argument("--workers", type=int, default=None, help="local Dask workers")
+    validate.add_argument("--scheduler", default=None, help="address of a Dask scheduler")
+    validate.add_argument("-v", "--verbose", action="store_true", help="log progress details")
     return parser
 
 
@@ -300,6 +313,44 @@ def _compare(args: argparse.Namespace) -> None:
         print(f"written to {out}")
 
 
+def _validate(args: argparse.Namespace) -> None:
+    from tqdm import tqdm
+
+    from pipeline.validate import CASES, table_markdown, validate
+
+    cases = [c.strip() for c in args.cases.split(",") if c.strip()] if args.cases else CASES
+    if not cases:
+        raise ChipstackError("--cases: give at least one case")
+    if args.seed < 0:
+        raise ChipstackError("--seed: must not be negative")
+    if args.workers is not None and args.workers < 1:
+        raise ChipstackError("--workers: must be at least 1")
+    bar = None
+
+    def progress(step: int, total: int) -> None:
+        nonlocal bar
+        if bar is None:
+            bar = tqdm(total=total, unit="run", desc="validating")
+        bar.update(step)
+
+    try:
+        rows = validate(
+            args.out,
+            cases,
+            args.repeats,
+            args.drops,
+            args.seed,
+            args.workers,
+            args.scheduler,
+            progress,
+        )
+    finally:
+        if bar is not None:
+            bar.close()
+    print(table_markdown(rows))
+    print(f"written to {args.out}")
+
+
 class _Formatter(logging.Formatter):
     def format(self, record: logging.LogRecord) -> str:
         return f"pipeline: {record.levelname.lower()}: {record.getMessage()}"
@@ -326,6 +377,8 @@ def main(argv: list[str] | None = None) -> int:
             _describe(args)
         elif args.command == "compare":
             _compare(args)
+        elif args.command == "validate":
+            _validate(args)
     except ChipstackError as exc:
         sys.stderr.write(f"pipeline: error: {exc}\n")
         return EXIT_BAD_INPUT

@@ -1,0 +1,384 @@
+"""`pipeline validate`: the paper's validation cases rerun, our values beside the paper's.
+
+Cases (``CASES``), each a built-in scenario:
+
+* ``drop`` (section 4.2, Fig. 15): ``single-chip-drop``, repeated; spread and 4-fold
+  anisotropy of the final positions;
+* ``mat`` (section 5, Fig. 16): ``fibre-mat``, 1,000 fibres on a 100 mm target;
+* ``container`` (section 5, Fig. 17): ``container-ar10`` and ``container-ar25``;
+* ``mixed`` (Fig. 18): ``mixed-shapes``, described, meshed and rendered.
+
+Every repeat of every case is one task for the execution layer (Dask), so they run in
+parallel; results are gathered here, written to ``validation.json`` and
+``validation.md``, and returned as table rows.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from packing.config import printable
+from packing.errors import InputError
+from pipeline.run import derive_seed
+from pipeline.scenario_files import load_scenario
+
+__all__ = ["CASES", "validate", "PAPER"]
+
+log = logging.getLogger(__name__)
+
+CASES = ("drop", "mat", "container", "mixed")
+
+# The paper's figures and the measured references it quotes (facts.md).
+PAPER = {
+    ("mat", "volume fraction (%)"): (6.68, "Mahé's model 6.61"),
+    ("mat", "fibre-fibre contacts"): (2169, "Mahé's model 2212 ± 42"),
+    ("container AR 25", "volume fraction (%)"): (14.8, "Freeman et al. about 18"),
+    ("container AR 10", "volume fraction (%)"): (28.6, "Freeman et al. about 37"),
+}
+MEASURED = {"container AR 25": 18.0, "container AR 10": 37.0}
+
+
+def _drop_task(scenario) -> dict:
+    from geometry.scatter import drop_statistics
+    from packing.drop import drop_chips
+
+    drops = drop_chips(scenario)
+    stats = drop_statistics(drops.positions[:, :2], scenario.drop.yaw_deg)
+    stats["xy"] = drops.positions[:, :2].tolist()
+    return stats
+
+
+def _mat_task(scenario) -> dict:
+    from geometry.arrangement import arrangements_from_stack
+    from geometry.contacts import find_contacts
+    from packing import deposit
+    from packing.overlap import vertex_heights_mm
+
+    stack = deposit(scenario)
+    arrangement = arrangements_from_stack(stack)[-1]
+    g = scenario.geometry
+    table = find_contacts(arrangement, g.contact_gap_mm, g.contact_extent_mm)
+    between = int((table.chip_b >= 0).sum())
+    shape = stack.shapes[0]
+    top = float(vertex_heights_mm(stack.positions, stack.quaternions, shape.vertices).max())
+    inside = stack.inside_target()
+    area = scenario.deposition.target_size_mm**2
+    volume = sum(stack.shapes[k].volume_mm3 for k in stack.shape_index)
+    inside_volume = sum(stack.shapes[k].volume_mm3 for k in stack.shape_index[inside])
+    return {
+        "fibres": stack.n_chips,
+        "inside_target": int(inside.sum()),
+        "top_mm": top,
+        "volume_fraction_all": volume / (area * top),
+        "volume_fraction_inside": inside_volume / (area * top),
+        "contacts_fibre_fibre": between,
+        "contacts_with_floor": int(len(table.chip_a)),
+        "positions": stack.positions.tolist(),
+        "quaternions": stack.quaternions.tolist(),
+    }
+
+
+def _container_task(scenario) -> dict:
+    from geometry.container import container_fill
+    from packing import deposit
+
+    stack = deposit(scenario)
+    volumes = np.array([stack.shapes[k].volume_mm3 for k in stack.shape_index])
+    c = scenario.container
+    fill = container_fill(stack.positions, volumes, c.radius_mm, c.height_mm)
+    fill["full"] = not any("not full" in w for w in stack.warnings)
+    return fill
+
+
+def _mixed_task(scenario):
+    from pipeline.run import compute_run
+
+    return compute_run(scenario, "geometry", None)
+
+
+def _call(function: Callable, scenario) -> Any:
+    return function(scenario)
+
+
+def _mean_sd(values: Sequence[float]) -> tuple[float, float]:
+    values = np.asarray(values, dtype=float)
+    return float(values.mean()), float(values.std(ddof=1)) if len(values) > 1 else 0.0
+
+
+def validate(
+    out: str | Path,
+    cases: Sequence[str] = CASES,
+    repeats: int = 10,
+    drops: int = 50,
+    seed: int = 0,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> list[dict[str, Any]]:
+    """Run the validation cases into ``out``; returns the table rows (also written)."""
+    from pipeline.execution import Executor
+
+    for case in cases:
+        if case not in CASES:
+            raise InputError(
+                f"--cases: unknown case {printable(case)!r}; valid: {', '.join(CASES)}"
+            )
+    if not 2 <= repeats <= 1000:
+        raise InputError(f"--repeats: must be between 2 and 1000, got {repeats}")
+    if not 2 <= drops <= 100000:
+        raise InputError(f"--drops: must be between 2 and 100000, got {drops}")
+    folder = Path(out)
+    if folder.exists() and not folder.is_dir():
+        raise InputError(f"{printable(out)}: exists and is not a directory")
+    tasks: list[tuple[str, Callable, Any]] = []
+    if "drop" in cases:
+        base = load_scenario("single-chip-drop")
+        base = dataclasses.replace(base, drop=dataclasses.replace(base.drop, drops=drops))
+        tasks += [
+            ("drop", _drop_task, base.with_seed(derive_seed(seed, k))) for k in range(repeats)
+        ]
+    if "mat" in cases:
+        base = load_scenario("fibre-mat")
+        tasks += [("mat", _mat_task, base.with_seed(derive_seed(seed, k))) for k in range(repeats)]
+    if "container" in cases:
+        for name in ("container-ar25", "container-ar10"):
+            base = load_scenario(name)
+            tasks += [
+                (name, _container_task, base.with_seed(derive_seed(seed, k)))
+                for k in range(repeats)
+            ]
+    if "mixed" in cases:
+        tasks.append(("mixed", _mixed_task, load_scenario("mixed-shapes").with_seed(seed)))
+    results: dict[str, list] = {}
+    errors: list[str] = []
+
+    def on_result(j: int, value: Any) -> None:
+        results.setdefault(tasks[j][0], []).append(value)
+        if progress:
+            progress(1, len(tasks))
+
+    def on_error(j: int, error: BaseException) -> None:
+        errors.append(f"{tasks[j][0]} (seed {tasks[j][2].seed}): {type(error).__name__}: {error}")
+        log.warning("%s", errors[-1])
+        if progress:
+            progress(1, len(tasks))
+
+    folder.mkdir(parents=True, exist_ok=True)
+    with Executor(workers=workers, scheduler=scheduler) as executor:
+        executor.run(
+            _call,
+            [(function, scenario) for _, function, scenario in tasks],
+            on_result,
+            on_error,
+        )
+    rows = _rows(results, folder, seed)
+    report = {"seed": seed, "repeats": repeats, "drops": drops, "rows": rows, "errors": errors}
+    (folder / "validation.json").write_text(json.dumps(report, indent=2) + "\n")
+    (folder / "validation.md").write_text(table_markdown(rows) + "\n")
+    return rows
+
+
+def _row(case, quantity, ours, paper=None, measured=None, definition="") -> dict[str, Any]:
+    mean, sd = ours
+    reference = paper if paper is not None else measured
+    difference = (
+        100 * (mean - reference) / reference
+        if isinstance(reference, int | float) and reference
+        else None
+    )
+    return {
+        "case": case,
+        "quantity": quantity,
+        "paper": paper,
+        "measured": measured,
+        "ours_mean": mean,
+        "ours_sd": sd,
+        "difference_pct": difference,
+        "definition": definition,
+    }
+
+
+def _rows(results: dict[str, list], folder: Path, seed: int) -> list[dict[str, Any]]:
+    rows: list[dict[str, Any]] = []
+    if "drop" in results:
+        runs = results["drop"]
+        from export.figures import plot_drops
+        from geometry.scatter import drop_statistics
+
+        first = runs[0]
+        plot_drops(folder / "fig15_drops.png", np.array(first["xy"]), first)
+        pooled = drop_statistics(np.vstack([np.array(r["xy"]) for r in runs]))
+        n = first["drops"]
+        rows.append(
+            _row(
+                "drop",
+                "sd of distance to (0,0) (mm)",
+                _mean_sd([r["distance_sd_mm"] for r in runs]),
+                "Fig. 15",
+                definition=f"{n} drops per experiment, {len(runs)} experiments",
+            )
+        )
+        rows.append(
+            _row(
+                "drop",
+                "95 % disc radius (mm)",
+                _mean_sd([r["disc95_mm"] for r in runs]),
+                "Fig. 15",
+                definition="smallest disc centred on (0,0) holding 95 %",
+            )
+        )
+        rows.append(
+            _row(
+                "drop",
+                "4-fold anisotropy (resultant of 4 theta)",
+                _mean_sd([r["anisotropy"] for r in runs]),
+                "X along corners",
+                definition=f"significant (Rayleigh p < 0.05) in "
+                f"{sum(r['anisotropy_p'] < 0.05 for r in runs)} of {len(runs)}; pooled "
+                f"over {pooled['drops']} drops p = {pooled['anisotropy_p']:.2g}",
+            )
+        )
+        rows.append(
+            _row(
+                "drop",
+                "4-fold axis from corner directions (deg)",
+                _mean_sd([r["corner_offset_deg"] for r in runs]),
+                0.0,
+                definition=f"pooled axis {pooled['axis_deg']:.1f} deg, corners at 45 "
+                f"deg (offset {pooled['corner_offset_deg']:.1f} deg)",
+            )
+        )
+    if "mat" in results:
+        runs = results["mat"]
+        _mat_figure(folder / "fig16_mat.png", runs[0])
+        rows.append(
+            _row(
+                "mat",
+                "volume fraction (%)",
+                _mean_sd([100 * r["volume_fraction_all"] for r in runs]),
+                6.68,
+                "Mahé's model 6.61",
+                definition="all fibre volume / (target area x height of the top)",
+            )
+        )
+        rows.append(
+            _row(
+                "mat",
+                "volume fraction over the target (%)",
+                _mean_sd([100 * r["volume_fraction_inside"] for r in runs]),
+                6.68,
+                definition="fibres with centre over the target, same box",
+            )
+        )
+        rows.append(
+            _row(
+                "mat",
+                "fibre-fibre contacts",
+                _mean_sd([r["contacts_fibre_fibre"] for r in runs]),
+                2169,
+                "Mahé's model 2212 ± 42",
+                definition="touching pairs (gap < 0.05 mm), floor excluded",
+            )
+        )
+        rows.append(
+            _row(
+                "mat",
+                "fibres over the target",
+                _mean_sd([r["inside_target"] for r in runs]),
+                definition="of 1,000 poured",
+            )
+        )
+    for name, label in (
+        ("container-ar25", "container AR 25"),
+        ("container-ar10", "container AR 10"),
+    ):
+        if name in results:
+            runs = results[name]
+            full = sum(r["full"] for r in runs)
+            paper, _ = PAPER[(label, "volume fraction (%)")]
+            rows.append(
+                _row(
+                    label,
+                    "volume fraction (%)",
+                    _mean_sd([100 * r["volume_fraction"] for r in runs]),
+                    paper,
+                    MEASURED[label],
+                    definition=f"rods with centre inside / cylinder; {full} of {len(runs)} filled",
+                )
+            )
+    if "mixed" in results:
+        from pipeline.run import write_run
+        from pipeline.rundir import RunDirectory
+
+        run = RunDirectory(folder / "mixed", overwrite=True)
+        with run:
+            manifest = write_run(run.path, "", results["mixed"][0], "mesh", ["validate"], True)
+        mesh = manifest["mesh"]["voxel"]
+        rows.append(
+            _row(
+                "mixed (Fig. 18)",
+                "chips; voxel hexahedra",
+                (float(manifest["packing"]["chips"]), 0.0),
+                definition=f"{mesh['elements']:,} hexahedra; picture in mixed/",
+            )
+        )
+    return rows
+
+
+def _mat_figure(path: Path, run: dict) -> None:
+    """Fig. 16: the fibre mat rendered (pyvista, off screen); skipped with a warning if no
+    renderer is available."""
+    from export.figures import render_stack
+    from export.vtk import stack_polydata
+    from packing.config import ChipSpec
+    from packing.shapes import make_shape
+
+    shape = make_shape(ChipSpec(shape="fibre", length_mm=25, width_mm=1, thickness_mm=1))
+    positions = np.array(run["positions"])
+    mesh = stack_polydata(
+        (shape,),
+        np.zeros(len(positions), int),
+        positions,
+        np.array(run["quaternions"]),
+        np.ones(len(positions), int),
+    )
+    try:
+        render_stack(path, mesh)
+    except RuntimeError as exc:
+        log.warning("mat picture not rendered: %s", exc)
+
+
+def table_markdown(rows: list[dict[str, Any]]) -> str:
+    """The validation table: case, quantity, paper, measured, ours (mean ± sd), difference."""
+
+    def show(value) -> str:
+        if value is None:
+            return "-"
+        if isinstance(value, float):
+            return f"{value:.3g}"
+        return str(value)
+
+    lines = [
+        "| case | quantity | paper | measured | ours (mean ± sd) | difference | definition |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        ours = f"{r['ours_mean']:.3g} ± {r['ours_sd']:.2g}"
+        diff = (
+            "-"
+            if r["difference_pct"] is None or math.isnan(r["difference_pct"])
+            else (f"{r['difference_pct']:+.1f} %")
+        )
+        lines.append(
+            f"| {r['case']} | {r['quantity']} | {show(r['paper'])} | {show(r['measured'])} | "
+            f"{ours} | {diff} | {r['definition']} |"
+        )
+    return "\n".join(lines)
