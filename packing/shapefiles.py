@@ -6,10 +6,12 @@ is then centred on its centre of mass and turned to its principal axes of inerti
 axis of the largest moment (a plate's normal) becoming local z and the smallest (its
 length) local x, so a chip from a file lies like every other chip.
 
-A convex chip is its own single convex piece, exactly. A non-convex one is split by
-V-HACD (PyBullet's built-in copy) into convex pieces for the physics and the geometry
-stage; the pieces approximate the chip, and a split whose volume is more than
-``MAX_DECOMPOSITION_ERROR`` away from the exact volume is refused.
+A convex chip is its own single convex piece, exactly. A non-convex flat chip (a plate of
+uniform thickness, what a shredder cuts from a sheet) is split exactly through its
+outline. Any other non-convex chip is split by V-HACD (PyBullet's built-in copy) into
+convex pieces for the physics and the geometry stage; the pieces approximate the chip,
+and a split whose volume is more than ``MAX_DECOMPOSITION_ERROR`` away from the exact
+volume is refused.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ __all__ = ["shape_from_file", "FILE_SUFFIXES", "MAX_DECOMPOSITION_ERROR"]
 log = logging.getLogger(__name__)
 
 FILE_SUFFIXES = (".stl", ".obj", ".ply")
-MAX_DECOMPOSITION_ERROR = 0.05
+MAX_DECOMPOSITION_ERROR = 0.10
 MAX_FACES = 200_000
 
 
@@ -81,12 +83,55 @@ def _read(path: str, mtime: float, units: str):
     vertices = np.asarray(mesh.vertices) @ axes
     mesh = trimesh.Trimesh(vertices, mesh.faces, process=False)
     hull = mesh.convex_hull
+    outline = None
     if abs(hull.volume - mesh.volume) <= 1e-6 * hull.volume:
         pieces = [np.asarray(hull.vertices)]
+    elif (outline := _prism_outline(mesh)) is not None:
+        # A flat chip cut from a sheet: its outline, partitioned exactly.
+        from packing.polygons import convex_partition
+
+        low, high = float(mesh.vertices[:, 2].min()), float(mesh.vertices[:, 2].max())
+        pieces = [
+            np.vstack([np.column_stack([q, np.full(len(q), z)]) for z in (low, high)])
+            for q in convex_partition(outline)
+        ]
     else:
         pieces = _decompose(mesh, shown)
     inertia = moments / mesh.volume  # per unit mass for a uniform chip (mm^2)
     return np.asarray(mesh.vertices), np.asarray(mesh.faces), pieces, float(mesh.volume), inertia
+
+
+def _prism_outline(mesh) -> np.ndarray | None:
+    """The outline (n, 2) of a mesh that is a plate extruded along z, else None."""
+    z = mesh.vertices[:, 2]
+    low, high = z.min(), z.max()
+    tol = 1e-6 * float(np.ptp(mesh.vertices, axis=0).max())
+    if not np.all((np.abs(z - low) <= tol) | (np.abs(z - high) <= tol)):
+        return None
+    top = mesh.faces[np.all(np.abs(z[mesh.faces] - high) <= tol, axis=1)]
+    edges = np.sort(np.vstack([top[:, [0, 1]], top[:, [1, 2]], top[:, [2, 0]]]), axis=1)
+    unique, counts = np.unique(edges, axis=0, return_counts=True)
+    boundary = unique[counts == 1]
+    neighbours: dict[int, list[int]] = {}
+    for a, b in boundary.tolist():
+        neighbours.setdefault(a, []).append(b)
+        neighbours.setdefault(b, []).append(a)
+    if not neighbours or any(len(v) != 2 for v in neighbours.values()):
+        return None  # holes or several outlines: not a simple plate
+    start = next(iter(neighbours))
+    loop, previous, current = [start], None, start
+    while True:
+        a, b = neighbours[current]
+        following = b if a == previous else a
+        if following == start:
+            break
+        loop.append(following)
+        previous, current = current, following
+    if len(loop) != len(neighbours):
+        return None
+    from packing.polygons import counter_clockwise
+
+    return counter_clockwise(mesh.vertices[loop, :2])
 
 
 def _decompose(mesh, shown: str) -> list[np.ndarray]:
@@ -97,10 +142,17 @@ def _decompose(mesh, shown: str) -> list[np.ndarray]:
     with tempfile.TemporaryDirectory(prefix="chipstack-vhacd-") as tmp:
         source, target = os.path.join(tmp, "in.obj"), os.path.join(tmp, "out.obj")
         mesh.export(source)
-        pybullet.vhacd(source, target, os.path.join(tmp, "log.txt"), resolution=200000)
-        parts = trimesh.load(target, force="scene", process=False)
-        geometries = list(parts.geometry.values()) if hasattr(parts, "geometry") else [parts]
-    pieces = [np.asarray(g.convex_hull.vertices) for g in geometries if len(g.vertices) >= 4]
+        pybullet.vhacd(
+            source,
+            target,
+            os.path.join(tmp, "log.txt"),
+            resolution=1000000,
+            concavity=1e-4,
+            depth=32,
+            maxNumVerticesPerCH=64,
+        )
+        pieces = _obj_objects(target)
+    pieces = [p for p in pieces if len(p) >= 4]
     if not pieces:
         raise InputError(f"{shown}: convex decomposition failed (no pieces)")
     total = sum(trimesh.convex.convex_hull(p).volume for p in pieces)
@@ -112,6 +164,19 @@ def _decompose(mesh, shown: str) -> list[np.ndarray]:
         )
     log.info("%s: %d convex pieces, volume within %.2f %%", shown, len(pieces), 100 * error)
     return pieces
+
+
+def _obj_objects(path: str) -> list[np.ndarray]:
+    """The vertices of each object (``o`` line) of an OBJ file, as V-HACD writes it (a
+    generic OBJ reader would merge the objects into one mesh)."""
+    objects: list[list[list[float]]] = []
+    with open(path, encoding="utf-8") as f:
+        for line in f:
+            if line.startswith("o ") or not objects:
+                objects.append([])
+            if line.startswith("v "):
+                objects[-1].append([float(v) for v in line.split()[1:4]])
+    return [np.array(o) for o in objects if o]
 
 
 def shape_from_file(spec: ChipSpec, size: float = 1.0):

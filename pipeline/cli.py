@@ -149,7 +149,8 @@ def _run(args: argparse.Namespace) -> None:
                     file=sys.stderr,
                 )
             )
-        bars[0].set_postfix(chips=len(result.positions), sim_s=f"{result.sim_time_s:.2f}")
+        if result is not None:  # containers report only their last batch
+            bars[0].set_postfix(chips=len(result.positions), sim_s=f"{result.sim_time_s:.2f}")
         bars[0].update(1)
 
     try:

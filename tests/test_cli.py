@@ -172,7 +172,10 @@ BAD_SCENARIOS = {
         "[deposition]\nrelease_height_mm = [5.0, 200.0]\n",
         "deposition.release_height_mm",
     ),
-    "no fibre direction": ("[chip]\nfibre_directions_deg = []\n", "chip.fibre_directions_deg"),
+    "infinite fibre direction": (
+        "[chip]\nfibre_directions_deg = [inf]\n",
+        "chip.fibre_directions_deg",
+    ),
     "chip as thick as wide": ("[chip]\nwidth_mm = 2.0\n", "chip.thickness_mm"),
     "time step out of range": ("[physics]\ntime_step_s = 0.5\n", "physics.time_step_s"),
     "friction out of range": ("[physics]\nfriction = 1e9\n", "physics.friction"),

@@ -225,7 +225,7 @@ def test_both_meshes_keep_the_voxel_one_when_the_conformal_fails(tmp_path, small
     out = tmp_path / "run"
     result = run_cli("run", str(small_scenario), "--to", "mesh", "--out", str(out), "--quiet")
     assert result.returncode == 0, result.stderr
-    assert "warning: conformal mesh failed" in result.stderr
+    assert "warning: conformal mesh" in result.stderr and "voxel" in result.stderr
     import json
 
     manifest = json.loads((out / "manifest.json").read_text())
