@@ -9,6 +9,7 @@ import manifold3d as m3
 import numpy as np
 import pytest
 import trimesh
+from conftest import run_cli
 
 from packing import InputError, deposit, scenario_from_dict
 from packing.config import ChipSpec
@@ -16,7 +17,6 @@ from packing.deposition import draw_shapes
 from packing.polygons import check_simple, convex_partition, is_convex, signed_area, star_polygon
 from packing.shapes import SHAPES, make_shape, shape_from_record, shape_record
 from pipeline.scenario_files import dumps_toml
-from tests.conftest import run_cli
 
 
 def _pieces_volume(shape) -> float:

@@ -8,11 +8,11 @@ import math
 
 import numpy as np
 import pytest
+from conftest import run_cli
 
 from geometry.container import container_fill
 from geometry.scatter import disc_radius, drop_statistics, rayleigh_p
 from packing import scenario_from_dict
-from tests.conftest import run_cli
 
 
 def test_drop_statistics_of_points_on_the_diagonals():
