@@ -339,12 +339,16 @@ class ChipWorld:
         quaternions = np.array([p[1] for p in poses], dtype=float).reshape(-1, 4)
         linear = np.array([v[0] for v in velocities], dtype=float).reshape(-1, 3)
         angular = np.array([v[1] for v in velocities], dtype=float).reshape(-1, 3)
-        # Bound each turn about a local axis by the farthest point from that axis: a rod
-        # spinning about its own axis moves its surface at w r_rod, not w L / 2.
+        # Bound each turn about a local axis by the farthest point from that axis (a rod
+        # spinning about its own axis moves its surface at w r_rod, not w L / 2), and never
+        # above |w| times the circumradius.
         reach = np.array([self._axis_reach_units[i] for i in chips], dtype=float).reshape(-1, 3)
+        radius = np.array([self._radius_units[i] for i in chips], dtype=float)
         if len(chips):
             local = Rotation.from_quat(quaternions).inv().apply(angular)
-            turning = (np.abs(local) * reach).sum(axis=1)
+            turning = np.minimum(
+                (np.abs(local) * reach).sum(axis=1), np.linalg.norm(angular, axis=1) * radius
+            )
         else:
             turning = np.empty(0)
         speed = (np.linalg.norm(linear, axis=1) + turning) * MM_PER_UNIT
