@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 
+from packing.deposition import reaches_rim
+
 __all__ = ["container_fill"]
 
 
@@ -17,7 +19,7 @@ def container_fill(
     otherwise, as the paper does.
 
     positions (n, 3) mm; volumes_mm3 (n,) each chip's volume. Returns the counts and
-    ``volume_fraction`` (dimensionless).
+    ``volume_fraction`` (dimensionless), and ``full`` (:func:`reaches_rim`).
     """
     positions = np.asarray(positions, dtype=float).reshape(-1, 3)
     volumes = np.asarray(volumes_mm3, dtype=float).reshape(-1)
@@ -32,4 +34,5 @@ def container_fill(
         "chips_inside": int(inside.sum()),
         "container_volume_mm3": capacity,
         "volume_fraction": float(volumes[inside].sum() / capacity),
+        "full": reaches_rim(positions, radius_mm, height_mm),
     }

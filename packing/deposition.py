@@ -33,7 +33,7 @@ from packing.shapes import VARIES_PER_CHIP, ChipShape, make_shape
 from packing.stack import BatchResult, Stack
 from packing.world import ChipWorld
 
-__all__ = ["deposit", "release_poses", "draw_shapes"]
+__all__ = ["deposit", "release_poses", "draw_shapes", "settle", "reaches_rim"]
 
 log = logging.getLogger(__name__)
 
@@ -212,6 +212,7 @@ class _RestTracker:
     def __init__(self, world: ChipWorld, stray_mm: float, hold_checks: int) -> None:
         self.world, self.stray_mm, self.hold_checks = world, stray_mm, hold_checks
         self.awake: dict[int, int] = {}  # chip -> checks spent inside its window
+        self.positions: dict[int, np.ndarray] = {}  # where update() last saw each chip
         self._anchor: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     def add(self, chips: list[int]) -> None:
@@ -230,6 +231,7 @@ class _RestTracker:
         """
         chips = sorted(self.awake)
         positions, quaternions, speed = self.world.states(chips)
+        self.positions = dict(zip(chips, positions, strict=True))  # read once per check
         anchor_pos = np.array([self._anchor[c][0] for c in chips])
         anchor_quat = np.array([self._anchor[c][1] for c in chips])
         cos_half = np.clip(np.abs(np.einsum("ij,ij->i", quaternions, anchor_quat)), 0.0, 1.0)
@@ -256,7 +258,7 @@ class _RestTracker:
         del self.awake[chip], self._anchor[chip]
 
 
-def _settle(world: ChipWorld, new: list[int], scenario: Scenario) -> tuple[bool, int, int, float]:
+def settle(world: ChipWorld, new: list[int], scenario: Scenario) -> tuple[bool, int, int, float]:
     """Step until the chips in ``new`` (and those they wake) have settled or time runs out.
 
     Returns (settled, steps, wakes, simulated start time). Chips still moving at the cap
@@ -292,14 +294,23 @@ def _settle(world: ChipWorld, new: list[int], scenario: Scenario) -> tuple[bool,
     return not awake, steps, wakes, start_time
 
 
+def reaches_rim(positions: np.ndarray, radius_mm: float, height_mm: float) -> bool:
+    """Whether a container is full: a chip's centre of mass lies inside the wall's
+    footprint at or above the rim."""
+    positions = np.asarray(positions, dtype=float).reshape(-1, 3)
+    inside = np.hypot(positions[:, 0], positions[:, 1]) <= radius_mm
+    return bool((positions[inside, 2] >= height_mm).any())
+
+
 def _freeze_spilled(world: ChipWorld, tracker: _RestTracker, container) -> None:
     """Chips that fell outside the container wall, below its rim, cannot get back in and
     take no further part: freeze them where they are (on a bare floor a spilled rod would
     roll on for many seconds)."""
-    chips = sorted(tracker.awake)
+    # Where the tracker read them this check (chips it has just woken were at rest).
+    chips = [c for c in sorted(tracker.awake) if c in tracker.positions]
     if not chips:
         return
-    positions, _, _ = world.states(chips)
+    positions = np.array([tracker.positions[c] for c in chips])
     outside = np.hypot(positions[:, 0], positions[:, 1]) > container.radius_mm + SPILL_MARGIN_MM
     for chip in np.asarray(chips)[outside & (positions[:, 2] < container.height_mm)]:
         tracker.remove(int(chip))
@@ -347,7 +358,7 @@ def deposit(
             ]
             batch_of += [batch] * count
             shapes_of += shapes
-            settled, steps, wakes, start_time = _settle(world, new, scenario)
+            settled, steps, wakes, start_time = settle(world, new, scenario)
             if not settled:
                 message = (
                     f"batch {batch} did not settle within {s.max_time_s:g} s of simulated "
@@ -356,7 +367,8 @@ def deposit(
                 log.warning(message)
                 warnings.append(message)
             if container:
-                full = _container_full(world, scenario)
+                c = scenario.container
+                full = reaches_rim(world.poses()[0], c.radius_mm, c.height_mm)
             last = batch == n_batches or full
             if container and not last:
                 if progress is not None:
@@ -419,14 +431,6 @@ def _unique_names(shapes: list[ChipShape]) -> list[ChipShape]:
             shape = dataclasses.replace(shape, name=f"{shape.name} #{seen[shape.name]}")
         renamed.append(shape)
     return renamed
-
-
-def _container_full(world: ChipWorld, scenario: Scenario) -> bool:
-    """A settled chip's centre of mass lies inside the wall's footprint at or above the rim."""
-    positions, _ = world.poses()
-    c = scenario.container
-    inside = np.hypot(positions[:, 0], positions[:, 1]) <= c.radius_mm
-    return bool((positions[inside, 2] >= c.height_mm).any())
 
 
 def _batch_result(

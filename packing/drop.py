@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from packing.config import Scenario
-from packing.deposition import _settle, draw_shapes
+from packing.deposition import draw_shapes, settle
 from packing.presets import PRESETS
 from packing.shapes import ChipShape
 from packing.world import ChipWorld
@@ -69,7 +69,7 @@ def drop_chips(
         rotation = Rotation.from_euler("xyz", [angles[0], angles[1], yaw])
         with ChipWorld(preset, scenario.physics) as world:
             chip = world.add_chip(shape, np.array([0.0, 0.0, spec.height_mm]), rotation.as_quat())
-            done, _, _, t0 = _settle(world, [chip], scenario)
+            done, _, _, t0 = settle(world, [chip], scenario)
             pose = world.poses()
             times.append(world.time_s - t0)
         shapes.append(shape)

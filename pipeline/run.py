@@ -195,24 +195,10 @@ def write_run(
         times["mesh"] = round(time.perf_counter() - start, 3)
         stages.append("mesh")
     times["writing"] = round(time.perf_counter() - wall, 3)
-    manifest = {
-        "tool": "chipstack",
-        "kind": "run",
-        "command": command or [],
-        "versions": _versions(),
-        "platform": platform.platform(),
-        "scenario": scenario.name,
-        "scenario_sha256": hashlib.sha256(resolved.encode()).hexdigest(),
-        "seed": scenario.seed,
-        "stages_completed": stages,
-        "started_utc": result.started_utc,
-        "finished_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-        "wall_time_s": times,
-        "warnings": list(stack.warnings),
-        "packing": _packing_summary(stack),
-    }
+    manifest = _run_manifest(result, command, resolved, stages, times, stack.warnings)
+    manifest["packing"] = _packing_summary(stack)
     if scenario.kind == "container":
-        manifest["container"] = _container_summary(stack, scenario)
+        manifest["container"] = container_summary(stack, scenario)
     if geometry_summary is not None:
         manifest["geometry"] = geometry_summary
     if mesh_summary is not None:
@@ -221,14 +207,31 @@ def write_run(
     return manifest
 
 
-def _container_summary(stack: Stack, scenario: Scenario) -> dict[str, Any]:
+def _run_manifest(result: RepeatResult, command, resolved: str, stages, times, warnings) -> dict:
+    """The manifest fields every run has: tool, provenance, seed, stages, times, warnings."""
+    return {
+        "tool": "chipstack",
+        "kind": "run",
+        "command": command or [],
+        "versions": _versions(),
+        "platform": platform.platform(),
+        "scenario": result.scenario.name,
+        "scenario_sha256": hashlib.sha256(resolved.encode()).hexdigest(),
+        "seed": result.scenario.seed,
+        "stages_completed": stages,
+        "started_utc": result.started_utc,
+        "finished_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+        "wall_time_s": times,
+        "warnings": list(warnings),
+    }
+
+
+def container_summary(stack: Stack, scenario: Scenario) -> dict[str, Any]:
     from geometry.container import container_fill
 
     volumes = np.array([stack.shapes[k].volume_mm3 for k in stack.shape_index])
     c = scenario.container
-    summary = container_fill(stack.positions, volumes, c.radius_mm, c.height_mm)
-    summary["full"] = not any("not full" in w for w in stack.warnings)
-    return summary
+    return container_fill(stack.positions, volumes, c.radius_mm, c.height_mm)
 
 
 def _write_drops(path, prefix, result: RepeatResult, command, figures, resolved) -> dict:
@@ -252,22 +255,10 @@ def _write_drops(path, prefix, result: RepeatResult, command, figures, resolved)
             statistics,
             scenario.drop.yaw_deg,
         )
-    manifest = {
-        "tool": "chipstack",
-        "kind": "run",
-        "command": command or [],
-        "versions": _versions(),
-        "platform": platform.platform(),
-        "scenario": scenario.name,
-        "scenario_sha256": hashlib.sha256(resolved.encode()).hexdigest(),
-        "seed": scenario.seed,
-        "stages_completed": ["packing"],
-        "started_utc": result.started_utc,
-        "finished_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-        "wall_time_s": dict(result.times),
-        "warnings": list(drops.warnings),
-        "drop": statistics,
-    }
+    manifest = _run_manifest(
+        result, command, resolved, ["packing"], dict(result.times), drops.warnings
+    )
+    manifest["drop"] = statistics
     path(f"{prefix}manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
     return manifest
 

@@ -61,6 +61,7 @@ def _mat_task(scenario) -> dict:
     from geometry.contacts import find_contacts
     from packing import deposit
     from packing.overlap import vertex_heights_mm
+    from packing.shapes import shape_record
 
     stack = deposit(scenario)
     arrangement = arrangements_from_stack(stack)[-1]
@@ -81,21 +82,17 @@ def _mat_task(scenario) -> dict:
         "volume_fraction_inside": inside_volume / (area * top),
         "contacts_fibre_fibre": between,
         "contacts_with_floor": int(len(table.chip_a)),
+        "shape": shape_record(shape),
         "positions": stack.positions.tolist(),
         "quaternions": stack.quaternions.tolist(),
     }
 
 
 def _container_task(scenario) -> dict:
-    from geometry.container import container_fill
     from packing import deposit
+    from pipeline.run import container_summary
 
-    stack = deposit(scenario)
-    volumes = np.array([stack.shapes[k].volume_mm3 for k in stack.shape_index])
-    c = scenario.container
-    fill = container_fill(stack.positions, volumes, c.radius_mm, c.height_mm)
-    fill["full"] = not any("not full" in w for w in stack.warnings)
-    return fill
+    return container_summary(deposit(scenario), scenario)
 
 
 def _mixed_task(scenario):
@@ -338,10 +335,9 @@ def _mat_figure(path: Path, run: dict) -> None:
     renderer is available."""
     from export.figures import render_stack
     from export.vtk import stack_polydata
-    from packing.config import ChipSpec
-    from packing.shapes import make_shape
+    from packing.shapes import shape_from_record
 
-    shape = make_shape(ChipSpec(shape="fibre", length_mm=25, width_mm=1, thickness_mm=1))
+    shape = shape_from_record(run["shape"], "fibre-mat run")
     positions = np.array(run["positions"])
     mesh = stack_polydata(
         (shape,),
