@@ -20,12 +20,13 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from packing.config import Scenario
+from packing.effects import EFFECTS, FlightState, check_effects, contact_model, shaped
 from packing.errors import InputError
 from packing.overlap import box_penetration_depth, floor_penetration_mm
 from packing.presets import PRESETS
@@ -258,11 +259,17 @@ class _RestTracker:
         del self.awake[chip], self._anchor[chip]
 
 
-def settle(world: ChipWorld, new: list[int], scenario: Scenario) -> tuple[bool, int, int, float]:
+def settle(
+    world: ChipWorld,
+    new: list[int],
+    scenario: Scenario,
+    loads: Callable[[list[int]], None] | None = None,
+) -> tuple[bool, int, int, float]:
     """Step until the chips in ``new`` (and those they wake) have settled or time runs out.
 
-    Returns (settled, steps, wakes, simulated start time). Chips still moving at the cap
-    are frozen where they are.
+    ``loads(awake chips)``, if given, applies extra loads before every step (effects such
+    as cohesion). Returns (settled, steps, wakes, simulated start time). Chips still
+    moving at the cap are frozen where they are.
     """
     s = scenario.settling
     check_steps = max(1, round(CHECK_INTERVAL_S / scenario.physics.time_step_s))
@@ -272,7 +279,13 @@ def settle(world: ChipWorld, new: list[int], scenario: Scenario) -> tuple[bool, 
     tracker.add(new)
     start_time, steps, wakes = world.time_s, 0, 0
     while tracker.awake and world.time_s - start_time < s.max_time_s:
-        world.step(check_steps)
+        if loads is None:
+            world.step(check_steps)
+        else:
+            awake = sorted(tracker.awake)
+            for _ in range(check_steps):
+                loads(awake)
+                world.step()
         steps += check_steps
         for chip, speed in tracker.update(s.wake_speed_mm_s):
             # Wake every frozen chip this one can reach before the next check, so an
@@ -319,6 +332,7 @@ def _freeze_spilled(world: ChipWorld, tracker: _RestTracker, container) -> None:
 def deposit(
     scenario: Scenario,
     progress: Callable[[int, BatchResult], None] | None = None,
+    effects: Mapping[str, float] | None = None,
 ) -> Stack:
     """Run the batch deposition of ``scenario`` and return the settled :class:`Stack`.
 
@@ -329,8 +343,26 @@ def deposit(
     ``progress`` is called after each batch with (batch number, its result; for
     containers the result of the last batch only, else ``None``).
     All random draws come from ``numpy.random.default_rng(scenario.seed)``.
+    ``effects`` switches unmodelled effects on (``{name: strength}``, see
+    :mod:`packing.effects`); the diagnosis uses them.
     """
     preset = PRESETS.get(scenario.physics.preset, key="physics.preset")
+    strengths = check_effects(effects or {}, scenario.kind)
+    model = contact_model(preset, scenario.physics)
+    for name, value in strengths.items():
+        model = EFFECTS.get(name).contact(model, value)
+    if strengths:
+        scenario = dataclasses.replace(
+            scenario,
+            physics=dataclasses.replace(
+                scenario.physics, friction=model.friction, restitution=model.restitution
+            ),
+        )
+    per_step = [
+        (EFFECTS.get(n), v) for n, v in strengths.items() if EFFECTS.get(n).acts_per_step() and v
+    ]
+    effect_loads = _effect_loads(per_step) if per_step else None
+    shaped_cache: dict[int, ChipShape] = {}
     rng = np.random.default_rng(scenario.seed)
     d, s = scenario.deposition, scenario.settling
     container = scenario.kind == "container"
@@ -342,6 +374,12 @@ def deposit(
     full = False
 
     with ChipWorld(preset, scenario.physics) as world:
+        loads = None
+        if effect_loads is not None:
+
+            def loads(awake: list[int]) -> None:
+                effect_loads(world, awake)
+
         if container:
             c = scenario.container
             world.add_container_wall(c.radius_mm, c.height_mm, c.wall_segments)
@@ -350,6 +388,10 @@ def deposit(
             wall_start = time.perf_counter()
             count = min(d.batch_size, d.chips - len(batch_of))
             shapes = draw_shapes(scenario, count, rng, cache)
+            if strengths:
+                shapes = [
+                    shaped_cache.setdefault(id(shape), shaped(shape, strengths)) for shape in shapes
+                ]
             occupied = (*world.poses(), shapes_of) if world.n_chips else None
             positions, quaternions = release_poses(scenario, shapes, rng, occupied)
             new = [
@@ -358,7 +400,21 @@ def deposit(
             ]
             batch_of += [batch] * count
             shapes_of += shapes
-            settled, steps, wakes, start_time = settle(world, new, scenario)
+            if batch == 1 and model.floor_compliance_mm_n > 0:
+                stiffness = 1e6 / model.floor_compliance_mm_n  # N/mm -> g/s^2
+                mass = world.mass_g(new[0])
+                world.set_floor_compliance(
+                    stiffness, 2 * model.floor_damping_ratio * np.sqrt(stiffness * mass)
+                )
+            settled, steps, wakes, start_time = settle(world, new, scenario, loads)
+            for name, value in strengths.items():
+                effect = EFFECTS.get(name)
+                for _ in range(getattr(effect, "taps", 1)):
+                    everyone = list(range(world.n_chips))
+                    if not effect.after_batch(world, everyone, value, rng):
+                        break
+                    settled, more, _, _ = settle(world, everyone, scenario, loads)
+                    steps += more
             if not settled:
                 message = (
                     f"batch {batch} did not settle within {s.max_time_s:g} s of simulated "
@@ -415,6 +471,28 @@ def deposit(
         target_size_mm=(2 * scenario.container.radius_mm if container else d.target_size_mm),
         warnings=tuple(warnings),
     )
+
+
+def _effect_loads(per_step: list) -> Callable[[list[int]], None]:
+    """The per-step loads of effects acting on moving chips (cohesion, air drag)."""
+
+    def apply(world: ChipWorld, awake: list[int]) -> None:
+        for effect, value in per_step:
+            effect.contact_loads(world, awake, value)
+            if effect.name == "air_drag" and awake:
+                pos, quat, vel, ang = world.kinematics(awake)
+                state = FlightState(
+                    pos,
+                    quat,
+                    vel,
+                    ang,
+                    tuple(world.shape(c) for c in awake),
+                    np.array([world.mass_g(c) for c in awake]),
+                )
+                forces, torques = effect.loads(state, value)
+                world.apply_loads(awake, forces, torques, pos)
+
+    return apply
 
 
 def _unique_names(shapes: list[ChipShape]) -> list[ChipShape]:

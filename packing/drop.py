@@ -9,6 +9,7 @@ chip has settled by the scenario's settling rule.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Callable
@@ -18,12 +19,14 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from packing.config import Scenario
-from packing.deposition import draw_shapes, settle
+from packing.deposition import CHECK_INTERVAL_S, _RestTracker, draw_shapes, settle
+from packing.effects import EFFECTS, ContactModel, FlightState, contact_model, shaped
+from packing.errors import SimulationError
 from packing.presets import PRESETS
 from packing.shapes import ChipShape
 from packing.world import ChipWorld
 
-__all__ = ["DropResult", "drop_chips"]
+__all__ = ["DropProtocol", "DropResult", "DropSample", "drop_chips", "simulate_drops"]
 
 log = logging.getLogger(__name__)
 
@@ -96,4 +99,140 @@ def drop_chips(
         sim_time_s=np.array(times),
         wall_time_s=time.perf_counter() - start,
         warnings=tuple(warnings),
+    )
+
+
+# Below this speed air loads are under 0.05 % of a chip's weight: stop stepping one by one.
+_FLIGHT_SPEED_MM_S = 100.0
+
+
+@dataclass(frozen=True)
+class DropProtocol:
+    """How one experimental condition releases the chip: centre ``height_mm`` above
+    (0, 0), sides turned ``yaw_deg`` about z, tilts about x and y uniform in
+    [-tilt_deg, tilt_deg]."""
+
+    height_mm: float = 200.0
+    yaw_deg: float = 0.0
+    tilt_deg: float = 5.7296
+
+
+@dataclass(frozen=True)
+class DropSample:
+    """Where the drops of one condition came to rest.
+
+    positions (n, 2) mm from the release point; yaw_deg (n,) final in-plane turn of the
+    chip's local x axis (deg, in (-180, 180]); tilt_deg (n,) final angle between the
+    chip's normal and the vertical, folded to [0, 90]; settled (n,) bool.
+    """
+
+    positions: np.ndarray
+    yaw_deg: np.ndarray
+    tilt_deg: np.ndarray
+    settled: np.ndarray
+
+
+def final_angles(quaternions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Yaw of the local x axis and tilt of the normal (deg) of rest orientations."""
+    matrices = Rotation.from_quat(quaternions).as_matrix()
+    yaw = np.degrees(np.arctan2(matrices[:, 1, 0], matrices[:, 0, 0]))
+    tilt = np.degrees(np.arccos(np.clip(np.abs(matrices[:, 2, 2]), 0.0, 1.0)))
+    return yaw, tilt
+
+
+def simulate_drops(
+    scenario: Scenario,
+    protocol: DropProtocol,
+    n: int,
+    strengths: dict[str, float] | None = None,
+    seed: int = 0,
+) -> DropSample:
+    """``n`` drops of the scenario's chip under ``protocol`` with effects switched on.
+
+    The drops share one world and touch only the floor, so they cost one world, not n.
+    The random draws (tilt fractions, spin directions) depend on ``seed`` alone, not on
+    the strengths or the tilt range: two calls that differ in a strength differ only by
+    the effect (common random numbers, which make the fit of a strength smooth).
+    """
+    strengths = dict(strengths or {})
+    preset = PRESETS.get(scenario.physics.preset, key="physics.preset")
+    rng = np.random.default_rng(seed)
+    fractions = rng.uniform(-1.0, 1.0, size=(n, 2))
+    spin_draws = rng.normal(size=(n, 3))
+    (shape,) = draw_shapes(scenario, 1, np.random.default_rng(scenario.seed))
+    shape = shaped(shape, strengths)
+    model: ContactModel = contact_model(preset, scenario.physics)
+    for name, value in strengths.items():
+        model = EFFECTS.get(name).contact(model, value)
+    physics = dataclasses.replace(
+        scenario.physics, friction=model.friction, restitution=model.restitution
+    )
+    spin = np.zeros((n, 3))
+    for name, value in strengths.items():
+        extra = EFFECTS.get(name).release(spin_draws, value)
+        if extra is not None:
+            spin += extra
+    per_step = [
+        (EFFECTS.get(name), value)
+        for name, value in strengths.items()
+        if EFFECTS.get(name).acts_per_step() and value > 0
+    ]
+    tilt = np.radians(protocol.tilt_deg) * fractions
+    yaw = np.radians(protocol.yaw_deg)
+    rotations = Rotation.from_euler("xyz", np.column_stack([tilt, np.full(n, yaw)])).as_quat()
+    s = scenario.settling
+    check_steps = max(1, round(CHECK_INTERVAL_S / physics.time_step_s))
+    hold_checks = max(1, int(np.ceil(s.hold_time_s / (check_steps * physics.time_step_s))))
+    with ChipWorld(preset, physics, isolated=True) as world:
+        chips = [
+            world.add_chip(shape, np.array([0.0, 0.0, protocol.height_mm]), rotations[k])
+            for k in range(n)
+        ]
+        if model.floor_compliance_mm_n > 0:
+            mass = world.mass_g(chips[0])
+            stiffness = 1e6 / model.floor_compliance_mm_n  # N/mm -> g/s^2
+            world.set_floor_compliance(
+                stiffness, 2 * model.floor_damping_ratio * np.sqrt(stiffness * mass)
+            )
+        for k in range(n):
+            if spin[k].any():
+                world.set_velocity(chips[k], np.zeros(3), spin[k])
+        masses = np.array([world.mass_g(c) for c in chips])
+        tracker = _RestTracker(world, s.speed_mm_s * s.hold_time_s, hold_checks)
+        tracker.add(chips)
+        start = world.time_s
+        flying = bool(per_step)
+        while tracker.awake and world.time_s - start < s.max_time_s:
+            if flying:
+                awake = sorted(tracker.awake)
+                fastest = 0.0
+                for _ in range(check_steps):
+                    pos, quat, vel, ang = world.kinematics(awake)
+                    fastest = float(np.linalg.norm(vel, axis=1).max())
+                    state = FlightState(pos, quat, vel, ang, (shape,) * len(awake), masses[awake])
+                    forces, torques = np.zeros((len(awake), 3)), np.zeros((len(awake), 3))
+                    for effect, value in per_step:
+                        loads = effect.loads(state, value)
+                        if loads is not None:
+                            forces += loads[0]
+                            torques += loads[1]
+                    world.apply_loads(awake, forces, torques, pos)
+                    world.step()
+                # Still in the air (above the height where it could touch the floor) or fast.
+                airborne = (pos[:, 2] > shape.circumradius_mm + 1.0).any()
+                flying = bool(airborne or fastest > _FLIGHT_SPEED_MM_S)
+            else:
+                world.step(check_steps)
+            tracker.update(np.inf)
+        settled = np.ones(n, dtype=bool)
+        settled[sorted(tracker.awake)] = False
+        positions, quaternions = world.poses()
+    if not np.isfinite(positions).all():
+        raise SimulationError("a drop ended with a NaN position")
+    yaw_deg, tilt_deg = final_angles(quaternions)
+    return DropSample(
+        positions=positions[:, :2].copy(),
+        yaw_deg=yaw_deg,
+        tilt_deg=tilt_deg,
+        settled=settled,
     )

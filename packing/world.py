@@ -98,8 +98,12 @@ class ChipWorld:
     Use as a context manager; the engine session is closed on exit, even after an error.
     """
 
-    def __init__(self, preset: PhysicsPreset, numerics: PhysicsSpec) -> None:
+    def __init__(
+        self, preset: PhysicsPreset, numerics: PhysicsSpec, isolated: bool = False
+    ) -> None:
         self.preset = preset
+        # Isolated chips touch only the floor: many independent drops share one world.
+        self.isolated = isolated
         self.numerics = numerics
         self.time_step_s = numerics.time_step_s
         self.friction = numerics.friction if numerics.friction >= 0 else preset.friction
@@ -312,7 +316,10 @@ class ChipWorld:
         return index
 
     def _set_group(self, body: int, moving: bool) -> None:
-        group, mask = (_MOVING, _MOVING | _FROZEN | _FLOOR) if moving else (_FROZEN, _MOVING)
+        if self.isolated:
+            group, mask = (_MOVING, _FLOOR) if moving else (_FROZEN, 0)
+        else:
+            group, mask = (_MOVING, _MOVING | _FROZEN | _FLOOR) if moving else (_FROZEN, _MOVING)
         pybullet.setCollisionFilterGroupMask(body, -1, group, mask, physicsClientId=self.client)
 
     def step(self, n: int = 1) -> None:
@@ -358,6 +365,90 @@ class ChipWorld:
                 f"chips {bad[:10]}: pose or velocity became NaN at t = {self.time_s:.4f} s"
             )
         return positions, quaternions, speed
+
+    def kinematics(self, chips: list[int]) -> tuple[np.ndarray, ...]:
+        """Positions (k, 3) mm, quaternions (k, 4), velocities (k, 3) mm/s and angular
+        velocities (k, 3) rad/s, in the world frame."""
+        c = self.client
+        poses = [
+            pybullet.getBasePositionAndOrientation(self._bodies[i], physicsClientId=c)
+            for i in chips
+        ]
+        speeds = [pybullet.getBaseVelocity(self._bodies[i], physicsClientId=c) for i in chips]
+        return (
+            np.array([p[0] for p in poses], dtype=float).reshape(-1, 3) * MM_PER_UNIT,
+            np.array([p[1] for p in poses], dtype=float).reshape(-1, 4),
+            np.array([v[0] for v in speeds], dtype=float).reshape(-1, 3) * MM_PER_UNIT,
+            np.array([v[1] for v in speeds], dtype=float).reshape(-1, 3),
+        )
+
+    def set_velocity(self, chip: int, velocity_mm_s: np.ndarray, angular_rad_s: np.ndarray) -> None:
+        pybullet.resetBaseVelocity(
+            self._bodies[chip],
+            (np.asarray(velocity_mm_s, dtype=float) / MM_PER_UNIT).tolist(),
+            np.asarray(angular_rad_s, dtype=float).tolist(),
+            physicsClientId=self.client,
+        )
+
+    def apply_loads(
+        self, chips: list[int], forces: np.ndarray, torques: np.ndarray, positions_mm: np.ndarray
+    ) -> None:
+        """Forces (k, 3) g mm/s^2 through the centres of mass at ``positions_mm`` and
+        torques (k, 3) g mm^2/s^2, world frame, for the next step only."""
+        c = self.client
+        for i, force, torque, at in zip(chips, forces, torques, positions_mm, strict=False):
+            body = self._bodies[i]
+            pybullet.applyExternalForce(
+                body,
+                -1,
+                (force / MM_PER_UNIT).tolist(),
+                (at / MM_PER_UNIT).tolist(),
+                pybullet.WORLD_FRAME,
+                physicsClientId=c,
+            )
+            pybullet.applyExternalTorque(
+                body,
+                -1,
+                (torque / MM_PER_UNIT**2).tolist(),
+                pybullet.WORLD_FRAME,
+                physicsClientId=c,
+            )
+
+    def pull_contacts(self, chips: list[int], force: float) -> None:
+        """Pull each of ``chips`` towards every chip it touches with ``force`` (g mm/s^2)
+        per contact point, along the contact normal (cohesion; floor and walls excluded)."""
+        c = self.client
+        for chip in chips:
+            body = self._bodies[chip]
+            for point in pybullet.getContactPoints(bodyA=body, physicsClientId=c):
+                if point[2] not in self._index_of:
+                    continue
+                normal_on_b = np.asarray(point[7])  # from B towards A
+                pybullet.applyExternalForce(
+                    body,
+                    -1,
+                    (-force / MM_PER_UNIT * normal_on_b).tolist(),
+                    list(point[5]),
+                    pybullet.WORLD_FRAME,
+                    physicsClientId=c,
+                )
+
+    def shape(self, chip: int) -> ChipShape:
+        return self._shapes[chip]
+
+    def mass_g(self, chip: int) -> float:
+        return self._mass[chip]
+
+    def set_floor_compliance(self, stiffness_g_s2: float, damping_g_s: float) -> None:
+        """A compliant floor: contact stiffness (g/s^2, i.e. 1e-6 N/mm) and damping (g/s)
+        of the floor; the chips stay rigid, so the floor's values govern the contact."""
+        pybullet.changeDynamics(
+            self._floor,
+            -1,
+            contactStiffness=float(stiffness_g_s2),
+            contactDamping=float(damping_g_s),
+            physicsClientId=self.client,
+        )
 
     def circumradius_mm(self, chips: list[int]) -> np.ndarray:
         return np.array([self._radius_units[i] for i in chips]) * MM_PER_UNIT

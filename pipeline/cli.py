@@ -1,4 +1,5 @@
-"""Command line: ``pipeline run``, ``describe``, ``compare`` and ``validate``.
+"""Command line: ``pipeline run``, ``describe``, ``compare``, ``validate``, ``diagnose``
+and ``synth``.
 
 The only place that prints or exits. Every expected failure (bad input, a physics error)
 becomes one line on stderr and exit status 2.
@@ -93,6 +94,34 @@ def _parser() -> argparse.ArgumentParser:
     validate.add_argument("--workers", type=int, default=None, help="local Dask workers")
     validate.add_argument("--scheduler", default=None, help="address of a Dask scheduler")
     validate.add_argument("-v", "--verbose", action="store_true", help="log progress details")
+    diagnose = commands.add_parser(
+        "diagnose", help="where a simulation departs from experiments, and which effect causes it"
+    )
+    diagnose.add_argument("spec", help="experiment spec (TOML; see the README)")
+    diagnose.add_argument(
+        "--out", default=None, help="where to write (default: runs/diagnose-<spec>)"
+    )
+    diagnose.add_argument(
+        "--seed", type=int, default=0, help="seed of the simulations and resamples"
+    )
+    diagnose.add_argument("--workers", type=int, default=None, help="local Dask workers")
+    diagnose.add_argument("--scheduler", default=None, help="address of a Dask scheduler")
+    diagnose.add_argument("--overwrite", action="store_true", help="replace an earlier diagnosis")
+    diagnose.add_argument("--quiet", action="store_true", help="no verdict on stdout")
+    diagnose.add_argument("-v", "--verbose", action="store_true", help="log progress details")
+    synth = commands.add_parser(
+        "synth", help="pseudo-experimental observations from the simulation with chosen effects"
+    )
+    synth.add_argument("spec", help="experiment spec (TOML): the conditions to simulate")
+    synth.add_argument(
+        "--effect", action="append", default=[], help="NAME=STRENGTH (repeat for several)"
+    )
+    synth.add_argument("--seed", type=int, default=0, help="seed of every draw")
+    synth.add_argument("-o", "--output", required=True, help="observations CSV to write")
+    synth.add_argument("--drops", type=int, default=50, help="drops per condition (kind drop)")
+    synth.add_argument("--workers", type=int, default=None, help="local Dask workers")
+    synth.add_argument("--overwrite", action="store_true", help="replace an existing file")
+    synth.add_argument("-v", "--verbose", action="store_true", help="log progress details")
     return parser
 
 
@@ -357,6 +386,47 @@ class _Formatter(logging.Formatter):
         return f"pipeline: {record.levelname.lower()}: {record.getMessage()}"
 
 
+def _diagnose(args: argparse.Namespace) -> None:
+    from pathlib import Path
+
+    from pipeline.diagnose import diagnose
+
+    out = args.out or f"runs/diagnose-{Path(args.spec).stem}"
+
+    def progress(message: str) -> None:
+        if args.verbose:
+            sys.stderr.write(f"pipeline: {message}\n")
+
+    path, result = diagnose(
+        args.spec,
+        out,
+        seed=args.seed,
+        workers=args.workers,
+        scheduler=args.scheduler,
+        overwrite=args.overwrite,
+        progress=progress,
+        command=sys.argv,
+    )
+    if not args.quiet:
+        print(f"{result['verdict']['kind']}: {result['verdict']['text']}")
+        print(f"diagnosis in {result['wall_time_s']:.1f} s; report written to {path}/diagnosis.md")
+
+
+def _synth(args: argparse.Namespace) -> None:
+    from pipeline.diagnose import synth
+
+    path, rows = synth(
+        args.spec,
+        args.effect,
+        args.seed,
+        args.output,
+        drops=args.drops,
+        overwrite=args.overwrite,
+        workers=args.workers,
+    )
+    print(f"{rows} observations written to {path}")
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     # Warnings (an unsettled batch, ...) reach the user through the library's log records,
@@ -380,6 +450,10 @@ def main(argv: list[str] | None = None) -> int:
             _compare(args)
         elif args.command == "validate":
             _validate(args)
+        elif args.command == "diagnose":
+            _diagnose(args)
+        elif args.command == "synth":
+            _synth(args)
     except ChipstackError as exc:
         sys.stderr.write(f"pipeline: error: {exc}\n")
         return EXIT_BAD_INPUT

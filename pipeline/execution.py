@@ -120,3 +120,22 @@ class Executor:
             else:
                 on_result(k, future.result())
             future.release()
+
+    def map(self, function: Callable[..., Any], calls: Sequence[dict]) -> list:
+        """``[function(**kwargs) for kwargs in calls]`` on the cluster, in order; the first
+        task error is raised here."""
+        futures = [
+            self._client.submit(
+                _call_with_kwargs, function, kwargs, pure=False, key=f"call-{k}-{uuid.uuid4().hex}"
+            )
+            for k, kwargs in enumerate(calls)
+        ]
+        try:
+            return self._client.gather(futures)
+        finally:
+            for future in futures:
+                future.release()
+
+
+def _call_with_kwargs(function: Callable[..., Any], kwargs: dict) -> Any:
+    return function(**kwargs)

@@ -1,0 +1,452 @@
+"""Experiment specs (TOML) and observation files (CSV): reading and checking.
+
+A spec names the kind of experiment, the chip (through a base scenario, optionally with
+a ``[chip]`` table on top), how measurements were taken, and the conditions; the
+observations file holds what was measured. See the README, "Sim-to-real diagnosis".
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+import tomllib
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from packing.config import Scenario, printable, scenario_from_dict, scenario_to_dict
+from packing.drop import DropProtocol
+from packing.effects import EFFECTS
+from packing.errors import InputError
+
+__all__ = [
+    "Condition",
+    "DiagnosisSettings",
+    "DropData",
+    "Experiment",
+    "QuantityData",
+    "load_experiment",
+    "read_drop_observations",
+    "read_quantity_observations",
+]
+
+KINDS = ("drop", "stack", "container")
+DROP_COLUMNS = ("condition", "drop", "x_mm", "y_mm")
+DROP_OPTIONAL = ("yaw_deg", "tilt_deg")
+QUANTITY_COLUMNS = ("condition", "quantity", "value")
+QUANTITY_OPTIONAL = ("sd", "n")
+MIN_DROPS = 10
+
+
+@dataclass(frozen=True)
+class Condition:
+    """One experimental condition: a drop protocol (drops) or a scenario (stacks,
+    containers) with the number of simulated repeats per setting."""
+
+    name: str
+    protocol: DropProtocol | None = None
+    scenario: Scenario | None = None
+    repeats: int = 2
+
+
+@dataclass(frozen=True)
+class DiagnosisSettings:
+    """How hard the diagnosis works (the ``[diagnosis]`` table)."""
+
+    sim_drops: int = 120  # simulated drops per condition and setting
+    bootstrap: int = 200  # resamples of the observations for intervals
+    grid_points: int = 6  # strengths tried across each effect's prior range
+    effects: tuple[str, ...] = ()  # candidates; () = every effect for this kind
+    alpha: float = 0.05
+
+
+@dataclass(frozen=True)
+class Experiment:
+    """A parsed spec: ``scenario`` carries the chip, physics and settling rules."""
+
+    name: str
+    kind: str
+    scenario: Scenario
+    conditions: tuple[Condition, ...]
+    observations: Path
+    position_sd_mm: float = 0.0
+    angle_sd_deg: float = 0.0
+    settings: DiagnosisSettings = DiagnosisSettings()
+
+    def condition(self, name: str) -> Condition:
+        return next(c for c in self.conditions if c.name == name)
+
+    @property
+    def candidate_effects(self) -> tuple[str, ...]:
+        return self.settings.effects or tuple(
+            n for n in EFFECTS.names() if self.kind in EFFECTS.get(n).kinds
+        )
+
+
+@dataclass(frozen=True)
+class DropData:
+    """Measured drops of one condition: positions (n, 2) mm, optional yaw and tilt
+    (n,) deg."""
+
+    positions: np.ndarray
+    yaw_deg: np.ndarray | None = None
+    tilt_deg: np.ndarray | None = None
+
+    @property
+    def n(self) -> int:
+        return len(self.positions)
+
+    def take(self, index: np.ndarray) -> DropData:
+        return DropData(
+            self.positions[index],
+            None if self.yaw_deg is None else self.yaw_deg[index],
+            None if self.tilt_deg is None else self.tilt_deg[index],
+        )
+
+
+@dataclass(frozen=True)
+class QuantityData:
+    """A measured quantity of one condition: value, its sd (nan if not given) and the
+    number of measurements behind it (1 if not given)."""
+
+    value: float
+    sd: float = math.nan
+    n: int = 1
+
+
+_TOP_KEYS = {
+    "name",
+    "kind",
+    "scenario",
+    "observations",
+    "chip",
+    "measurement",
+    "condition",
+    "diagnosis",
+}
+
+
+def _number(value, key: str, low: float = -math.inf, high: float = math.inf) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise InputError(f"{key}: expected a number, got {value!r}")
+    value = float(value)
+    if not math.isfinite(value):
+        raise InputError(f"{key}: must be finite, got {value!r}")
+    if not low <= value <= high:
+        raise InputError(f"{key}: {value:g} is outside [{low:g}, {high:g}]")
+    return value
+
+
+def _integer(value, key: str, low: int, high: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise InputError(f"{key}: expected an integer, got {value!r}")
+    if not low <= value <= high:
+        raise InputError(f"{key}: {value} is outside [{low}, {high}]")
+    return value
+
+
+def _table(data: dict, key: str, allowed: set[str]) -> dict:
+    if not isinstance(data, dict):
+        raise InputError(f"{key}: expected a table, got {data!r}")
+    unknown = sorted(set(data) - allowed)
+    if unknown:
+        raise InputError(
+            f"{key}.{unknown[0]}: unknown key; valid keys: {', '.join(sorted(allowed))}"
+        )
+    return data
+
+
+def load_experiment(
+    path: str | Path, load_scenario: Callable[[str | Path], Scenario]
+) -> Experiment:
+    """Parse and check an experiment spec; ``load_scenario`` resolves scenario names."""
+    shown = printable(path)
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{shown}: experiment spec not found")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{shown}: cannot read the experiment spec ({exc})") from None
+    if not text.strip():
+        raise InputError(f"{shown}: the experiment spec is empty")
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"{shown}: malformed TOML: {exc}") from None
+    try:
+        return _experiment(data, path.resolve().parent, load_scenario)
+    except InputError as exc:
+        raise InputError(f"{shown}: {exc}") from None
+
+
+def _experiment(data: dict, base: Path, load_scenario) -> Experiment:
+    _table(data, "spec", _TOP_KEYS)
+    kind = data.get("kind")
+    if kind not in KINDS:
+        raise InputError(f"kind: expected one of {', '.join(KINDS)}, got {kind!r}")
+    name = data.get("name", "experiment")
+    if not isinstance(name, str) or not name.strip():
+        raise InputError(f"name: expected a non-empty string, got {name!r}")
+    observations = data.get("observations")
+    if not isinstance(observations, str) or not observations:
+        raise InputError("observations: expected the path of the observations CSV file")
+    observations_path = (base / observations).resolve()
+    base_name = data.get("scenario", "single-chip-drop" if kind == "drop" else None)
+    scenario = None
+    if base_name is not None:
+        if not isinstance(base_name, str):
+            raise InputError(f"scenario: expected a scenario name or file, got {base_name!r}")
+        scenario = _scenario_ref(base_name, base, load_scenario, "scenario")
+    if "chip" in data:
+        if scenario is None:
+            raise InputError("chip: give a base `scenario` for the chip to go with")
+        merged = scenario_to_dict(scenario)
+        merged.pop("mix", None)
+        merged["chip"] = {
+            **merged.get("chip", {}),
+            **_table(data["chip"], "chip", set(merged["chip"]) | {"file"}),
+        }
+        try:
+            scenario = scenario_from_dict(merged, str(base))
+        except InputError as exc:
+            raise InputError(str(exc)) from None
+    measurement = _table(
+        data.get("measurement", {}), "measurement", {"position_sd_mm", "angle_sd_deg"}
+    )
+    position_sd = _number(
+        measurement.get("position_sd_mm", 0.0), "measurement.position_sd_mm", 0, 100
+    )
+    angle_sd = _number(measurement.get("angle_sd_deg", 0.0), "measurement.angle_sd_deg", 0, 45)
+    settings = _settings(data.get("diagnosis", {}), kind)
+    raw = data.get("condition")
+    if not isinstance(raw, list) or not raw:
+        raise InputError("condition: give at least one [[condition]] table")
+    conditions = []
+    for k, entry in enumerate(raw):
+        key = f"condition[{k}]"
+        if kind == "drop":
+            conditions.append(_drop_condition(entry, key, scenario))
+        else:
+            conditions.append(_scenario_condition(entry, key, kind, scenario, base, load_scenario))
+    names = [c.name for c in conditions]
+    duplicated = sorted({n for n in names if names.count(n) > 1})
+    if duplicated:
+        raise InputError(f"condition: name {duplicated[0]!r} is given twice")
+    if scenario is None:
+        scenario = conditions[0].scenario
+    if kind == "drop" and scenario.kind != "drop":
+        scenario = dataclasses.replace(scenario, kind="drop")
+    return Experiment(
+        name=name.strip(),
+        kind=kind,
+        scenario=scenario,
+        conditions=tuple(conditions),
+        observations=observations_path,
+        position_sd_mm=position_sd,
+        angle_sd_deg=angle_sd,
+        settings=settings,
+    )
+
+
+def _scenario_ref(value: str, base: Path, load_scenario, key: str) -> Scenario:
+    candidate = base / value
+    try:
+        return load_scenario(candidate if candidate.is_file() else value)
+    except InputError as exc:
+        raise InputError(f"{key}: {exc}") from None
+
+
+def _settings(data: dict, kind: str) -> DiagnosisSettings:
+    fields = {f.name for f in dataclasses.fields(DiagnosisSettings)}
+    data = _table(data, "diagnosis", fields)
+    values: dict = {}
+    if "sim_drops" in data:
+        values["sim_drops"] = _integer(data["sim_drops"], "diagnosis.sim_drops", 20, 100_000)
+    if "bootstrap" in data:
+        values["bootstrap"] = _integer(data["bootstrap"], "diagnosis.bootstrap", 50, 100_000)
+    if "grid_points" in data:
+        values["grid_points"] = _integer(data["grid_points"], "diagnosis.grid_points", 3, 50)
+    if "alpha" in data:
+        values["alpha"] = _number(data["alpha"], "diagnosis.alpha", 1e-6, 0.5)
+    if "effects" in data:
+        effects = data["effects"]
+        if not isinstance(effects, list) or not all(isinstance(e, str) for e in effects):
+            raise InputError("diagnosis.effects: expected a list of effect names")
+        for name in effects:
+            effect = EFFECTS.get(name, key="diagnosis.effects")
+            if kind not in effect.kinds:
+                raise InputError(
+                    f"diagnosis.effects: {name!r} acts on {', '.join(effect.kinds)}, not {kind}"
+                )
+        values["effects"] = tuple(dict.fromkeys(effects))
+    return DiagnosisSettings(**values)
+
+
+def _drop_condition(entry, key: str, scenario: Scenario) -> Condition:
+    entry = _table(entry, key, {"name", "height_mm", "yaw_deg", "tilt_deg"})
+    name = entry.get("name")
+    if not isinstance(name, str) or not name.strip() or "," in name:
+        raise InputError(f"{key}.name: expected a name without commas, got {name!r}")
+    default = scenario.drop
+    height = _number(entry.get("height_mm", default.height_mm), f"{key}.height_mm", 1e-3, 1e5)
+    if height <= scenario.chips[0].length_mm / 2 and scenario.chips[0].shape != "file":
+        raise InputError(f"{key}.height_mm: {height:g} mm does not clear the chip's half length")
+    yaw = _number(entry.get("yaw_deg", default.yaw_deg), f"{key}.yaw_deg", -360, 360)
+    tilt = _number(entry.get("tilt_deg", default.tilt_deg), f"{key}.tilt_deg", 0, 90)
+    return Condition(name=name, protocol=DropProtocol(height, yaw, tilt))
+
+
+def _scenario_condition(entry, key, kind, scenario, base, load_scenario) -> Condition:
+    entry = _table(entry, key, {"name", "scenario", "repeats"})
+    name = entry.get("name")
+    if not isinstance(name, str) or not name.strip() or "," in name:
+        raise InputError(f"{key}.name: expected a name without commas, got {name!r}")
+    ref = entry.get("scenario")
+    if ref is None:
+        if scenario is None:
+            raise InputError(f"{key}.scenario: each condition needs a scenario")
+        own = scenario
+    else:
+        if not isinstance(ref, str):
+            raise InputError(f"{key}.scenario: expected a scenario name or file, got {ref!r}")
+        own = _scenario_ref(ref, base, load_scenario, f"{key}.scenario")
+    if own.kind != kind:
+        raise InputError(f"{key}.scenario: is a {own.kind!r} scenario, the spec's kind is {kind!r}")
+    repeats = _integer(entry.get("repeats", 2), f"{key}.repeats", 1, 1000)
+    return Condition(name=name, scenario=own, repeats=repeats)
+
+
+def _read_rows(path: Path, required: tuple[str, ...], optional: tuple[str, ...]):
+    shown = printable(path)
+    if not path.is_file():
+        raise InputError(f"{shown}: observations file not found")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{shown}: cannot read the observations ({exc})") from None
+    rows = list(csv.reader(text.splitlines()))
+    rows = [r for r in rows if r and any(cell.strip() for cell in r)]
+    if not rows:
+        raise InputError(f"{shown}: the observations file is empty")
+    header = [h.strip() for h in rows[0]]
+    duplicated = sorted({h for h in header if header.count(h) > 1})
+    if duplicated:
+        raise InputError(f"{shown}: column {duplicated[0]!r} appears twice")
+    missing = [c for c in required if c not in header]
+    if missing:
+        raise InputError(
+            f"{shown}: missing column {missing[0]!r} (columns needed: {', '.join(required)}; "
+            f"optional: {', '.join(optional)}; found: {', '.join(header)})"
+        )
+    unknown = [h for h in header if h not in required + optional]
+    if unknown:
+        raise InputError(
+            f"{shown}: unknown column {unknown[0]!r} (allowed: {', '.join(required + optional)})"
+        )
+    if len(rows) == 1:
+        raise InputError(f"{shown}: no observations below the header")
+    records = []
+    for line, row in enumerate(rows[1:], start=2):
+        if len(row) != len(header):
+            raise InputError(
+                f"{shown}, line {line}: {len(row)} fields, the header has {len(header)}"
+            )
+        records.append((line, dict(zip(header, (c.strip() for c in row), strict=True))))
+    return shown, header, records
+
+
+def _float(cell: str, shown: str, line: int, column: str) -> float:
+    try:
+        value = float(cell)
+    except ValueError:
+        raise InputError(f"{shown}, line {line}: {column} {cell!r} is not a number") from None
+    if not math.isfinite(value):
+        raise InputError(f"{shown}, line {line}: {column} must be finite, got {cell!r}")
+    return value
+
+
+def read_drop_observations(experiment: Experiment) -> dict[str, DropData]:
+    """Drops by condition, checked against the spec (every condition, at least
+    ``MIN_DROPS`` drops each, unique drop ids)."""
+    shown, header, records = _read_rows(experiment.observations, DROP_COLUMNS, DROP_OPTIONAL)
+    known = {c.name for c in experiment.conditions}
+    by_condition: dict[str, dict[str, list]] = {}
+    for line, r in records:
+        name = r["condition"]
+        if name not in known:
+            raise InputError(
+                f"{shown}, line {line}: condition {name!r} is not defined in the spec "
+                f"(defined: {', '.join(sorted(known))})"
+            )
+        drop = r["drop"]
+        if not drop:
+            raise InputError(f"{shown}, line {line}: empty drop id")
+        rows = by_condition.setdefault(name, {"ids": [], "values": []})
+        if drop in rows["ids"]:
+            raise InputError(f"{shown}, line {line}: drop {drop!r} of {name!r} appears twice")
+        rows["ids"].append(drop)
+        values = [_float(r[c], shown, line, c) for c in ("x_mm", "y_mm")]
+        for column in DROP_OPTIONAL:
+            if column in header:
+                values.append(_float(r[column], shown, line, column))
+        rows["values"].append(values)
+    data = {}
+    for condition in experiment.conditions:
+        rows = by_condition.get(condition.name)
+        if rows is None:
+            raise InputError(f"{shown}: no drops for condition {condition.name!r}")
+        if len(rows["ids"]) < MIN_DROPS:
+            raise InputError(
+                f"{shown}: condition {condition.name!r} has {len(rows['ids'])} drops; "
+                f"at least {MIN_DROPS} are needed"
+            )
+        values = np.array(rows["values"], dtype=float)
+        extra = {c: values[:, 2 + k] for k, c in enumerate(c for c in DROP_OPTIONAL if c in header)}
+        data[condition.name] = DropData(values[:, :2], extra.get("yaw_deg"), extra.get("tilt_deg"))
+    return data
+
+
+def read_quantity_observations(
+    experiment: Experiment, known_quantities: tuple[str, ...]
+) -> dict[str, dict[str, QuantityData]]:
+    """Quantities by condition and name, checked against the spec and the quantities
+    the simulation can compute."""
+    shown, header, records = _read_rows(
+        experiment.observations, QUANTITY_COLUMNS, QUANTITY_OPTIONAL
+    )
+    known = {c.name for c in experiment.conditions}
+    data: dict[str, dict[str, QuantityData]] = {}
+    for line, r in records:
+        name = r["condition"]
+        if name not in known:
+            raise InputError(
+                f"{shown}, line {line}: condition {name!r} is not defined in the spec "
+                f"(defined: {', '.join(sorted(known))})"
+            )
+        quantity = r["quantity"]
+        if quantity not in known_quantities:
+            raise InputError(
+                f"{shown}, line {line}: unknown quantity {quantity!r}; valid: "
+                f"{', '.join(known_quantities)}"
+            )
+        if quantity in data.get(name, {}):
+            raise InputError(f"{shown}, line {line}: {quantity!r} of {name!r} appears twice")
+        value = _float(r["value"], shown, line, "value")
+        sd = _float(r["sd"], shown, line, "sd") if r.get("sd") else math.nan
+        if sd < 0:
+            raise InputError(f"{shown}, line {line}: sd must not be negative, got {sd:g}")
+        n = 1
+        if r.get("n"):
+            count = _float(r["n"], shown, line, "n")
+            if count < 1 or count != int(count):
+                raise InputError(f"{shown}, line {line}: n must be a whole number >= 1")
+            n = int(count)
+        data.setdefault(name, {})[quantity] = QuantityData(value, sd, n)
+    for condition in experiment.conditions:
+        if condition.name not in data:
+            raise InputError(f"{shown}: no observations for condition {condition.name!r}")
+    return data

@@ -1,0 +1,282 @@
+"""The diagnosis report: ``diagnosis.json`` (everything), ``diagnosis.md`` (for people)
+and figures: the scatter of every condition (experiment, baseline, best effect), the
+discrepancy of every observable against the noise floor, and the ranking of effects."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+__all__ = ["write_diagnosis", "report_markdown"]
+
+
+def _fmt(value, digits: int = 3) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float) and not math.isfinite(value):
+        return "n/a"
+    if isinstance(value, float):
+        return f"{value:.{digits}g}"
+    return str(value)
+
+
+def _pct(value) -> str:
+    return "n/a" if value is None or not math.isfinite(value) else f"{100 * value:.0f} %"
+
+
+def report_markdown(result: dict) -> str:
+    """The report as Markdown."""
+    lines = [f"# Sim-to-real diagnosis: {result['experiment']}", ""]
+    lines += [f"**Verdict ({result['verdict']['kind']}).** {result['verdict']['text']}", ""]
+    lines += [
+        f"Kind `{result['kind']}`, seed {result['seed']}, "
+        f"{_fmt(result.get('wall_time_s', float('nan')))} s.",
+        "",
+    ]
+    where = result["where"]
+    lines += [
+        "## 1. Where the gap lies",
+        "",
+        "Overall test per condition: the gap statistic G (mean squared standardised "
+        "discrepancy; about its null mean when there is no gap) against its null "
+        "distribution (simulation against an independent simulation), Holm-adjusted.",
+        "",
+        "| condition | G | null mean | p | p (Holm) | significant | share of the gap |"
+        + (" energy test p |" if result["kind"] == "drop" else ""),
+        "|---|---|---|---|---|---|---|" + ("---|" if result["kind"] == "drop" else ""),
+    ]
+    for t in where["tests"]:
+        row = (
+            f"| {t['condition']} | {_fmt(t['gap'])} "
+            f"| {_fmt(t['null_mean'])} | {_fmt(t['p_value'])} "
+            f"| {_fmt(t['p_holm'])} | {'yes' if t['significant'] else 'no'} "
+            f"| {_pct(t['share_of_gap'])} |"
+        )
+        if result["kind"] == "drop":
+            row += f" {_fmt(t['energy_p_value'])} |"
+        lines.append(row)
+    lines += [
+        "",
+        "Every observable: experiment minus simulation, its bootstrap 95 % interval and "
+        "the noise floor (95 % of |simulation - independent simulation| at the experiment's "
+        "size). Starred rows lie beyond the noise floor with an interval excluding 0.",
+        "",
+        "| condition | observable | experiment | simulation | difference | 95 % interval | "
+        "noise floor | z |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in where["observables"]:
+        star = " *" if r["beyond_noise"] else ""
+        lines.append(
+            f"| {r['condition']} | {r['observable']}{star} | {_fmt(r['experiment'])} | "
+            f"{_fmt(r['simulation'])} | {_fmt(r['difference'])} | [{_fmt(r['ci95'][0])}, "
+            f"{_fmt(r['ci95'][1])}] | {_fmt(r['noise_floor'])} | {_fmt(r['z'], 2)} |"
+        )
+    notable = [r for r in where.get("regions", []) if r["notable"]]
+    if where.get("regions"):
+        lines += [
+            "",
+            "Regions of the scatter (rings by the simulation's distance quantiles, 45-degree "
+            "sectors) whose share of drops differs beyond a Bonferroni-corrected 5 % level:",
+            "",
+        ]
+        if notable:
+            lines += [
+                "| condition | region | experiment share | simulation share | z |",
+                "|---|---|---|---|---|",
+            ]
+            lines += [
+                f"| {r['condition']} | {r['region']} {r['where']} "
+                f"| {_pct(r['experiment_share'])} | "
+                ""
+                f"{_pct(r['simulation_share'])} | {_fmt(r['z'], 2)} |"
+                for r in notable
+            ]
+        else:
+            lines.append("none.")
+    which = result["which"]
+    refit = which["baseline_refit"]
+    lines += ["", "## 2. Which effect", "", f"Baseline refit first: {refit['parameter']}."]
+    if "all_conditions_deg" in refit:
+        lines.append(f"Refitted on all conditions: {refit['all_conditions_deg']:g} deg; per fold:")
+        lines += [
+            f"- {h['fold']}: {h['refit_tilt_deg']:g} deg, held-out G {_fmt(h['gap'])} "
+            f"(null mean {_fmt(h['null_mean'])}, p {_fmt(h['p_value'])})"
+            for h in refit["held_out"]
+        ]
+    lines += [
+        "",
+        f"Held-out excess gap of the refitted baseline: {_fmt(refit['held_out_excess'])} "
+        f"[{_fmt(refit['held_out_excess_ci95'][0])}, {_fmt(refit['held_out_excess_ci95'][1])}].",
+        "",
+        "Effects fitted on calibration conditions, scored on held-out ones "
+        f"({', '.join(which.get('folds', [])) or 'leave one condition out'}); ranked by the "
+        "held-out gap reduction (1 - excess gap with the effect / without).",
+        "",
+        "| rank | effect | fitted strength | 95 % interval | held-out reduction | 95 % "
+        "interval | indistinguishable from the best |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for k, e in enumerate(which["ranking"], 1):
+        lines.append(
+            f"| {k} | {e['effect']} | {_fmt(e['strength'])} {e['unit']} "
+            f"| [{_fmt(e['strength_ci95'][0])}, "
+            f"{_fmt(e['strength_ci95'][1])}] | {_pct(e['held_out_reduction'])} | "
+            f"[{_pct(e['held_out_reduction_ci95'][0])}, {_pct(e['held_out_reduction_ci95'][1])}] | "
+            f"{'yes' if e['indistinguishable_from_best'] else 'no'} |"
+        )
+    for name, why in which.get("not_applicable", {}).items():
+        lines.append(f"\n{name}: not applicable ({why}).")
+    if which["telling_apart"]:
+        lines += ["", "What would tell the indistinguishable effects apart from the best:", ""]
+        for name, t in which["telling_apart"].items():
+            if t.get("z", 0) > 0:
+                extra = (
+                    f"; about {t['drops_needed_per_condition']} drops per condition would separate "
+                    "them"
+                    if "drops_needed_per_condition" in t
+                    else ""
+                )
+                lines.append(
+                    f"- {name}: {t['observable']} in {t['condition']} ({which['best']} predicts "
+                    f"{_fmt(t['best_predicts'])}, {name} {_fmt(t['other_predicts'])}, "
+                    f"{_fmt(t['z'], 2)} standard errors apart{extra})."
+                )
+            else:
+                lines.append(f"- {name}: no measured observable separates them.")
+    how = result.get("how_far") or {}
+    if how:
+        lines += [
+            "",
+            "## 3. How far the best effect closes the gap",
+            "",
+            f"{how['effect']} at {_fmt(how['strength'])} [{_fmt(how['strength_ci95'][0])}, "
+            f"{_fmt(how['strength_ci95'][1])}]: held-out reduction {_pct(how['reduction'])} "
+            f"[{_pct(how['reduction_ci95'][0])}, {_pct(how['reduction_ci95'][1])}].",
+            "",
+            "| held-out condition | strength | G before | G after | null mean | p before | p "
+            "after |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        lines += [
+            f"| {c['condition']} | {_fmt(c['strength'])} "
+            f"| {_fmt(c['gap_before'])} | {_fmt(c['gap_after'])} | "
+            f"{_fmt(c['null_mean'])} | {_fmt(c['p_before'])} | {_fmt(c['p_after'])} |"
+            for c in how["conditions"]
+        ]
+        lines += [
+            "",
+            "| held-out condition | observable | experiment | before | after | z before | z after "
+            "|",
+            "|---|---|---|---|---|---|---|",
+        ]
+        lines += [
+            f"| {r['condition']} | {r['observable']} "
+            f"| {_fmt(r['experiment'])} | {_fmt(r['before'])} | "
+            f"{_fmt(r['after'])} | {_fmt(r['z_before'], 2)} | {_fmt(r['z_after'], 2)} |"
+            for r in how["observables"]
+        ]
+    return "\n".join(lines) + "\n"
+
+
+def _canvas(width: float, height: float) -> Figure:
+    figure = Figure(figsize=(width, height))
+    FigureCanvasAgg(figure)
+    return figure
+
+
+def plot_scatter(path, scatter: dict) -> None:
+    """Final positions per condition: experiment, baseline and best effect."""
+    n = len(scatter)
+    figure = _canvas(4.2 * n, 4.2)
+    for k, (condition, sets) in enumerate(scatter.items()):
+        ax = figure.add_subplot(1, n, k + 1)
+        for name, colour, marker in (
+            ("baseline", "0.6", "."),
+            ("best_effect", "tab:blue", "."),
+            ("experiment", "tab:red", "x"),
+        ):
+            p = np.asarray(sets[name]).reshape(-1, 2)
+            ax.scatter(
+                p[:, 0], p[:, 1], s=10, c=colour, marker=marker, label=name.replace("_", " ")
+            )
+        ax.set_aspect("equal")
+        ax.set_title(condition)
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("y (mm)")
+        if k == 0:
+            ax.legend(fontsize=7)
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+
+
+def plot_discrepancies(path, rows: list[dict]) -> None:
+    """z of every observable and condition, with the +-1.96 band."""
+    figure = _canvas(max(6.0, 0.35 * len(rows)), 4.0)
+    ax = figure.add_subplot(1, 1, 1)
+    z = [r["z"] for r in rows]
+    colours = ["tab:red" if r["beyond_noise"] else "0.5" for r in rows]
+    ax.bar(range(len(rows)), z, color=colours)
+    ax.axhspan(-1.96, 1.96, color="0.9", zorder=0)
+    ax.set_xticks(range(len(rows)))
+    ax.set_xticklabels(
+        [f"{r['condition']}: {r['observable']}" for r in rows], rotation=90, fontsize=6
+    )
+    ax.set_ylabel("experiment - simulation (standard errors)")
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+
+
+def plot_ranking(path, ranking: list[dict]) -> None:
+    """Held-out gap reduction of every effect with its 95 % interval."""
+    figure = _canvas(6.0, 0.5 * len(ranking) + 1.5)
+    ax = figure.add_subplot(1, 1, 1)
+    names = [e["effect"] for e in ranking][::-1]
+    values = [e["held_out_reduction"] for e in ranking][::-1]
+    lo = [e["held_out_reduction_ci95"][0] for e in ranking][::-1]
+    hi = [e["held_out_reduction_ci95"][1] for e in ranking][::-1]
+    y = np.arange(len(names))
+    v = np.nan_to_num(np.array(values, dtype=float))
+    ax.barh(y, v, color="tab:blue")
+    err = np.array([v - np.nan_to_num(lo), np.nan_to_num(hi) - v])
+    ax.errorbar(v, y, xerr=np.clip(err, 0, None), fmt="none", ecolor="k")
+    ax.set_yticks(y)
+    ax.set_yticklabels(names)
+    ax.axvline(0, color="k", lw=0.8)
+    ax.set_xlabel("held-out gap reduction")
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+
+
+def write_diagnosis(run, result: dict) -> list[str]:
+    """Write the report into a run directory (``run.path(name)`` gives where)."""
+    run.write_json("diagnosis.json", _jsonable(result))
+    run.write_text("diagnosis.md", report_markdown(result))
+    files = ["diagnosis.json", "diagnosis.md"]
+    if result.get("scatter"):
+        plot_scatter(run.path("fig_scatter.png"), result["scatter"])
+        files.append("fig_scatter.png")
+    plot_discrepancies(run.path("fig_discrepancies.png"), result["where"]["observables"])
+    files.append("fig_discrepancies.png")
+    if result["which"]["ranking"]:
+        plot_ranking(run.path("fig_effects.png"), result["which"]["ranking"])
+        files.append("fig_effects.png")
+    return files
+
+
+def _jsonable(value):
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+__all__ += ["plot_scatter", "plot_discrepancies", "plot_ranking"]

@@ -1,0 +1,453 @@
+"""The sim-to-real diagnosis: effects, observables, statistics, specs and observation files,
+``pipeline synth`` and ``pipeline diagnose`` end to end on data whose effect is known."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import SMALL_SCENARIO, run_cli
+
+from diagnosis.observables import drop_observables, observable_names
+from diagnosis.statistics import energy_test, gap_statistic, holm
+from packing.config import ChipSpec
+from packing.effects import AIR_DENSITY_G_MM3, EFFECTS, FlightState, check_effects
+from packing.errors import InputError
+from packing.shapes import make_shape
+
+DROP_SPEC = """
+kind = "drop"
+name = "two heights"
+scenario = "single-chip-drop"
+observations = "data.csv"
+[measurement]
+position_sd_mm = 0.5
+angle_sd_deg = 0.5
+[diagnosis]
+sim_drops = {sim_drops}
+bootstrap = 100
+grid_points = 4
+effects = {effects}
+[[condition]]
+name = "low"
+height_mm = 200
+[[condition]]
+name = "high"
+height_mm = 600
+yaw_deg = 30
+"""
+
+NAMES = observable_names(True, True)
+
+
+def _drop_spec(folder: Path, effects=("restitution", "friction", "compliant_floor"), sim=60):
+    spec = folder / "spec.toml"
+    listed = "[" + ", ".join(f'"{e}"' for e in effects) + "]"
+    spec.write_text(DROP_SPEC.format(sim_drops=sim, effects=listed))
+    return spec
+
+
+# -- observables and statistics ------------------------------------------------------------
+def test_observables_of_a_known_scatter():
+    # 8 drops on the diagonals at 10 mm and 8 on the axes at 20 mm.
+    diag = np.radians([45, 135, 225, 315])
+    axes = np.radians([0, 90, 180, 270])
+    points = np.vstack(
+        [
+            10 * np.column_stack([np.cos(diag), np.sin(diag)]),
+            10 * np.column_stack([np.cos(diag), np.sin(diag)]),
+            20 * np.column_stack([np.cos(axes), np.sin(axes)]),
+            20 * np.column_stack([np.cos(axes), np.sin(axes)]),
+        ]
+    )
+    yaw = np.full(16, 7.0)
+    tilt = np.arange(16, dtype=float)
+    values = dict(zip(NAMES, drop_observables(points, yaw, tilt, 0.0, 4, NAMES), strict=True))
+    assert values["r_q50"] == pytest.approx(15.0)
+    assert values["r95"] == pytest.approx(20.0)
+    assert values["mean_x"] == pytest.approx(0.0, abs=1e-12)
+    assert values["aniso_c"] == pytest.approx(0.0, abs=1e-12)  # half diagonals, half axes
+    assert values["yaw_spread"] == pytest.approx(0.0, abs=1e-12)  # every chip turned alike
+    assert values["tilt_q50"] == pytest.approx(7.5)
+    only_diagonals = drop_observables(points[:8], yaw[:8], tilt[:8], 0.0, 4, NAMES)
+    assert dict(zip(NAMES, only_diagonals, strict=True))["aniso_c"] == pytest.approx(-1.0)
+    # Turning the release by 45 deg turns the diagonals into the chip's sides.
+    turned = drop_observables(points[:8], yaw[:8], tilt[:8], 45.0, 4, NAMES)
+    assert dict(zip(NAMES, turned, strict=True))["aniso_c"] == pytest.approx(1.0)
+
+
+def test_yaw_spread_of_uniform_yaw_is_one():
+    yaw = np.linspace(0, 90, 400, endpoint=False)
+    values = drop_observables(np.ones((400, 2)), yaw, np.zeros(400), 0.0, 4, NAMES)
+    assert dict(zip(NAMES, values, strict=True))["yaw_spread"] == pytest.approx(1.0, abs=1e-9)
+
+
+def test_holm_and_gap_statistic():
+    assert holm([0.01, 0.04, 0.03]) == pytest.approx([0.03, 0.06, 0.06])
+    assert holm([0.5]) == [0.5]
+    assert gap_statistic(np.array([1.0, 2.0]), np.array([0.0, 0.0]), np.array([1.0, 2.0])) == 1.0
+
+
+def test_energy_test_separates_shifted_samples_only():
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(size=(60, 2)), rng.normal(size=(80, 2))
+    _, p_same = energy_test(a, b, 200, rng)
+    _, p_shifted = energy_test(a + [1.0, 0.0], b, 200, rng)
+    assert p_same > 0.05
+    assert p_shifted < 0.01
+
+
+# -- effects -------------------------------------------------------------------------------
+def _square():
+    return make_shape(ChipSpec(), None, 1.0)
+
+
+def test_effect_registry_lists_names_and_checks_priors():
+    with pytest.raises(InputError, match="valid names: .*air_drag.*warp"):
+        check_effects({"wind": 1.0}, "drop")
+    with pytest.raises(InputError, match="outside the prior range"):
+        check_effects({"warp": 10.0}, "drop")
+    with pytest.raises(InputError, match="finite"):
+        check_effects({"friction": math.nan}, "drop")
+    with pytest.raises(InputError, match="acts on stack, container"):
+        check_effects({"vibration": 100.0}, "drop")
+    assert check_effects({"friction": 0.7}, "drop") == {"friction": 0.7}
+    for name in EFFECTS:
+        effect = EFFECTS.get(name)
+        assert effect.prior[0] < effect.prior[1]
+        assert len(effect.justification) > 80, name
+
+
+def test_air_drag_holds_a_flat_chip_at_its_terminal_speed():
+    shape = _square()
+    mass = 1.70e-3 * shape.volume_mm3
+    area = shape.plan_area_mm2
+    strength = 2.0
+    # Broadside drag coefficient A + B = 2.4: v_t = sqrt(2 m g / (rho S 2.4)).
+    v_t = math.sqrt(2 * mass * 9810.0 / (AIR_DENSITY_G_MM3 * strength * area * 2.4))
+    state = FlightState(
+        positions=np.zeros((1, 3)),
+        quaternions=np.array([[0.0, 0.0, 0.0, 1.0]]),
+        velocities=np.array([[0.0, 0.0, -v_t]]),
+        angular=np.zeros((1, 3)),
+        shapes=(shape,),
+        masses_g=np.array([mass]),
+    )
+    forces, torques = EFFECTS.get("air_drag").loads(state, strength)
+    assert forces[0] == pytest.approx([0.0, 0.0, mass * 9810.0], rel=1e-9, abs=1e-9)
+    assert np.abs(torques).max() < 1e-9  # broadside: no turning moment
+    # Tilted 20 deg about x and falling: the Munk moment turns it back towards flat.
+    tilted = FlightState(
+        positions=np.zeros((1, 3)),
+        quaternions=np.array([[math.sin(math.radians(10)), 0.0, 0.0, math.cos(math.radians(10))]]),
+        velocities=np.array([[0.0, 0.0, -v_t]]),
+        angular=np.zeros((1, 3)),
+        shapes=(shape,),
+        masses_g=np.array([mass]),
+    )
+    _, torques = EFFECTS.get("air_drag").loads(tilted, strength)
+    assert torques[0, 0] < 0  # the tilt is +20 deg about x
+
+
+def test_rounded_chip_volume_matches_the_minkowski_formula():
+    shape = _square()  # 20 x 20 x 2 mm
+    r = 0.5
+    rounded = EFFECTS.get("edge_rounding").shape(shape, r)
+    a, b, c = 20 - 2 * r, 20 - 2 * r, 2 - 2 * r
+    exact = a * b * c + 2 * r * (a * b + b * c + c * a) + math.pi * r**2 * (a + b + c)
+    exact += 4 / 3 * math.pi * r**3
+    # The hull samples the sphere at 10 deg: a little less than the exact rounded box.
+    assert rounded.volume_mm3 == pytest.approx(exact, rel=0.01)
+    assert rounded.volume_mm3 < shape.volume_mm3
+    assert rounded.half_extents == pytest.approx(shape.half_extents, abs=1e-9)
+    assert np.allclose(rounded.vertices.mean(axis=0), 0.0, atol=1e-6)
+
+
+def test_warped_chip_keeps_its_volume_and_rises_at_its_ends():
+    shape = _square()
+    bow = 2.0
+    warped = EFFECTS.get("warp").shape(shape, bow)
+    assert warped.volume_mm3 == pytest.approx(shape.volume_mm3, rel=0.005)
+    assert len(warped.convex_pieces) == 8
+    # Arc of 20 mm rising 2 mm: the ends turn by theta with R (1 - cos theta) = 2, R theta = 10,
+    # so the top corners at the ends stand bow + (T / 2)(1 + cos theta) above the bottom.
+    theta = next(t for t in np.linspace(1e-3, 1.5, 150001) if 10 / t * (1 - np.cos(t)) >= bow)
+    z = np.vstack(warped.convex_pieces)[:, 2]
+    assert np.ptp(z) == pytest.approx(bow + 1.0 + np.cos(theta), abs=1e-3)
+    # Mass properties about the centre of mass: the pieces are re-centred.
+    assert np.allclose(np.vstack(warped.convex_pieces).mean(axis=0)[:2], 0.0, atol=1e-9)
+    with pytest.raises(InputError, match="flat convex chips"):
+        EFFECTS.get("warp").shape(make_shape(ChipSpec(shape="star"), None, 1.0), 1.0)
+
+
+def test_effects_change_simulated_drops_the_way_physics_says():
+    from packing.drop import DropProtocol, simulate_drops
+    from pipeline.scenario_files import load_scenario
+
+    scenario = load_scenario("single-chip-drop")
+    protocol = DropProtocol(200.0, 0.0, 5.7296)
+
+    def median_distance(strengths):
+        sample = simulate_drops(scenario, protocol, 60, strengths, seed=4)
+        assert sample.settled.all()
+        return float(np.median(np.hypot(*sample.positions.T))), sample
+
+    base, _ = median_distance({})
+    bouncy, _ = median_distance({"restitution": 0.7})
+    soft, _ = median_distance({"compliant_floor": 2.0})
+    _, warped = median_distance({"warp": 2.5})
+    assert bouncy > 2 * base  # more bounce, farther travel
+    assert soft < base  # a soft floor swallows the bounce
+    assert np.median(warped.tilt_deg) > 1.0  # a bowed chip rests on its ends
+
+
+def test_stack_deposition_with_effects(small_scenario):
+    from packing.deposition import deposit
+    from pipeline.scenario_files import load_scenario
+
+    scenario = load_scenario(small_scenario)
+    base = deposit(scenario)
+    for strengths in ({"vibration": 200.0}, {"cohesion": 10.0}, {"friction": 0.9}):
+        stack = deposit(scenario, effects=strengths)
+        assert stack.n_chips == base.n_chips
+        assert np.isfinite(stack.positions).all()
+        assert not np.allclose(stack.positions, base.positions), strengths
+
+
+# -- bad input from the command line ---------------------------------------------------------
+def _write_drops(path: Path, rows: list[list], header=("condition", "drop", "x_mm", "y_mm")):
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(header)
+        writer.writerows(rows)
+
+
+def _good_rows(n=12):
+    rows = []
+    for condition in ("low", "high"):
+        rows += [[condition, k, 0.5 * k, -0.25 * k] for k in range(1, n + 1)]
+    return rows
+
+
+@pytest.mark.parametrize(
+    "case, expected",
+    [
+        ("missing_column", "missing column 'y_mm'"),
+        ("misnamed_column", "missing column 'x_mm' (columns needed"),
+        ("non_numeric", "line 3: x_mm 'abc' is not a number"),
+        ("nan", "x_mm must be finite"),
+        ("undefined_condition", "condition 'middle' is not defined in the spec"),
+        ("few_drops", "has 9 drops; at least 10 are needed"),
+        ("duplicate_drop", "drop '1' of 'low' appears twice"),
+        ("duplicate_column", "column 'x_mm' appears twice"),
+        ("empty", "the observations file is empty"),
+        ("unknown_effect", "diagnosis.effects: unknown effect 'wind'; valid names:"),
+        ("missing_condition", "no drops for condition 'high'"),
+    ],
+)
+def test_diagnose_rejects_bad_input(tmp_path, case, expected):
+    spec = _drop_spec(tmp_path, effects=("wind",) if case == "unknown_effect" else ("friction",))
+    data = tmp_path / "data.csv"
+    rows = _good_rows()
+    if case == "missing_column":
+        _write_drops(data, [r[:3] for r in rows], header=("condition", "drop", "x_mm"))
+    elif case == "misnamed_column":
+        _write_drops(data, rows, header=("condition", "drop", "x", "y_mm"))
+    elif case == "non_numeric":
+        rows[1][2] = "abc"
+        _write_drops(data, rows)
+    elif case == "nan":
+        rows[4][2] = "nan"
+        _write_drops(data, rows)
+    elif case == "undefined_condition":
+        rows[5][0] = "middle"
+        _write_drops(data, rows)
+    elif case == "few_drops":
+        _write_drops(
+            data, [r for r in rows if r[0] == "high"] + [r for r in rows if r[0] == "low"][:9]
+        )
+    elif case == "duplicate_drop":
+        rows[1][1] = 1
+        _write_drops(data, rows)
+    elif case == "duplicate_column":
+        _write_drops(data, rows, header=("condition", "drop", "x_mm", "x_mm"))
+    elif case == "empty":
+        data.write_text("")
+    elif case == "missing_condition":
+        _write_drops(data, [r for r in rows if r[0] == "low"])
+    else:
+        _write_drops(data, rows)
+    out = tmp_path / "out"
+    result = run_cli("diagnose", str(spec), "--out", str(out), "--workers", "1")
+    assert result.returncode == 2, result.stderr
+    assert expected in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1, result.stderr
+    assert "Traceback" not in result.stderr
+    assert not out.exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out")]
+
+
+@pytest.mark.parametrize(
+    "args, expected",
+    [
+        (["--effect", "wind=1"], "--effect: unknown effect 'wind'; valid names: air_drag"),
+        (["--effect", "warp"], "expected NAME=STRENGTH"),
+        (["--effect", "warp=abc"], "strength 'abc' is not a number"),
+        (["--effect", "warp=50"], "outside the prior range"),
+        (["--effect", "vibration=100"], "acts on stack, container"),
+        (["--drops", "0"], "--drops: must be between 1 and 100000"),
+    ],
+)
+def test_synth_rejects_bad_input(tmp_path, args, expected):
+    spec = _drop_spec(tmp_path)
+    out = tmp_path / "data.csv"
+    result = run_cli("synth", str(spec), "-o", str(out), *args)
+    assert result.returncode == 2
+    assert expected in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1, result.stderr
+    assert not out.exists()
+
+
+def test_spec_errors_name_the_key(tmp_path):
+    spec = tmp_path / "spec.toml"
+    data = tmp_path / "data.csv"
+    _write_drops(data, _good_rows())
+    for text, expected in [
+        (
+            'kind = "pour"\nobservations = "data.csv"',
+            "kind: expected one of drop, stack, container",
+        ),
+        ('kind = "drop"\nobservations = "data.csv"', "condition: give at least one"),
+        (
+            'kind = "drop"\nobservations = "data.csv"\n[[condition]]\nname = "low"\nheight_mm = -5',
+            "condition[0].height_mm: -5 is outside",
+        ),
+        (
+            'kind = "drop"\nobservations = "data.csv"\ncolour = 1\n[[condition]]\nname = "low"',
+            "spec.colour: unknown key",
+        ),
+        ('kind = "drop"\nobservations = "data.csv"\n[[condition', "malformed TOML"),
+    ]:
+        spec.write_text(text)
+        result = run_cli("diagnose", str(spec), "--out", str(tmp_path / "o"))
+        assert result.returncode == 2, text
+        assert expected in result.stderr, (text, result.stderr)
+        assert not (tmp_path / "o").exists()
+
+
+# -- end to end ----------------------------------------------------------------------------
+def test_synth_writes_observations_reproducibly(tmp_path):
+    spec = _drop_spec(tmp_path)
+    a, b = tmp_path / "a.csv", tmp_path / "b.csv"
+    for path in (a, b):
+        result = run_cli(
+            "synth",
+            str(spec),
+            "--effect",
+            "friction=0.9",
+            "--seed",
+            "5",
+            "--drops",
+            "12",
+            "-o",
+            str(path),
+            "--workers",
+            "1",
+        )
+        assert result.returncode == 0, result.stderr
+    assert a.read_text() == b.read_text()
+    rows = list(csv.DictReader(a.open()))
+    assert len(rows) == 24
+    assert list(rows[0]) == ["condition", "drop", "x_mm", "y_mm", "yaw_deg", "tilt_deg"]
+    assert {r["condition"] for r in rows} == {"low", "high"}
+    again = run_cli("synth", str(spec), "--seed", "5", "-o", str(a))
+    assert again.returncode == 2 and "file exists" in again.stderr
+
+
+@pytest.mark.slow
+def test_diagnose_finds_a_withheld_effect_and_no_gap_without_one(tmp_path):
+    spec = _drop_spec(tmp_path)
+    data = tmp_path / "data.csv"
+    made = run_cli(
+        "synth",
+        str(spec),
+        "--effect",
+        "restitution=0.7",
+        "--seed",
+        "11",
+        "-o",
+        str(data),
+        "--workers",
+        "2",
+    )
+    assert made.returncode == 0, made.stderr
+    out = tmp_path / "report"
+    result = run_cli("diagnose", str(spec), "--out", str(out), "--seed", "2", "--workers", "2")
+    assert result.returncode == 0, result.stderr
+    report = json.loads((out / "diagnosis.json").read_text())
+    assert report["verdict"]["kind"] == "explained"
+    assert "restitution" in report["which"]["indistinguishable"]
+    top = {e["effect"]: e for e in report["which"]["ranking"]}["restitution"]
+    assert top["held_out_reduction"] > 0.5
+    assert 0.4 <= top["strength"] <= 0.8
+    assert all(t["significant"] for t in report["where"]["tests"])
+    for name in ("diagnosis.md", "fig_scatter.png", "fig_effects.png", "manifest.json"):
+        assert (out / name).stat().st_size > 0
+    assert "## 3. How far" in (out / "diagnosis.md").read_text()
+
+    made = run_cli("synth", str(spec), "--seed", "12", "-o", str(data), "--overwrite")
+    assert made.returncode == 0, made.stderr
+    result = run_cli("diagnose", str(spec), "--out", str(out), "--overwrite", "--workers", "2")
+    assert result.returncode == 0, result.stderr
+    report = json.loads((out / "diagnosis.json").read_text())
+    assert report["verdict"]["kind"] == "no significant gap"
+
+
+STACK_SPEC = """
+kind = "stack"
+name = "small stacks"
+observations = "quantities.csv"
+[diagnosis]
+effects = ["friction", "restitution"]
+grid_points = 3
+[[condition]]
+name = "a"
+scenario = "small.toml"
+repeats = 2
+[[condition]]
+name = "b"
+scenario = "small40.toml"
+repeats = 2
+"""
+
+
+@pytest.mark.slow
+def test_stack_diagnosis_end_to_end(tmp_path):
+    (tmp_path / "small.toml").write_text(SMALL_SCENARIO)
+    (tmp_path / "small40.toml").write_text(SMALL_SCENARIO.replace("chips = 24", "chips = 36"))
+    spec = tmp_path / "spec.toml"
+    spec.write_text(STACK_SPEC)
+    data = tmp_path / "quantities.csv"
+    made = run_cli(
+        "synth", str(spec), "--effect", "friction=0.1", "-o", str(data), "--workers", "2"
+    )
+    assert made.returncode == 0, made.stderr
+    rows = list(csv.DictReader(data.open()))
+    assert {r["quantity"] for r in rows} >= {"volume_fraction", "contacts_per_chip"}
+    out = tmp_path / "report"
+    result = run_cli("diagnose", str(spec), "--out", str(out), "--workers", "2")
+    assert result.returncode == 0, result.stderr
+    report = json.loads((out / "diagnosis.json").read_text())
+    assert [e["effect"] for e in report["which"]["ranking"]] != []
+    assert report["verdict"]["kind"] in ("explained", "no significant gap", "unexplained")
+    assert (out / "diagnosis.md").read_text().startswith("# Sim-to-real diagnosis")
+    bad = tmp_path / "bad.csv"
+    bad.write_text("condition,quantity,value\na,porosity,0.5\n")
+    spec.write_text(STACK_SPEC.replace("quantities.csv", "bad.csv"))
+    result = run_cli("diagnose", str(spec), "--out", str(tmp_path / "x"))
+    assert result.returncode == 2
+    assert "unknown quantity 'porosity'; valid: volume_fraction" in result.stderr
