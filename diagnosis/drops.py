@@ -394,14 +394,15 @@ class _DropDiagnosis:
             fold["tilt"] = self._best_tilt(fold["calibration"])
         tilt_all = self._best_tilt(list(full.values()))
         effects = list(self.x.candidate_effects)
-        keys = []
-        for tilt in {f["tilt"] for f in folds} | {tilt_all}:
-            for effect in effects:
-                neutral = EFFECTS.get(effect).neutral(self.contact)
-                for s in self._grid(effect):
-                    if abs(s - neutral) > 1e-12:
-                        keys += [self._key(c, tilt, effect, s, "A") for c in conditions]
-        self._ensure(keys)
+        tilts = {f["tilt"] for f in folds} | {tilt_all}
+        grids = {effect: self._grid(effect) for effect in effects}
+
+        def simulate_grids() -> None:
+            keys = []
+            for tilt in tilts:
+                for effect in effects:
+                    keys += [key(c, tilt, effect, s) for s in grids[effect] for c in conditions]
+            self._ensure(keys)
 
         def key(c, tilt, effect, s):
             neutral = EFFECTS.get(effect).neutral(self.contact) if effect else 0.0
@@ -417,6 +418,25 @@ class _DropDiagnosis:
                     for s in grid
                 ]
             )
+
+        # A coarse grid over the prior, then the midpoints on either side of every fit's
+        # minimum (each fold's and the all-condition one): twice the resolution where it
+        # matters for the cost of a few more simulations.
+        simulate_grids()
+        for effect in effects:
+            grid = grids[effect]
+            refined = set(grid)
+            fits = [(f["calibration"], f["tilt"]) for f in folds] + [
+                (list(full.values()), tilt_all)
+            ]
+            for datasets, tilt in fits:
+                k = int(curve(datasets, tilt, effect, grid)[:, 0].argmin())
+                if k > 0:
+                    refined.add(round((grid[k - 1] + grid[k]) / 2, 12))
+                if k < len(grid) - 1:
+                    refined.add(round((grid[k] + grid[k + 1]) / 2, 12))
+            grids[effect] = sorted(refined)
+        simulate_grids()
 
         base_excess = np.zeros(1 + b_count)
         base_rows = []
@@ -441,7 +461,7 @@ class _DropDiagnosis:
         results = {}
         reductions = {}
         for effect in effects:
-            grid = self._grid(effect)
+            grid = grids[effect]
             excess = np.zeros(1 + b_count)
             per_fold = []
             for fold in folds:

@@ -99,7 +99,10 @@ def report_markdown(result: dict) -> str:
             lines.append("none.")
     which = result["which"]
     refit = which["baseline_refit"]
-    lines += ["", "## 2. Which effect", "", f"Baseline refit first: {refit['parameter']}."]
+    lines += ["", "## 2. Which effect", ""]
+    if result["verdict"]["kind"] == "no significant gap":
+        lines += ["There is no significant gap to explain: what follows is for reference only.", ""]
+    lines.append(f"Baseline refit first: {refit['parameter']}.")
     if "all_conditions_deg" in refit:
         lines.append(f"Refitted on all conditions: {refit['all_conditions_deg']:g} deg; per fold:")
         lines += [
