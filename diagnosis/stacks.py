@@ -51,6 +51,14 @@ QUANTITIES: dict[str, tuple[str, str, tuple[str, ...]]] = {
     "contacts_line_per_chip": ("", "line contacts per chip", ("stack",)),
     "contacts_surface_per_chip": ("", "surface contacts per chip", ("stack",)),
 }
+MAX_LAYERS = 30
+for _k in range(MAX_LAYERS):
+    QUANTITIES[f"layer_filling_{_k}"] = (
+        "",
+        f"chips whose centre lies in layer {_k} (2 mm layers by default) over a full layer "
+        "(target area over chip area)",
+        ("stack",),
+    )
 BOOTSTRAP = 400
 
 
@@ -66,7 +74,9 @@ def simulate_quantities(scenario: Scenario, strengths: dict[str, float], seed: i
         return {"volume_fraction": fill["volume_fraction"], "chips_inside": fill["chips_inside"]}
     from geometry import arrangements_from_stack, describe
 
-    description = describe(arrangements_from_stack(stack), scenario.geometry, ["contacts", "stack"])
+    description = describe(
+        arrangements_from_stack(stack), scenario.geometry, ["contacts", "stack", "layers"]
+    )
     contacts = description.sections["contacts"]["scalars"]
     heights = description.sections["stack"]["scalars"]
     out = {
@@ -77,6 +87,11 @@ def simulate_quantities(scenario: Scenario, strengths: dict[str, float], seed: i
     out["volume_fraction"] = heights["volume_fraction"]["value"]
     out["height_mean_mm"] = heights["height_mean_mm"]["value"]
     out["height_max_mm"] = heights["height_max_mm"]["value"]
+    layers = description.sections["layers"]
+    full = layers["scalars"]["full_layer"]["value"]
+    chips = list(layers["profiles"]["chips"]["values"])
+    for k in range(MAX_LAYERS):
+        out[f"layer_filling_{k}"] = (chips[k] if k < len(chips) else 0.0) / full
     return out
 
 
@@ -160,7 +175,8 @@ class _StackDiagnosis:
             mean, sd, r = self._moments(key, quantity)
             se_obs = q.sd / math.sqrt(q.n) if math.isfinite(q.sd) else 0.0
             scale = math.sqrt(se_obs**2 + sd**2 / r)
-            scale = max(scale, 1e-9 * (1 + abs(mean)))
+            # A floor for quantities every repeat reproduces exactly (an empty layer).
+            scale = max(scale, 1e-3 * (1 + abs(mean)))
             value = q.value
             if draw is not None:
                 value = q.value + self._noise[condition][quantity][draw] * se_obs
@@ -472,6 +488,8 @@ def synthesize_quantities(
         runs = [r for o, r in zip(owners, results, strict=True) if o == condition.name]
         for quantity in runs[0]:
             values = np.array([r[quantity] for r in runs], dtype=float)
+            if quantity.startswith("layer_filling_") and not values.any():
+                continue  # layers above every stack
             rows.append(
                 dict(
                     condition=condition.name,

@@ -78,7 +78,7 @@ class Executor:
                 n_workers=n,
                 threads_per_worker=1,
                 processes=True,
-                dashboard_address=None,
+                dashboard_address=":0",  # any free port: never clashes with another cluster
                 scheduler_kwargs={"dashboard": False},
                 silence_logs=logging.CRITICAL,
             )

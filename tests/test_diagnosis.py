@@ -437,7 +437,11 @@ def test_stack_diagnosis_end_to_end(tmp_path):
     )
     assert made.returncode == 0, made.stderr
     rows = list(csv.DictReader(data.open()))
-    assert {r["quantity"] for r in rows} >= {"volume_fraction", "contacts_per_chip"}
+    assert {r["quantity"] for r in rows} >= {
+        "volume_fraction",
+        "contacts_per_chip",
+        "layer_filling_0",
+    }
     out = tmp_path / "report"
     result = run_cli("diagnose", str(spec), "--out", str(out), "--workers", "2")
     assert result.returncode == 0, result.stderr
