@@ -19,6 +19,7 @@ from packing.config import printable
 from packing.effects import EFFECTS, check_effects
 from packing.errors import InputError
 from pipeline.execution import Executor
+from pipeline.locks import DirectoryLock
 from pipeline.rundir import RunDirectory
 from pipeline.scenario_files import load_scenario
 
@@ -63,18 +64,19 @@ def diagnose(
     run_dir = RunDirectory(out, overwrite=overwrite)
     run_dir.check()
     start = time.perf_counter()
-    with Executor(workers=workers, scheduler=scheduler) as executor:
-        if experiment.kind == "drop":
-            result = diagnose_drops(experiment, data, executor.map, seed, progress)
-        else:
-            result = diagnose_stacks(experiment, data, executor.map, seed, progress)
-    result["wall_time_s"] = time.perf_counter() - start
-    result["command"] = list(command or [])
-    result["spec"] = str(Path(spec).resolve())
-    result["observations_file"] = str(experiment.observations)
-    with run_dir as run:
-        write_diagnosis(run, result)
-        run.write_json("manifest.json", _manifest(result, experiment))
+    with DirectoryLock(run_dir.target, f"--out {str(out)!r}"):
+        with Executor(workers=workers, scheduler=scheduler) as executor:
+            if experiment.kind == "drop":
+                result = diagnose_drops(experiment, data, executor.map, seed, progress)
+            else:
+                result = diagnose_stacks(experiment, data, executor.map, seed, progress)
+        result["wall_time_s"] = time.perf_counter() - start
+        result["command"] = list(command or [])
+        result["spec"] = str(Path(spec).resolve())
+        result["observations_file"] = str(experiment.observations)
+        with run_dir as run:
+            write_diagnosis(run, result)
+            run.write_json("manifest.json", _manifest(result, experiment))
     return run_dir.target, result
 
 

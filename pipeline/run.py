@@ -20,6 +20,7 @@ from packing import BatchResult, Scenario, Stack, deposit
 from packing.config import printable
 from packing.errors import InputError, SimulationError
 from packing.overlap import vertex_heights_mm
+from pipeline.locks import DirectoryLock
 from pipeline.rundir import RunDirectory, StageWriter
 from pipeline.scenario_files import dumps_toml
 
@@ -428,8 +429,6 @@ def run_ensemble(
     complete.
     """
     from geometry.describe import check_names
-    from geometry.ensemble import summarize_runs
-    from pipeline.execution import Executor
     from pipeline.rundir import EnsembleDirectory
 
     check_stage(to, scenario)
@@ -450,6 +449,39 @@ def run_ensemble(
         "descriptors": list(descriptors) if descriptors else None,
     }
     folder = EnsembleDirectory(out, identity, overwrite=overwrite)
+    with DirectoryLock(folder.target, f"--out {str(out)!r}"):
+        manifest = _ensemble_locked(
+            folder,
+            scenario,
+            names,
+            seeds,
+            repeats,
+            to,
+            descriptors,
+            progress,
+            command,
+            workers,
+            scheduler,
+        )
+    return Path(out), manifest
+
+
+def _ensemble_locked(
+    folder,
+    scenario,
+    names,
+    seeds,
+    repeats,
+    to,
+    descriptors,
+    progress,
+    command,
+    workers,
+    scheduler,
+):
+    from geometry.ensemble import summarize_runs
+    from pipeline.execution import Executor
+
     started = datetime.now(UTC)
     wall = time.perf_counter()
     done = folder.finished(names)
@@ -540,7 +572,7 @@ def run_ensemble(
         path("manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
 
     folder.complete(finish)
-    return Path(out), manifest
+    return manifest
 
 
 def _write_packing(path: Callable[[str], Path], prefix: str, stack: Stack) -> None:

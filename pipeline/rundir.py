@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from packing.errors import InputError
+from pipeline.locks import DirectoryLock
 
 __all__ = ["RunDirectory", "StageWriter", "EnsembleDirectory"]
 
@@ -78,9 +79,12 @@ class RunDirectory:
 
     def __enter__(self) -> RunDirectory:
         self.check()
+        self._lock = DirectoryLock(self.target, f"--out {self.given!r}")
+        self._lock.acquire()
         try:
             self._partial.mkdir(parents=True)
         except OSError as exc:
+            self._lock.release()
             raise InputError(f"--out {self.given!r}: cannot create ({exc.strerror})") from None
         return self
 
@@ -99,6 +103,12 @@ class RunDirectory:
         return self.write_text(name, json.dumps(data, indent=2) + "\n")
 
     def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+        try:
+            self._finish(exc_type, exc)
+        finally:
+            self._lock.release()
+
+    def _finish(self, exc_type: object, exc: object) -> None:
         if exc_type is not None:
             shutil.rmtree(self._partial, ignore_errors=True)
             if isinstance(exc, OSError):  # a full disk, a vanished directory, ...
@@ -133,13 +143,22 @@ class StageWriter:
     def __enter__(self) -> Path:
         if not os.access(self.run, os.W_OK | os.X_OK):
             raise InputError(f"{str(self.run)!r}: run directory is not writable")
+        self._lock = DirectoryLock(self.run.absolute(), repr(str(self.run)))
+        self._lock.acquire()
         try:
             self._partial.mkdir()
         except OSError as exc:
+            self._lock.release()
             raise InputError(f"{str(self.run)!r}: cannot write ({exc.strerror})") from None
         return self._partial
 
     def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+        try:
+            self._finish(exc_type, exc)
+        finally:
+            self._lock.release()
+
+    def _finish(self, exc_type: object, exc: object) -> None:
         if exc_type is not None:
             shutil.rmtree(self._partial, ignore_errors=True)
             if isinstance(exc, OSError):
