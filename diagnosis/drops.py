@@ -465,7 +465,7 @@ class _DropDiagnosis:
                     )
                 )
         results = {}
-        reductions = {}
+        reductions, closed = {}, {}
         for effect in effects:
             grid = grids[effect]
             excess = np.zeros(1 + b_count)
@@ -487,6 +487,9 @@ class _DropDiagnosis:
                     )
                 )
                 fold.setdefault("chosen", {})[effect] = grid[best[0]]
+            # The gap closed (absolute, in units of G) is what is tested; the reduction
+            # (closed over the baseline's excess) is what is reported.
+            closed[effect] = base_excess - excess
             with np.errstate(divide="ignore", invalid="ignore"):
                 reduction = np.where(base_excess > 0, 1 - excess / base_excess, np.nan)
             reductions[effect] = reduction
@@ -501,12 +504,14 @@ class _DropDiagnosis:
                 strength_ci95=list(interval(fitted[1:])),
                 held_out_reduction=float(reduction[0]),
                 held_out_reduction_ci95=list(interval(reduction[1:])),
+                gap_closed=float(closed[effect][0]),
+                gap_closed_ci95=list(interval(closed[effect][1:])),
                 folds=per_fold,
             )
-        ranking = sorted(effects, key=lambda e: -np.nan_to_num(reductions[e][0], nan=-np.inf))
+        ranking = sorted(effects, key=lambda e: -closed[e][0])
         best = ranking[0]
         for effect in ranking:
-            diff = reductions[best][1:] - reductions[effect][1:]
+            diff = closed[best][1:] - closed[effect][1:]
             lo, hi = interval(diff)
             results[effect]["difference_to_best_ci95"] = [lo, hi]
             results[effect]["indistinguishable_from_best"] = bool(effect == best or not lo > 0)
@@ -626,7 +631,7 @@ class _DropDiagnosis:
         refit = which["baseline_refit"]
         held_p = holm([r["p_value"] for r in refit["held_out"]])
         top = which["ranking"][0]
-        lo = top["held_out_reduction_ci95"][0]
+        lo = top["gap_closed_ci95"][0]
         if all(p >= self.settings.alpha for p in held_p) and refit["held_out_excess"] <= 0:
             return dict(
                 kind="baseline refit",
@@ -644,8 +649,8 @@ class _DropDiagnosis:
         others = [e for e in which["indistinguishable"] if e != top["effect"]]
         text = (
             f"Gap in {', '.join(significant)}; {top['effect']} closes "
-            f"{_pct(top['held_out_reduction'])} "
-            f"[{_pct(lo)}, {_pct(top['held_out_reduction_ci95'][1])}] of it on held-out conditions "
+            f"{_pct(top['held_out_reduction'])} [{_pct(top['held_out_reduction_ci95'][0])}, "
+            f"{_pct(top['held_out_reduction_ci95'][1])}] of it on held-out conditions "
             f"at strength {top['strength']:.3g} {top['unit']}."
         )
         if others:

@@ -295,7 +295,7 @@ class _StackDiagnosis:
                 for d in draws
             ]
         )
-        results, reductions = {}, {}
+        results, reductions, closed = {}, {}, {}
         for effect in effects:
             grid = self._grid(effect)
             held = np.zeros(len(draws))
@@ -316,6 +316,7 @@ class _StackDiagnosis:
             with np.errstate(divide="ignore", invalid="ignore"):
                 reduction = np.where(base > 0, 1 - held / base, np.nan)
             reductions[effect] = reduction
+            closed[effect] = base - held
             fitted = []
             for d in draws:
                 cal = [excess(names, lambda c, s=s, e=effect: self._key(c, e, s), d) for s in grid]
@@ -330,12 +331,14 @@ class _StackDiagnosis:
                 strength_ci95=list(interval(fitted[1:])),
                 held_out_reduction=float(reduction[0]),
                 held_out_reduction_ci95=list(interval(reduction[1:])),
+                gap_closed=float(closed[effect][0]),
+                gap_closed_ci95=list(interval(closed[effect][1:])),
                 folds=per_fold,
             )
-        ranking = sorted(effects, key=lambda e: -np.nan_to_num(reductions[e][0], nan=-np.inf))
+        ranking = sorted(effects, key=lambda e: -closed[e][0])
         best = ranking[0] if ranking else None
         for effect in ranking:
-            lo, hi = interval(reductions[best][1:] - reductions[effect][1:])
+            lo, hi = interval(closed[best][1:] - closed[effect][1:])
             results[effect]["difference_to_best_ci95"] = [lo, hi]
             results[effect]["indistinguishable_from_best"] = bool(effect == best or not lo > 0)
         tied = [e for e in ranking if results[e]["indistinguishable_from_best"]]
@@ -432,8 +435,9 @@ class _StackDiagnosis:
             return dict(kind="unexplained", text="No candidate effect applies to these chips.")
         top = which["ranking"][0]
         lo, hi = top["held_out_reduction_ci95"]
+        closed_lo = top["gap_closed_ci95"][0]
         pct = lambda v: "n/a" if not np.isfinite(v) else f"{100 * v:.0f} %"  # noqa: E731
-        if not np.isfinite(lo) or lo <= 0:
+        if not np.isfinite(closed_lo) or closed_lo <= 0:
             return dict(
                 kind="unexplained",
                 text=f"Gap in {', '.join(significant)}; no candidate effect closes a "

@@ -27,12 +27,12 @@ from scipy.spatial.transform import Rotation
 
 from packing.config import Scenario
 from packing.effects import EFFECTS, FlightState, check_effects, contact_model, shaped
-from packing.errors import InputError
+from packing.errors import InputError, SimulationError
 from packing.overlap import box_penetration_depth, floor_penetration_mm
 from packing.presets import PRESETS
 from packing.shapes import VARIES_PER_CHIP, ChipShape, make_shape
 from packing.stack import BatchResult, Stack
-from packing.world import ChipWorld
+from packing.world import GRAVITY_MM_S2, ChipWorld
 
 __all__ = ["deposit", "release_poses", "draw_shapes", "settle", "reaches_rim"]
 
@@ -41,6 +41,8 @@ log = logging.getLogger(__name__)
 WAKE_MARGIN_MM = 0.5
 CHECK_INTERVAL_S = 0.005  # how often speeds are read (simulated time)
 SPILL_MARGIN_MM = 5.0  # beyond the wall's outer face: spilled out of a container
+ENERGY_BLOWUP_FACTOR = 10.0  # kinetic energy over what the moving chips brought
+FELL_THROUGH_MM = 5.0  # a chip centre this far below the floor has tunnelled through it
 _MAX_PLACEMENT_TRIES = 2000
 
 
@@ -210,19 +212,49 @@ class _RestTracker:
     on the solver's contact noise settle, while a chip creeping away never does.
     """
 
-    def __init__(self, world: ChipWorld, stray_mm: float, hold_checks: int) -> None:
+    def __init__(
+        self, world: ChipWorld, stray_mm: float, hold_checks: int, domain_mm: float = np.inf
+    ) -> None:
         self.world, self.stray_mm, self.hold_checks = world, stray_mm, hold_checks
         self.awake: dict[int, int] = {}  # chip -> checks spent inside its window
         self.positions: dict[int, np.ndarray] = {}  # where update() last saw each chip
         self._anchor: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        # Physics sanity: the kinetic energy of the moving chips can never exceed what
+        # they brought (their kinetic and potential energy above the floor when added);
+        # chips farther than domain_mm from the origin, or below the floor, have left it.
+        self.domain_mm = domain_mm
+        self.energy_budget = 0.0
+        self.left_domain: list[int] = []
 
     def add(self, chips: list[int]) -> None:
         if not chips:
             return
         positions, quaternions, _ = self.world.states(chips)
+        masses = np.array([self.world.mass_g(c) for c in chips])
+        self.energy_budget += float(
+            self.world.last_kinetic_energy.sum()
+            + (masses * GRAVITY_MM_S2 * np.maximum(positions[:, 2], 0.0)).sum()
+        )
         for k, chip in enumerate(chips):
             self.awake[chip] = 0
             self._anchor[chip] = (positions[k], quaternions[k])
+
+    def _check_physics(self, chips: list[int], positions: np.ndarray) -> None:
+        energy = self.world.last_kinetic_energy
+        if energy.sum() > ENERGY_BLOWUP_FACTOR * self.energy_budget + 1e3:
+            worst = [chips[k] for k in np.argsort(energy)[::-1][:5]]
+            raise SimulationError(
+                f"kinetic energy grew to {energy.sum() * 1e-9:.3g} J, "
+                f"{energy.sum() / max(self.energy_budget, 1e-12):.3g} times what the moving "
+                f"chips brought, at t = {self.world.time_s:.3f} s (the solver blew up; most "
+                f"energetic chips {worst}); try a smaller physics.time_step_s"
+            )
+        gone = (np.linalg.norm(positions, axis=1) > self.domain_mm) | (
+            positions[:, 2] < -FELL_THROUGH_MM
+        )
+        for k in np.flatnonzero(gone):
+            self.left_domain.append(chips[k])
+            self.remove(chips[k])
 
     def update(self, wake_speed_mm_s: float) -> list[tuple[int, float]]:
         """Read every awake chip and freeze the settled ones.
@@ -232,7 +264,14 @@ class _RestTracker:
         """
         chips = sorted(self.awake)
         positions, quaternions, speed = self.world.states(chips)
+        self._check_physics(chips, positions)
+        if self.left_domain:
+            kept = np.array([c in self.awake for c in chips], dtype=bool)
+            chips = [c for c, keep in zip(chips, kept, strict=True) if keep]
+            positions, quaternions, speed = positions[kept], quaternions[kept], speed[kept]
         self.positions = dict(zip(chips, positions, strict=True))  # read once per check
+        if not chips:
+            return []
         anchor_pos = np.array([self._anchor[c][0] for c in chips])
         anchor_quat = np.array([self._anchor[c][1] for c in chips])
         cos_half = np.clip(np.abs(np.einsum("ij,ij->i", quaternions, anchor_quat)), 0.0, 1.0)
@@ -264,6 +303,7 @@ def settle(
     new: list[int],
     scenario: Scenario,
     loads: Callable[[list[int]], None] | None = None,
+    warnings: list[str] | None = None,
 ) -> tuple[bool, int, int, float]:
     """Step until the chips in ``new`` (and those they wake) have settled or time runs out.
 
@@ -275,7 +315,7 @@ def settle(
     check_steps = max(1, round(CHECK_INTERVAL_S / scenario.physics.time_step_s))
     check_interval_s = check_steps * scenario.physics.time_step_s
     hold_checks = max(1, int(np.ceil(s.hold_time_s / check_interval_s)))
-    tracker = _RestTracker(world, s.speed_mm_s * s.hold_time_s, hold_checks)
+    tracker = _RestTracker(world, s.speed_mm_s * s.hold_time_s, hold_checks, _domain_mm(scenario))
     tracker.add(new)
     start_time, steps, wakes = world.time_s, 0, 0
     while tracker.awake and world.time_s - start_time < s.max_time_s:
@@ -304,7 +344,25 @@ def settle(
     if awake:
         for chip in awake:
             world.freeze(chip)
+    if tracker.left_domain:
+        message = (
+            f"chips {sorted(tracker.left_domain)[:20]} left the domain (farther than "
+            f"{tracker.domain_mm:g} mm from the target centre, or through the floor) and were "
+            "frozen where they were"
+        )
+        log.warning(message)
+        if warnings is not None:
+            warnings.append(message)
     return not awake, steps, wakes, start_time
+
+
+def _domain_mm(scenario: Scenario) -> float:
+    """Twenty times the scenario's own size: a chip beyond has left the experiment."""
+    d = scenario.deposition
+    size = max(d.target_size_mm, max(d.release_height_mm), scenario.drop.height_mm)
+    if scenario.kind == "container":
+        size = max(size, scenario.container.height_mm, scenario.container.radius_mm)
+    return 20.0 * size
 
 
 def reaches_rim(positions: np.ndarray, radius_mm: float, height_mm: float) -> bool:
@@ -406,14 +464,14 @@ def deposit(
                 world.set_floor_compliance(
                     stiffness, 2 * model.floor_damping_ratio * np.sqrt(stiffness * mass)
                 )
-            settled, steps, wakes, start_time = settle(world, new, scenario, loads)
+            settled, steps, wakes, start_time = settle(world, new, scenario, loads, warnings)
             for name, value in strengths.items():
                 effect = EFFECTS.get(name)
                 for _ in range(getattr(effect, "taps", 1)):
                     everyone = list(range(world.n_chips))
                     if not effect.after_batch(world, everyone, value, rng):
                         break
-                    settled, more, _, _ = settle(world, everyone, scenario, loads)
+                    settled, more, _, _ = settle(world, everyone, scenario, loads, warnings)
                     steps += more
             if not settled:
                 message = (

@@ -120,6 +120,7 @@ class ChipWorld:
         self._walls: list[int] = []
         self._floor = -1
         self.time_s = 0.0
+        self.last_kinetic_energy = np.empty(0)
 
     # -- session ---------------------------------------------------------------------------
     def __enter__(self) -> ChipWorld:
@@ -359,6 +360,15 @@ class ChipWorld:
         else:
             turning = np.empty(0)
         speed = (np.linalg.norm(linear, axis=1) + turning) * MM_PER_UNIT
+        if len(chips):
+            # Kinetic energy (g mm^2/s^2) of each chip, read by the physics sanity checks.
+            mass = np.array([self._mass[i] for i in chips])
+            principal = np.array([self._shapes[i].inertia_mm2 for i in chips]) * mass[:, None]
+            self.last_kinetic_energy = 0.5 * mass * np.einsum(
+                "ij,ij->i", linear, linear
+            ) * MM_PER_UNIT**2 + 0.5 * np.einsum("ij,ij->i", principal, local**2)
+        else:
+            self.last_kinetic_energy = np.empty(0)
         if not (np.isfinite(speed).all() and np.isfinite(positions).all()):
             bad = [chips[k] for k in np.flatnonzero(~np.isfinite(speed + positions.sum(1)))]
             raise SimulationError(

@@ -102,3 +102,61 @@ def test_describe_refuses_a_run_another_process_holds(tmp_path, small_scenario):
     result = run_cli("describe", str(out))  # the holder is gone: its lock is stale
     assert result.returncode == 0, result.stderr
     assert Path(out / "geometry" / "descriptors.json").is_file()
+
+
+# -- physics going wrong is detected, not written --------------------------------------------
+def _world_with_chip(z_mm: float, x_mm: float = 0.0):
+    import numpy as np
+
+    from packing.config import ChipSpec, PhysicsSpec
+    from packing.presets import PRESETS
+    from packing.shapes import make_shape
+    from packing.world import ChipWorld
+
+    world = ChipWorld(PRESETS.get("default"), PhysicsSpec()).__enter__()
+    chip = world.add_chip(
+        make_shape(ChipSpec(), None, 1.0),
+        np.array([x_mm, 0.0, z_mm]),
+        np.array([0.0, 0.0, 0.0, 1.0]),
+    )
+    return world, chip
+
+
+def test_energy_growing_without_bound_is_an_error_naming_the_chips():
+    import numpy as np
+    import pytest
+
+    from packing.deposition import _RestTracker
+    from packing.errors import SimulationError
+
+    world, chip = _world_with_chip(50.0)
+    try:
+        tracker = _RestTracker(world, 0.25, 10)
+        tracker.add([chip])  # brings m g 50 mm
+        tracker.update(20.0)
+        # A solver blow-up, as a kick no physics gave: 100 m/s upwards.
+        world.set_velocity(chip, np.array([0.0, 0.0, 1e5]), np.zeros(3))
+        world.step()
+        with pytest.raises(SimulationError, match=r"kinetic energy grew .* chips \[0\]"):
+            tracker.update(20.0)
+    finally:
+        world.__exit__(None, None, None)
+
+
+def test_chips_leaving_the_domain_are_frozen_and_reported(small_scenario):
+
+    from packing.deposition import settle
+    from pipeline.scenario_files import load_scenario
+
+    scenario = load_scenario(small_scenario)
+    # 20 x the scenario's largest size (4 m here) is the domain: 5 m is beyond.
+    world, chip = _world_with_chip(10.0, x_mm=5000.0)
+    try:
+        warnings: list[str] = []
+        done, *_ = settle(world, [chip], scenario, warnings=warnings)
+        assert done
+        assert len(warnings) == 1 and "chips [0] left the domain" in warnings[0]
+        position = world.poses()[0][0]
+        assert position[0] == 5000.0 and position[2] > 9.0  # frozen where it was seen
+    finally:
+        world.__exit__(None, None, None)
