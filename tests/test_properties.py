@@ -1,0 +1,86 @@
+"""Property-based tests (hypothesis) over scenario values: whatever a user writes, the
+scenario loader either accepts it and the result round-trips through TOML, or refuses it
+with an InputError naming the key, never another exception."""
+
+from __future__ import annotations
+
+import math
+
+from hypothesis import HealthCheck, example, given, settings
+from hypothesis import strategies as st
+
+from packing.config import scenario_from_dict
+from packing.errors import InputError
+from pipeline.scenario_files import _parse, dumps_toml
+
+KEYS = {
+    "chip": [
+        "length_mm",
+        "width_mm",
+        "thickness_mm",
+        "shape",
+        "sides",
+        "inner_ratio",
+        "size_distribution",
+        "size_spread",
+        "fibre_directions_deg",
+    ],
+    "deposition": ["chips", "batch_size", "target_size_mm", "release_height_mm", "orientation"],
+    "physics": ["preset", "friction", "restitution", "time_step_s", "solver_iterations"],
+    "settling": ["speed_mm_s", "hold_time_s", "wake_speed_mm_s", "max_time_s"],
+    "drop": ["drops", "height_mm", "tilt_deg", "yaw_deg"],
+}
+
+scalars = st.one_of(
+    st.integers(min_value=-(10**12), max_value=10**12),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.booleans(),
+    st.text(max_size=8),
+    st.sampled_from(["box", "star", "default", "paper", "uniform", "flat", "normal"]),
+)
+values = st.one_of(scalars, st.lists(scalars, max_size=3))
+
+
+@st.composite
+def scenario_tables(draw):
+    data = {}
+    for section in draw(st.lists(st.sampled_from(sorted(KEYS)), unique=True, max_size=3)):
+        keys = draw(st.lists(st.sampled_from(KEYS[section]), unique=True, min_size=1, max_size=3))
+        data[section] = {key: draw(values) for key in keys}
+    if draw(st.booleans()):
+        data["kind"] = draw(st.sampled_from(["stack", "drop", "container", "pile", 3]))
+    if draw(st.booleans()):
+        data["seed"] = draw(scalars)
+    return data
+
+
+def _finite(value) -> bool:
+    if isinstance(value, float):
+        return math.isfinite(value)
+    if isinstance(value, list):
+        return all(_finite(v) for v in value)
+    return True
+
+
+@settings(
+    max_examples=300, deadline=None, database=None, suppress_health_check=[HealthCheck.too_slow]
+)
+@given(scenario_tables())
+@example({"deposition": {"chips": 10, "batch_size": 5}, "physics": {"friction": 0.3}})
+@example({"drop": {"height_mm": 150.0, "tilt_deg": 3}, "kind": "drop", "seed": 4})
+@example({"chip": {"length_mm": float("nan")}})
+def test_scenario_values_are_accepted_or_refused_by_name(data):
+    try:
+        scenario = scenario_from_dict(data)
+    except InputError as exc:
+        message = str(exc)
+        assert "\n" not in message and message
+        named = [f"{s}.{k}" for s, table in data.items() if isinstance(table, dict) for k in table]
+        named += [k for k in data if not isinstance(data[k], dict)]
+        assert any(n.split(".")[0] in message for n in named), (message, data)
+        return
+    # Accepted: every number in it is finite, and it survives the trip through TOML.
+    for table in data.values():
+        if isinstance(table, dict):
+            assert all(_finite(v) for v in table.values())
+    assert _parse(dumps_toml(scenario), "round trip", None) == scenario
