@@ -472,7 +472,10 @@ class _DropDiagnosis:
             per_fold = []
             for fold in folds:
                 cal = curve(fold["calibration"], fold["tilt"], effect, grid)  # (S, 1 + B)
-                best = cal.argmin(axis=0)  # refit per resample: the fit's own uncertainty
+                # The strength is fitted once on the calibration data and held; the held-out
+                # data are resampled (a test-set bootstrap). The fit's own uncertainty is in
+                # the strength's interval (from refits on resampled data), not in the score.
+                best = np.full(1 + b_count, int(cal[:, 0].argmin()))
                 held = fold["held_out"]
                 held_curve = curve(held, fold["tilt"], effect, grid)
                 chosen = held_curve[best, np.arange(1 + b_count)]

@@ -301,12 +301,14 @@ class _StackDiagnosis:
             held = np.zeros(len(draws))
             per_fold = []
             for fold in folds:
+                # Fitted once on the calibration data and held; the held-out data resampled.
+                cal = [
+                    excess(fold["calibration"], lambda c, s=s, e=effect: self._key(c, e, s), None)
+                    for s in grid
+                ]
+                fitted_here = grid[int(np.argmin(cal))]
                 for j, d in enumerate(draws):
-                    cal = [
-                        excess(fold["calibration"], lambda c, s=s, e=effect: self._key(c, e, s), d)
-                        for s in grid
-                    ]
-                    s = grid[int(np.argmin(cal))]
+                    s = fitted_here
                     held[j] += excess(
                         fold["held_out"], lambda c, s=s, e=effect: self._key(c, e, s), d
                     )
