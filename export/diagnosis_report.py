@@ -42,7 +42,9 @@ def report_markdown(result: dict) -> str:
         "",
         "Overall test per condition: the gap statistic G (mean squared standardised "
         "discrepancy; about its null mean when there is no gap) against its null "
-        "distribution (simulation against an independent simulation), Holm-adjusted.",
+        "distribution (simulation against an independent simulation); for drops also a "
+        "two-sample energy-distance test of the scatters, the two Bonferroni-combined into "
+        "p. Holm-adjusted across conditions.",
         "",
         "| condition | G | null mean | p | p (Holm) | significant | share of the gap |"
         + (" energy test p |" if result["kind"] == "drop" else ""),
