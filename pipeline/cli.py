@@ -119,6 +119,18 @@ def _parser() -> argparse.ArgumentParser:
     synth.add_argument("--seed", type=int, default=0, help="seed of every draw")
     synth.add_argument("-o", "--output", required=True, help="observations CSV to write")
     synth.add_argument("--drops", type=int, default=50, help="drops per condition (kind drop)")
+    synth.add_argument(
+        "--position-sd-mm",
+        type=float,
+        default=None,
+        help="measurement noise of positions (default: the spec's [measurement])",
+    )
+    synth.add_argument(
+        "--angle-sd-deg",
+        type=float,
+        default=None,
+        help="measurement noise of yaw and tilt (default: the spec's [measurement])",
+    )
     synth.add_argument("--workers", type=int, default=None, help="local Dask workers")
     synth.add_argument("--overwrite", action="store_true", help="replace an existing file")
     synth.add_argument("-v", "--verbose", action="store_true", help="log progress details")
@@ -423,6 +435,8 @@ def _synth(args: argparse.Namespace) -> None:
         drops=args.drops,
         overwrite=args.overwrite,
         workers=args.workers,
+        position_sd_mm=args.position_sd_mm,
+        angle_sd_deg=args.angle_sd_deg,
     )
     print(f"{rows} observations written to {path}")
 

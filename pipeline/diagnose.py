@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import logging
 import os
@@ -108,13 +109,26 @@ def synth(
     drops: int = 50,
     overwrite: bool = False,
     workers: int | None = None,
+    position_sd_mm: float | None = None,
+    angle_sd_deg: float | None = None,
 ) -> tuple[Path, int]:
-    """Pseudo-experimental observations with the given effects, written atomically."""
+    """Pseudo-experimental observations with the given effects, written atomically;
+    measurement noise as in the spec unless given here."""
     if seed < 0:
         raise InputError("--seed: must not be negative")
     if not 1 <= drops <= 100_000:
         raise InputError(f"--drops: must be between 1 and 100000, got {drops}")
+    for flag, value, top in (
+        ("--position-sd-mm", position_sd_mm, 100.0),
+        ("--angle-sd-deg", angle_sd_deg, 45.0),
+    ):
+        if value is not None and not 0 <= value <= top:  # also refuses NaN
+            raise InputError(f"{flag}: must be between 0 and {top:g}, got {value}")
     experiment = load_experiment(spec, load_scenario)
+    if position_sd_mm is not None:
+        experiment = dataclasses.replace(experiment, position_sd_mm=position_sd_mm)
+    if angle_sd_deg is not None:
+        experiment = dataclasses.replace(experiment, angle_sd_deg=angle_sd_deg)
     strengths = parse_effects(effects, experiment.kind)
     target = Path(output).expanduser().absolute()
     shown = f"-o {printable(output)}"

@@ -300,6 +300,8 @@ def test_diagnose_rejects_bad_input(tmp_path, case, expected):
         (["--effect", "warp=50"], "outside the prior range"),
         (["--effect", "vibration=100"], "acts on stack, container"),
         (["--drops", "0"], "--drops: must be between 1 and 100000"),
+        (["--position-sd-mm", "nan"], "--position-sd-mm: must be between 0 and 100"),
+        (["--angle-sd-deg", "-1"], "--angle-sd-deg: must be between 0 and 45"),
     ],
 )
 def test_synth_rejects_bad_input(tmp_path, args, expected):
