@@ -418,7 +418,7 @@ class _DropDiagnosis:
         # simulations by the number of folds.)
         for fold in folds:
             fold["tilt"] = tilt_all
-        effects = list(self.x.candidate_effects)
+        effects, skipped = _applicable(self.x)
         tilts = {tilt_all}
         grids = {effect: self._grid(effect) for effect in effects}
 
@@ -549,6 +549,7 @@ class _DropDiagnosis:
                 held_out_excess_ci95=list(interval(base_excess[1:])),
             ),
             ranking=[results[e] for e in ranking],
+            not_applicable=skipped,
             folds=[f["name"] for f in folds],
             best=best,
             indistinguishable=tied,
@@ -678,6 +679,26 @@ class _DropDiagnosis:
         if others:
             text += f" Indistinguishable from it: {', '.join(others)}."
         return dict(kind="explained", effect=top["effect"], indistinguishable=others, text=text)
+
+
+def _applicable(experiment: Experiment) -> tuple[list[str], dict[str, str]]:
+    """Candidate effects that can act on the chip, and why the others cannot (a warp
+    needs a flat convex chip, for instance)."""
+    from packing.deposition import draw_shapes
+    from packing.effects import shaped
+    from packing.errors import InputError
+
+    scenario = experiment.scenario
+    (shape,) = draw_shapes(scenario, 1, np.random.default_rng(scenario.seed))
+    usable, skipped = [], {}
+    for name in experiment.candidate_effects:
+        try:
+            shaped(shape, {name: EFFECTS.get(name).prior[1]})
+        except InputError as exc:
+            skipped[name] = str(exc)
+            continue
+        usable.append(name)
+    return usable, skipped
 
 
 def _pct(x: float) -> str:

@@ -457,3 +457,24 @@ def test_stack_diagnosis_end_to_end(tmp_path):
     result = run_cli("diagnose", str(spec), "--out", str(tmp_path / "x"))
     assert result.returncode == 2
     assert "unknown quantity 'porosity'; valid: volume_fraction" in result.stderr
+
+
+def test_effects_that_cannot_act_on_the_chip_are_set_aside():
+    from diagnosis.drops import _applicable
+    from diagnosis.spec import Condition, Experiment
+    from packing.drop import DropProtocol
+    from pipeline.scenario_files import load_scenario
+
+    base = load_scenario("single-chip-drop")
+    star = base.__class__(**{**base.__dict__, "chip": ChipSpec(shape="star")})
+    experiment = Experiment(
+        name="star",
+        kind="drop",
+        scenario=star,
+        conditions=(Condition("a", protocol=DropProtocol()),),
+        observations=Path("x.csv"),
+    )
+    usable, skipped = _applicable(experiment)
+    assert set(skipped) == {"edge_rounding", "warp"}
+    assert "flat convex chips" in skipped["warp"]
+    assert "air_drag" in usable and "friction" in usable
