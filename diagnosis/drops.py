@@ -32,6 +32,7 @@ from diagnosis.observables import (
 )
 from diagnosis.spec import DropData, Experiment
 from diagnosis.statistics import bootstrap_indices, energy_test, gap_statistic, holm, interval
+from diagnosis.verdicts import applicable_effects, effect_verdict
 from packing.config import Scenario
 from packing.drop import DropProtocol, simulate_drops
 from packing.effects import EFFECTS, contact_model
@@ -160,10 +161,9 @@ class _DropDiagnosis:
     def _calibrate(self, ds: _Dataset) -> None:
         """Scales and noise floor of a dataset from the baseline's two independent pools."""
         protocol = self.x.condition(ds.condition).protocol
-        a = self.sims[self._key(ds.condition, protocol.tilt_deg, None, 0.0, "A")]
+        sim_a = self.sim_obs[self._key(ds.condition, protocol.tilt_deg, None, 0.0, "A")]
         b = self.sims[self._key(ds.condition, protocol.tilt_deg, None, 0.0, "B")]
         n = ds.data.n
-        sim_a = self._observe(a, ds.condition)
         draws = bootstrap_indices(len(b.positions), NULL_REPLICAS, self.rng)[:, :n]
         replicas = np.array([self._observe(b.take(i), ds.condition) for i in draws])
         spread = np.maximum(ds.resampled.std(axis=0), replicas.std(axis=0))
@@ -418,7 +418,7 @@ class _DropDiagnosis:
         # simulations by the number of folds.)
         for fold in folds:
             fold["tilt"] = tilt_all
-        effects, skipped = _applicable(self.x)
+        effects, skipped = applicable_effects(self.x)
         tilts = {tilt_all}
         grids = {effect: self._grid(effect) for effect in effects}
 
@@ -653,56 +653,13 @@ class _DropDiagnosis:
             )
         refit = which["baseline_refit"]
         held_p = holm([r["p_value"] for r in refit["held_out"]])
-        top = which["ranking"][0]
-        lo = top["gap_closed_ci95"][0]
         if all(p >= self.settings.alpha for p in held_p) and refit["held_out_excess"] <= 0:
             return dict(
                 kind="baseline refit",
                 text=f"Gap in {', '.join(significant)}; refitting the baseline's release tilt "
                 f"({refit['all_conditions_deg']:g} deg) closes it on held-out conditions.",
             )
-        if not np.isfinite(lo) or lo <= 0:
-            return dict(
-                kind="unexplained",
-                text=f"Gap in {', '.join(significant)}; no candidate effect closes a significant "
-                f"part of it on held-out data (best: {top['effect']}, "
-                f"{_pct(top['held_out_reduction'])} [{_pct(top['held_out_reduction_ci95'][0])}, "
-                f"{_pct(top['held_out_reduction_ci95'][1])}]).",
-            )
-        others = [e for e in which["indistinguishable"] if e != top["effect"]]
-        text = (
-            f"Gap in {', '.join(significant)}; {top['effect']} closes "
-            f"{_pct(top['held_out_reduction'])} [{_pct(top['held_out_reduction_ci95'][0])}, "
-            f"{_pct(top['held_out_reduction_ci95'][1])}] of it on held-out conditions "
-            f"at strength {top['strength']:.3g} {top['unit']}."
-        )
-        if others:
-            text += f" Indistinguishable from it: {', '.join(others)}."
-        return dict(kind="explained", effect=top["effect"], indistinguishable=others, text=text)
-
-
-def _applicable(experiment: Experiment) -> tuple[list[str], dict[str, str]]:
-    """Candidate effects that can act on the chip, and why the others cannot (a warp
-    needs a flat convex chip, for instance)."""
-    from packing.deposition import draw_shapes
-    from packing.effects import shaped
-    from packing.errors import InputError
-
-    scenario = experiment.scenario
-    (shape,) = draw_shapes(scenario, 1, np.random.default_rng(scenario.seed))
-    usable, skipped = [], {}
-    for name in experiment.candidate_effects:
-        try:
-            shaped(shape, {name: EFFECTS.get(name).prior[1]})
-        except InputError as exc:
-            skipped[name] = str(exc)
-            continue
-        usable.append(name)
-    return usable, skipped
-
-
-def _pct(x: float) -> str:
-    return "n/a" if not np.isfinite(x) else f"{100 * x:.0f} %"
+        return effect_verdict(significant, which)
 
 
 def _bonferroni_z(m: int, alpha: float = 0.05) -> float:

@@ -369,6 +369,16 @@ def _float(cell: str, shown: str, line: int, column: str) -> float:
     return value
 
 
+def _condition_of(row: dict, known: set[str], shown: str, line: int) -> str:
+    name = row["condition"]
+    if name not in known:
+        raise InputError(
+            f"{shown}, line {line}: condition {name!r} is not defined in the spec "
+            f"(defined: {', '.join(sorted(known))})"
+        )
+    return name
+
+
 def read_drop_observations(experiment: Experiment) -> dict[str, DropData]:
     """Drops by condition, checked against the spec (every condition, at least
     ``MIN_DROPS`` drops each, unique drop ids)."""
@@ -376,12 +386,7 @@ def read_drop_observations(experiment: Experiment) -> dict[str, DropData]:
     known = {c.name for c in experiment.conditions}
     by_condition: dict[str, dict[str, list]] = {}
     for line, r in records:
-        name = r["condition"]
-        if name not in known:
-            raise InputError(
-                f"{shown}, line {line}: condition {name!r} is not defined in the spec "
-                f"(defined: {', '.join(sorted(known))})"
-            )
+        name = _condition_of(r, known, shown, line)
         drop = r["drop"]
         if not drop:
             raise InputError(f"{shown}, line {line}: empty drop id")
@@ -421,12 +426,7 @@ def read_quantity_observations(
     known = {c.name for c in experiment.conditions}
     data: dict[str, dict[str, QuantityData]] = {}
     for line, r in records:
-        name = r["condition"]
-        if name not in known:
-            raise InputError(
-                f"{shown}, line {line}: condition {name!r} is not defined in the spec "
-                f"(defined: {', '.join(sorted(known))})"
-            )
+        name = _condition_of(r, known, shown, line)
         quantity = r["quantity"]
         if quantity not in known_quantities:
             raise InputError(

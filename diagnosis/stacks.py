@@ -25,9 +25,10 @@ from scipy.stats import chi2
 
 from diagnosis.spec import Experiment, QuantityData
 from diagnosis.statistics import holm, interval
+from diagnosis.verdicts import applicable_effects, effect_verdict
 from packing.config import Scenario
-from packing.deposition import deposit, draw_shapes
-from packing.effects import EFFECTS, contact_model, shaped
+from packing.deposition import deposit
+from packing.effects import EFFECTS, contact_model
 from packing.errors import InputError
 from packing.presets import PRESETS
 
@@ -93,23 +94,6 @@ def simulate_quantities(scenario: Scenario, strengths: dict[str, float], seed: i
     for k in range(MAX_LAYERS):
         out[f"layer_filling_{k}"] = (chips[k] if k < len(chips) else 0.0) / full
     return out
-
-
-def applicable_effects(experiment: Experiment) -> tuple[list[str], dict[str, str]]:
-    """Candidate effects that can act on every condition's chips, and why others cannot."""
-    usable, skipped = [], {}
-    for name in experiment.candidate_effects:
-        try:
-            for condition in experiment.conditions:
-                scenario = condition.scenario
-                (shape,) = draw_shapes(scenario, 1, np.random.default_rng(scenario.seed))
-                lo, hi = EFFECTS.get(name).prior
-                shaped(shape, {name: hi})
-        except InputError as exc:
-            skipped[name] = str(exc)
-            continue
-        usable.append(name)
-    return usable, skipped
 
 
 class _StackDiagnosis:
@@ -433,28 +417,7 @@ class _StackDiagnosis:
                 text="The measurements lie within the simulation's "
                 "noise in every condition (chi-square tests, Holm-adjusted).",
             )
-        if not which["ranking"]:
-            return dict(kind="unexplained", text="No candidate effect applies to these chips.")
-        top = which["ranking"][0]
-        lo, hi = top["held_out_reduction_ci95"]
-        closed_lo = top["gap_closed_ci95"][0]
-        pct = lambda v: "n/a" if not np.isfinite(v) else f"{100 * v:.0f} %"  # noqa: E731
-        if not np.isfinite(closed_lo) or closed_lo <= 0:
-            return dict(
-                kind="unexplained",
-                text=f"Gap in {', '.join(significant)}; no candidate effect closes a "
-                f"significant part of it on held-out data (best: {top['effect']}, "
-                f"{pct(top['held_out_reduction'])} [{pct(lo)}, {pct(hi)}]).",
-            )
-        others = [e for e in which["indistinguishable"] if e != top["effect"]]
-        text = (
-            f"Gap in {', '.join(significant)}; {top['effect']} closes "
-            f"{pct(top['held_out_reduction'])} "
-            f"[{pct(lo)}, {pct(hi)}] of it at strength {top['strength']:.3g} {top['unit']}."
-        )
-        if others:
-            text += f" Indistinguishable from it: {', '.join(others)}."
-        return dict(kind="explained", effect=top["effect"], indistinguishable=others, text=text)
+        return effect_verdict(significant, which)
 
 
 def diagnose_stacks(

@@ -10,6 +10,8 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from diagnosis.verdicts import percent
+
 __all__ = ["write_diagnosis", "report_markdown"]
 
 
@@ -21,10 +23,6 @@ def _fmt(value, digits: int = 3) -> str:
     if isinstance(value, float):
         return f"{value:.{digits}g}"
     return str(value)
-
-
-def _pct(value) -> str:
-    return "n/a" if value is None or not math.isfinite(value) else f"{100 * value:.0f} %"
 
 
 def report_markdown(result: dict) -> str:
@@ -55,7 +53,7 @@ def report_markdown(result: dict) -> str:
             f"| {t['condition']} | {_fmt(t['gap'])} "
             f"| {_fmt(t['null_mean'])} | {_fmt(t['p_value'])} "
             f"| {_fmt(t['p_holm'])} | {'yes' if t['significant'] else 'no'} "
-            f"| {_pct(t['share_of_gap'])} |"
+            f"| {percent(t['share_of_gap'])} |"
         )
         if result["kind"] == "drop":
             row += f" {_fmt(t['energy_p_value'])} |"
@@ -92,9 +90,9 @@ def report_markdown(result: dict) -> str:
             ]
             lines += [
                 f"| {r['condition']} | {r['region']} {r['where']} "
-                f"| {_pct(r['experiment_share'])} | "
+                f"| {percent(r['experiment_share'])} | "
                 ""
-                f"{_pct(r['simulation_share'])} | {_fmt(r['z'], 2)} |"
+                f"{percent(r['simulation_share'])} | {_fmt(r['z'], 2)} |"
                 for r in notable
             ]
         else:
@@ -129,8 +127,9 @@ def report_markdown(result: dict) -> str:
         lines.append(
             f"| {k} | {e['effect']} | {_fmt(e['strength'])} {e['unit']} "
             f"| [{_fmt(e['strength_ci95'][0])}, "
-            f"{_fmt(e['strength_ci95'][1])}] | {_pct(e['held_out_reduction'])} | "
-            f"[{_pct(e['held_out_reduction_ci95'][0])}, {_pct(e['held_out_reduction_ci95'][1])}] | "
+            f"{_fmt(e['strength_ci95'][1])}] | {percent(e['held_out_reduction'])} | "
+            f"[{percent(e['held_out_reduction_ci95'][0])}, "
+            f"{percent(e['held_out_reduction_ci95'][1])}] | "
             f"{'yes' if e['indistinguishable_from_best'] else 'no'} |"
         )
     for name, why in which.get("not_applicable", {}).items():
@@ -159,8 +158,8 @@ def report_markdown(result: dict) -> str:
             "## 3. How far the best effect closes the gap",
             "",
             f"{how['effect']} at {_fmt(how['strength'])} [{_fmt(how['strength_ci95'][0])}, "
-            f"{_fmt(how['strength_ci95'][1])}]: held-out reduction {_pct(how['reduction'])} "
-            f"[{_pct(how['reduction_ci95'][0])}, {_pct(how['reduction_ci95'][1])}].",
+            f"{_fmt(how['strength_ci95'][1])}]: held-out reduction {percent(how['reduction'])} "
+            f"[{percent(how['reduction_ci95'][0])}, {percent(how['reduction_ci95'][1])}].",
             "",
             "| held-out condition | strength | G before | G after | null mean | p before | p "
             "after |",

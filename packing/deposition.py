@@ -26,7 +26,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from packing.config import Scenario
-from packing.effects import EFFECTS, FlightState, check_effects, contact_model, shaped
+from packing.effects import EFFECTS, Effect, FlightState, check_effects, setup_effects, shaped
 from packing.errors import InputError, SimulationError
 from packing.overlap import box_penetration_depth, floor_penetration_mm
 from packing.presets import PRESETS
@@ -406,20 +406,10 @@ def deposit(
     """
     preset = PRESETS.get(scenario.physics.preset, key="physics.preset")
     strengths = check_effects(effects or {}, scenario.kind)
-    model = contact_model(preset, scenario.physics)
-    for name, value in strengths.items():
-        model = EFFECTS.get(name).contact(model, value)
+    setup = setup_effects(preset, scenario.physics, strengths)
     if strengths:
-        scenario = dataclasses.replace(
-            scenario,
-            physics=dataclasses.replace(
-                scenario.physics, friction=model.friction, restitution=model.restitution
-            ),
-        )
-    per_step = [
-        (EFFECTS.get(n), v) for n, v in strengths.items() if EFFECTS.get(n).acts_per_step() and v
-    ]
-    effect_loads = _effect_loads(per_step) if per_step else None
+        scenario = dataclasses.replace(scenario, physics=setup.physics)
+    per_step = list(setup.per_step)
     shaped_cache: dict[int, ChipShape] = {}
     rng = np.random.default_rng(scenario.seed)
     d, s = scenario.deposition, scenario.settling
@@ -433,10 +423,10 @@ def deposit(
 
     with ChipWorld(preset, scenario.physics) as world:
         loads = None
-        if effect_loads is not None:
+        if per_step:
 
             def loads(awake: list[int]) -> None:
-                effect_loads(world, awake)
+                apply_effect_loads(world, awake, per_step)
 
         if container:
             c = scenario.container
@@ -458,11 +448,10 @@ def deposit(
             ]
             batch_of += [batch] * count
             shapes_of += shapes
-            if batch == 1 and model.floor_compliance_mm_n > 0:
-                stiffness = 1e6 / model.floor_compliance_mm_n  # N/mm -> g/s^2
-                mass = world.mass_g(new[0])
+            if batch == 1:
+                floor = setup.contact
                 world.set_floor_compliance(
-                    stiffness, 2 * model.floor_damping_ratio * np.sqrt(stiffness * mass)
+                    floor.floor_compliance_mm_n, floor.floor_damping_ratio, world.mass_g(new[0])
                 )
             settled, steps, wakes, start_time = settle(world, new, scenario, loads, warnings)
             for name, value in strengths.items():
@@ -531,26 +520,35 @@ def deposit(
     )
 
 
-def _effect_loads(per_step: list) -> Callable[[list[int]], None]:
-    """The per-step loads of effects acting on moving chips (cohesion, air drag)."""
-
-    def apply(world: ChipWorld, awake: list[int]) -> None:
-        for effect, value in per_step:
-            effect.contact_loads(world, awake, value)
-            if effect.name == "air_drag" and awake:
-                pos, quat, vel, ang = world.kinematics(awake)
-                state = FlightState(
-                    pos,
-                    quat,
-                    vel,
-                    ang,
-                    tuple(world.shape(c) for c in awake),
-                    np.array([world.mass_g(c) for c in awake]),
-                )
-                forces, torques = effect.loads(state, value)
-                world.apply_loads(awake, forces, torques, pos)
-
-    return apply
+def apply_effect_loads(
+    world: ChipWorld, chips: list[int], per_step: list[tuple[Effect, float]]
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Apply, for the next step, every per-step effect's loads on the moving ``chips``:
+    pulls between touching chips, and loads on flying chips. Returns the chips'
+    positions (k, 3) mm and velocities (k, 3) mm/s when they were read (an effect with
+    flight loads), else None."""
+    for effect, value in per_step:
+        effect.contact_loads(world, chips, value)
+    flying = [(e, v) for e, v in per_step if type(e).loads is not Effect.loads]
+    if not flying or not chips:
+        return None
+    pos, quat, vel, ang = world.kinematics(chips)
+    state = FlightState(
+        pos,
+        quat,
+        vel,
+        ang,
+        tuple(world.shape(c) for c in chips),
+        np.array([world.mass_g(c) for c in chips]),
+    )
+    forces, torques = np.zeros((len(chips), 3)), np.zeros((len(chips), 3))
+    for effect, value in flying:
+        loads = effect.loads(state, value)
+        if loads is not None:
+            forces += loads[0]
+            torques += loads[1]
+    world.apply_loads(chips, forces, torques, pos)
+    return pos, vel
 
 
 def _unique_names(shapes: list[ChipShape]) -> list[ChipShape]:

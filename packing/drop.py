@@ -9,7 +9,6 @@ chip has settled by the scenario's settling rule.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
 from collections.abc import Callable
@@ -19,8 +18,14 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from packing.config import Scenario
-from packing.deposition import CHECK_INTERVAL_S, _RestTracker, draw_shapes, settle
-from packing.effects import EFFECTS, ContactModel, FlightState, contact_model, shaped
+from packing.deposition import (
+    CHECK_INTERVAL_S,
+    _RestTracker,
+    apply_effect_loads,
+    draw_shapes,
+    settle,
+)
+from packing.effects import EFFECTS, setup_effects, shaped
 from packing.errors import SimulationError
 from packing.presets import PRESETS
 from packing.shapes import ChipShape
@@ -161,22 +166,13 @@ def simulate_drops(
     spin_draws = rng.normal(size=(n, 3))
     (shape,) = draw_shapes(scenario, 1, np.random.default_rng(scenario.seed))
     shape = shaped(shape, strengths)
-    model: ContactModel = contact_model(preset, scenario.physics)
-    for name, value in strengths.items():
-        model = EFFECTS.get(name).contact(model, value)
-    physics = dataclasses.replace(
-        scenario.physics, friction=model.friction, restitution=model.restitution
-    )
+    setup = setup_effects(preset, scenario.physics, strengths)
+    physics, per_step = setup.physics, list(setup.per_step)
     spin = np.zeros((n, 3))
     for name, value in strengths.items():
         extra = EFFECTS.get(name).release(spin_draws, value)
         if extra is not None:
             spin += extra
-    per_step = [
-        (EFFECTS.get(name), value)
-        for name, value in strengths.items()
-        if EFFECTS.get(name).acts_per_step() and value > 0
-    ]
     tilt = np.radians(protocol.tilt_deg) * fractions
     yaw = np.radians(protocol.yaw_deg)
     rotations = Rotation.from_euler("xyz", np.column_stack([tilt, np.full(n, yaw)])).as_quat()
@@ -188,16 +184,13 @@ def simulate_drops(
             world.add_chip(shape, np.array([0.0, 0.0, protocol.height_mm]), rotations[k])
             for k in range(n)
         ]
-        if model.floor_compliance_mm_n > 0:
-            mass = world.mass_g(chips[0])
-            stiffness = 1e6 / model.floor_compliance_mm_n  # N/mm -> g/s^2
-            world.set_floor_compliance(
-                stiffness, 2 * model.floor_damping_ratio * np.sqrt(stiffness * mass)
-            )
+        floor = setup.contact
+        world.set_floor_compliance(
+            floor.floor_compliance_mm_n, floor.floor_damping_ratio, world.mass_g(chips[0])
+        )
         for k in range(n):
             if spin[k].any():
                 world.set_velocity(chips[k], np.zeros(3), spin[k])
-        masses = np.array([world.mass_g(c) for c in chips])
         tracker = _RestTracker(world, s.speed_mm_s * s.hold_time_s, hold_checks)
         tracker.add(chips)
         start = world.time_s
@@ -207,16 +200,8 @@ def simulate_drops(
                 awake = sorted(tracker.awake)
                 fastest = 0.0
                 for _ in range(check_steps):
-                    pos, quat, vel, ang = world.kinematics(awake)
+                    pos, vel = apply_effect_loads(world, awake, per_step)
                     fastest = float(np.linalg.norm(vel, axis=1).max())
-                    state = FlightState(pos, quat, vel, ang, (shape,) * len(awake), masses[awake])
-                    forces, torques = np.zeros((len(awake), 3)), np.zeros((len(awake), 3))
-                    for effect, value in per_step:
-                        loads = effect.loads(state, value)
-                        if loads is not None:
-                            forces += loads[0]
-                            torques += loads[1]
-                    world.apply_loads(awake, forces, torques, pos)
                     world.step()
                 # Still in the air (above the height where it could touch the floor) or fast.
                 airborne = (pos[:, 2] > shape.circumradius_mm + 1.0).any()

@@ -30,7 +30,16 @@ from packing.errors import InputError
 from packing.registry import Registry
 from packing.shapes import ChipShape
 
-__all__ = ["EFFECTS", "ContactModel", "Effect", "check_effects", "shaped", "contact_model"]
+__all__ = [
+    "EFFECTS",
+    "ContactModel",
+    "Effect",
+    "EffectSetup",
+    "check_effects",
+    "contact_model",
+    "setup_effects",
+    "shaped",
+]
 
 AIR_DENSITY_G_MM3 = 1.204e-6  # dry air at 20 C, 1 atm
 # Quasi-steady coefficients of a falling plate (Andersen, Pesavento & Wang 2005).
@@ -381,9 +390,23 @@ def _clip_x(outline: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return np.array(points)
 
 
+class _ContactCoefficient(Effect):
+    """An effect that sets one coefficient of the contact model (its baseline value is
+    the neutral strength)."""
+
+    field: str = ""
+
+    def neutral(self, contact: ContactModel) -> float:
+        return getattr(contact, self.field)
+
+    def contact(self, model: ContactModel, strength: float) -> ContactModel:
+        return dataclasses.replace(model, **{self.field: strength})
+
+
 @_register
-class Friction(Effect):
+class Friction(_ContactCoefficient):
     name = "friction"
+    field = "friction"
     parameter = "Coulomb friction coefficient, chip on chip and chip on floor"
     unit = ""
     prior = (0.1, 1.0)
@@ -393,16 +416,11 @@ class Friction(Effect):
         "slides and how steep a pile stands."
     )
 
-    def neutral(self, contact: ContactModel) -> float:
-        return contact.friction
-
-    def contact(self, model: ContactModel, strength: float) -> ContactModel:
-        return dataclasses.replace(model, friction=strength)
-
 
 @_register
-class Restitution(Effect):
+class Restitution(_ContactCoefficient):
     name = "restitution"
+    field = "restitution"
     parameter = "coefficient of restitution of impacts"
     unit = ""
     prior = (0.0, 0.8)
@@ -412,16 +430,11 @@ class Restitution(Effect):
         "sets how high and how often a chip bounces, so how far it travels."
     )
 
-    def neutral(self, contact: ContactModel) -> float:
-        return contact.restitution
-
-    def contact(self, model: ContactModel, strength: float) -> ContactModel:
-        return dataclasses.replace(model, restitution=strength)
-
 
 @_register
-class CompliantFloor(Effect):
+class CompliantFloor(_ContactCoefficient):
     name = "compliant_floor"
+    field = "floor_compliance_mm_n"
     parameter = "contact compliance of the floor (its deflection per newton)"
     unit = "mm/N"
     prior = (0.0, 2.0)
@@ -431,9 +444,6 @@ class CompliantFloor(Effect):
         "typical rubber), so a chip bounces less and turns less. 1 mm/N lets a 1.4 g chip "
         "arriving at 2 m/s sink 2.3 mm."
     )
-
-    def contact(self, model: ContactModel, strength: float) -> ContactModel:
-        return dataclasses.replace(model, floor_compliance_mm_n=strength)
 
 
 @_register
@@ -480,6 +490,35 @@ class Cohesion(Effect):
     def contact_loads(self, world, chips: list[int], strength: float) -> None:
         if strength > 0:
             world.pull_contacts(chips, strength * 1e3)  # mN -> g mm/s^2
+
+
+@dataclass(frozen=True)
+class EffectSetup:
+    """What a set of effect strengths does to a simulation before it starts: the contact
+    model, the physics section carrying its friction and restitution, and the effects
+    that act at every step."""
+
+    contact: ContactModel
+    physics: object  # packing.config.PhysicsSpec
+    per_step: tuple[tuple[Effect, float], ...]
+
+
+def setup_effects(preset, physics, strengths: Mapping[str, float]) -> EffectSetup:
+    """The contact model and per-step effects of checked ``strengths``."""
+    model = contact_model(preset, physics)
+    for name, value in strengths.items():
+        model = EFFECTS.get(name).contact(model, value)
+    return EffectSetup(
+        contact=model,
+        physics=dataclasses.replace(
+            physics, friction=model.friction, restitution=model.restitution
+        ),
+        per_step=tuple(
+            (EFFECTS.get(name), value)
+            for name, value in strengths.items()
+            if EFFECTS.get(name).acts_per_step() and value > 0
+        ),
+    )
 
 
 def contact_model(preset, physics) -> ContactModel:

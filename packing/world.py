@@ -449,14 +449,20 @@ class ChipWorld:
     def mass_g(self, chip: int) -> float:
         return self._mass[chip]
 
-    def set_floor_compliance(self, stiffness_g_s2: float, damping_g_s: float) -> None:
-        """A compliant floor: contact stiffness (g/s^2, i.e. 1e-6 N/mm) and damping (g/s)
-        of the floor; the chips stay rigid, so the floor's values govern the contact."""
+    def set_floor_compliance(
+        self, compliance_mm_n: float, damping_ratio: float, reference_mass_g: float
+    ) -> None:
+        """A compliant floor: ``compliance_mm_n`` mm of give per newton (0: rigid), damped
+        at ``damping_ratio`` of critical for a chip of ``reference_mass_g``. The chips stay
+        rigid, so the floor's values govern the contact."""
+        if compliance_mm_n <= 0:
+            return
+        stiffness = 1e6 / compliance_mm_n  # N/mm -> g/s^2 (the same in every length unit)
         pybullet.changeDynamics(
             self._floor,
             -1,
-            contactStiffness=float(stiffness_g_s2),
-            contactDamping=float(damping_g_s),
+            contactStiffness=float(stiffness),
+            contactDamping=float(2 * damping_ratio * np.sqrt(stiffness * reference_mass_g)),
             physicsClientId=self.client,
         )
 

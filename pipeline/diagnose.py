@@ -20,7 +20,6 @@ from packing.config import printable
 from packing.effects import EFFECTS, check_effects
 from packing.errors import InputError
 from pipeline.execution import Executor
-from pipeline.locks import DirectoryLock
 from pipeline.rundir import RunDirectory
 from pipeline.scenario_files import load_scenario
 
@@ -63,9 +62,8 @@ def diagnose(
     experiment = load_experiment(spec, load_scenario)
     data = _observations(experiment)
     run_dir = RunDirectory(out, overwrite=overwrite)
-    run_dir.check()
     start = time.perf_counter()
-    with DirectoryLock(run_dir.target, f"--out {str(out)!r}"):
+    with run_dir as run:  # locked from here: a second diagnosis into it is refused
         with Executor(workers=workers, scheduler=scheduler) as executor:
             if experiment.kind == "drop":
                 result = diagnose_drops(experiment, data, executor.map, seed, progress)
@@ -75,9 +73,8 @@ def diagnose(
         result["command"] = list(command or [])
         result["spec"] = str(Path(spec).resolve())
         result["observations_file"] = str(experiment.observations)
-        with run_dir as run:
-            write_diagnosis(run, result)
-            run.write_json("manifest.json", _manifest(result, experiment))
+        write_diagnosis(run, result)
+        run.write_json("manifest.json", _manifest(result, experiment))
     return run_dir.target, result
 
 

@@ -52,9 +52,6 @@ class DirectoryLock:
                 self.path.parent.mkdir(parents=True, exist_ok=True)
                 fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
             except FileExistsError:
-                mine = self._owner() or {}
-                if mine.get("pid") == os.getpid() and mine.get("host") == owner["host"]:
-                    return  # already held by this process (a nested writer): not ours to free
                 if attempt == 0 and self._remove_if_stale():
                     continue
                 raise InputError(self._busy_message()) from None

@@ -20,7 +20,6 @@ from packing import BatchResult, Scenario, Stack, deposit
 from packing.config import printable
 from packing.errors import InputError, SimulationError
 from packing.overlap import vertex_heights_mm
-from pipeline.locks import DirectoryLock
 from pipeline.rundir import RunDirectory, StageWriter
 from pipeline.scenario_files import dumps_toml
 
@@ -429,6 +428,8 @@ def run_ensemble(
     complete.
     """
     from geometry.describe import check_names
+    from geometry.ensemble import summarize_runs
+    from pipeline.execution import Executor
     from pipeline.rundir import EnsembleDirectory
 
     check_stage(to, scenario)
@@ -448,131 +449,98 @@ def run_ensemble(
         "to": to,
         "descriptors": list(descriptors) if descriptors else None,
     }
-    folder = EnsembleDirectory(out, identity, overwrite=overwrite)
-    with DirectoryLock(folder.target, f"--out {str(out)!r}"):
-        manifest = _ensemble_locked(
-            folder,
-            scenario,
-            names,
-            seeds,
-            repeats,
-            to,
-            descriptors,
-            progress,
-            command,
-            workers,
-            scheduler,
-        )
-    return Path(out), manifest
+    with EnsembleDirectory(out, identity, overwrite=overwrite) as folder:
+        started = datetime.now(UTC)
+        wall = time.perf_counter()
+        done = folder.finished(names)
+        failures: dict[int, str] = {}
+        warnings: list[str] = []
+        todo = [k for k in range(repeats) if names[k] not in done]
 
+        def on_result(k: int, result: RepeatResult) -> None:
+            with folder.run(names[k]) as path:
+                write_run(path, "", result, to, command, False)
+            if progress:
+                progress(1, repeats)
 
-def _ensemble_locked(
-    folder,
-    scenario,
-    names,
-    seeds,
-    repeats,
-    to,
-    descriptors,
-    progress,
-    command,
-    workers,
-    scheduler,
-):
-    from geometry.ensemble import summarize_runs
-    from pipeline.execution import Executor
+        def on_error(k: int, error: BaseException) -> None:
+            message = f"{type(error).__name__}: {error}".splitlines()[0]
+            failures[k] = message
+            log.warning("repeat %d (seed %d) failed: %s", k, seeds[k], message)
+            if progress:
+                progress(1, repeats)
 
-    started = datetime.now(UTC)
-    wall = time.perf_counter()
-    done = folder.finished(names)
-    failures: dict[int, str] = {}
-    warnings: list[str] = []
-    todo = [k for k in range(repeats) if names[k] not in done]
+        if todo:
+            with Executor(workers=workers, scheduler=scheduler) as executor:
+                if progress:  # drawn once connected, so a bad --scheduler stays one line
+                    progress(len(done), repeats)
+                arguments = [(scenario.with_seed(seeds[k]), to, descriptors) for k in todo]
 
-    def on_result(k: int, result: RepeatResult) -> None:
-        with folder.run(names[k]) as path:
-            write_run(path, "", result, to, command, False)
-        if progress:
-            progress(1, repeats)
+                def shift(callback):
+                    return lambda j, value: callback(todo[j], value)
 
-    def on_error(k: int, error: BaseException) -> None:
-        message = f"{type(error).__name__}: {error}".splitlines()[0]
-        failures[k] = message
-        log.warning("repeat %d (seed %d) failed: %s", k, seeds[k], message)
-        if progress:
-            progress(1, repeats)
-
-    if todo:
-        with Executor(workers=workers, scheduler=scheduler) as executor:
-            if progress:  # drawn once connected, so a bad --scheduler stays one line
+                executor.run(compute_run, arguments, shift(on_result), shift(on_error))
+                n_workers = executor.n_workers
+        else:
+            n_workers = 0
+            if progress:
                 progress(len(done), repeats)
-            arguments = [(scenario.with_seed(seeds[k]), to, descriptors) for k in todo]
+        good = [k for k in range(repeats) if k not in failures]
+        for k in good:
+            manifest = json.loads(folder.file(f"{names[k]}/manifest.json").read_text())
+            warnings += [f"repeat {k} (seed {seeds[k]}): {w}" for w in manifest.get("warnings", [])]
+        if not good:
+            raise SimulationError(
+                f"--repeats: all {repeats} runs failed (first: repeat {min(failures)}, seed "
+                f"{seeds[min(failures)]}: {failures[min(failures)]})"
+            )
+        summary = None
+        if to == "geometry" and len(good) >= 2:
+            sections = [
+                json.loads(folder.file(f"{names[k]}/geometry/descriptors.json").read_text())
+                for k in good
+            ]
+            summary = summarize_runs(sections, [seeds[k] for k in good])
+            summary["runs"] = [names[k] for k in good]
+        elif to == "geometry":
+            raise InputError(
+                f"--repeats: only {len(good)} of {repeats} runs succeeded; no statistics "
+                f"(failures: {'; '.join(f'repeat {k}: {m}' for k, m in failures.items())})"
+            )
+        manifest = {
+            "tool": "chipstack",
+            "kind": "ensemble",
+            "command": command or [],
+            "versions": _versions(),
+            "scenario": scenario.name,
+            "seed": scenario.seed,
+            "repeats": repeats,
+            "seeds": seeds,
+            "seed_rule": "numpy SeedSequence([seed, index]).generate_state(1)[0]",
+            "runs": [names[k] for k in good],
+            "resumed_runs": sorted(done),
+            "failed_runs": [
+                {"repeat": k, "seed": seeds[k], "error": failures[k]} for k in sorted(failures)
+            ],
+            "workers": n_workers,
+            "scheduler": scheduler or "local",
+            "stages_completed": ["packing"] + (["geometry"] if to == "geometry" else []),
+            "started_utc": started.isoformat(timespec="seconds"),
+            "finished_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+            "wall_time_s": {"total": round(time.perf_counter() - wall, 3)},
+            "warnings": warnings,
+        }
 
-            def shift(callback):
-                return lambda j, value: callback(todo[j], value)
+        def finish(path: Callable[[str], Path]) -> None:
+            if summary is not None:
+                path("ensemble.json").write_text(json.dumps(summary, indent=2) + "\n")
+                from pipeline.figures import ensemble_figures
 
-            executor.run(compute_run, arguments, shift(on_result), shift(on_error))
-            n_workers = executor.n_workers
-    else:
-        n_workers = 0
-        if progress:
-            progress(len(done), repeats)
-    good = [k for k in range(repeats) if k not in failures]
-    for k in good:
-        manifest = json.loads(folder.file(f"{names[k]}/manifest.json").read_text())
-        warnings += [f"repeat {k} (seed {seeds[k]}): {w}" for w in manifest.get("warnings", [])]
-    if not good:
-        raise SimulationError(
-            f"--repeats: all {repeats} runs failed (first: repeat {min(failures)}, seed "
-            f"{seeds[min(failures)]}: {failures[min(failures)]})"
-        )
-    summary = None
-    if to == "geometry" and len(good) >= 2:
-        sections = [
-            json.loads(folder.file(f"{names[k]}/geometry/descriptors.json").read_text())
-            for k in good
-        ]
-        summary = summarize_runs(sections, [seeds[k] for k in good])
-        summary["runs"] = [names[k] for k in good]
-    elif to == "geometry":
-        raise InputError(
-            f"--repeats: only {len(good)} of {repeats} runs succeeded; no statistics "
-            f"(failures: {'; '.join(f'repeat {k}: {m}' for k, m in failures.items())})"
-        )
-    manifest = {
-        "tool": "chipstack",
-        "kind": "ensemble",
-        "command": command or [],
-        "versions": _versions(),
-        "scenario": scenario.name,
-        "seed": scenario.seed,
-        "repeats": repeats,
-        "seeds": seeds,
-        "seed_rule": "numpy SeedSequence([seed, index]).generate_state(1)[0]",
-        "runs": [names[k] for k in good],
-        "resumed_runs": sorted(done),
-        "failed_runs": [
-            {"repeat": k, "seed": seeds[k], "error": failures[k]} for k in sorted(failures)
-        ],
-        "workers": n_workers,
-        "scheduler": scheduler or "local",
-        "stages_completed": ["packing"] + (["geometry"] if to == "geometry" else []),
-        "started_utc": started.isoformat(timespec="seconds"),
-        "finished_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-        "wall_time_s": {"total": round(time.perf_counter() - wall, 3)},
-        "warnings": warnings,
-    }
+                ensemble_figures(path("figures/x").parent, summary)
+            path("manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
 
-    def finish(path: Callable[[str], Path]) -> None:
-        if summary is not None:
-            path("ensemble.json").write_text(json.dumps(summary, indent=2) + "\n")
-            from pipeline.figures import ensemble_figures
-
-            ensemble_figures(path("figures/x").parent, summary)
-        path("manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
-
-    folder.complete(finish)
-    return manifest
+        folder.complete(finish)
+    return Path(out), manifest
 
 
 def _write_packing(path: Callable[[str], Path], prefix: str, stack: Stack) -> None:

@@ -189,6 +189,7 @@ class StageWriter:
 
 class EnsembleDirectory:
     """An ensemble's directory, written run by run so an interrupted ensemble resumes.
+    Use as a context manager: it holds the directory's lock.
 
     While unfinished it holds ``ensemble-state.json`` (what the ensemble is: scenario hash,
     seed, repeats, ...). Each run is built hidden and renamed to ``repeat_K`` when written;
@@ -235,6 +236,15 @@ class EnsembleDirectory:
                         f"{out}: holds a finished run or ensemble (use --overwrite to replace it)"
                     )
                 self._clear_first = True
+
+    def __enter__(self) -> EnsembleDirectory:
+        """Holds the directory's lock while the ensemble runs."""
+        self._lock = DirectoryLock(self.target, f"--out {self.given!r}")
+        self._lock.acquire()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._lock.release()
 
     def _clear(self) -> None:
         shutil.rmtree(self.target)

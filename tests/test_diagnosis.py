@@ -460,8 +460,8 @@ def test_stack_diagnosis_end_to_end(tmp_path):
 
 
 def test_effects_that_cannot_act_on_the_chip_are_set_aside():
-    from diagnosis.drops import _applicable
     from diagnosis.spec import Condition, Experiment
+    from diagnosis.verdicts import applicable_effects
     from packing.drop import DropProtocol
     from pipeline.scenario_files import load_scenario
 
@@ -474,7 +474,7 @@ def test_effects_that_cannot_act_on_the_chip_are_set_aside():
         conditions=(Condition("a", protocol=DropProtocol()),),
         observations=Path("x.csv"),
     )
-    usable, skipped = _applicable(experiment)
+    usable, skipped = applicable_effects(experiment)
     assert set(skipped) == {"edge_rounding", "warp"}
     assert "flat convex chips" in skipped["warp"]
     assert "air_drag" in usable and "friction" in usable

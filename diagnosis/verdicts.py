@@ -1,0 +1,64 @@
+"""What both diagnoses (drops, stacks) share once the effects are ranked: which effects
+can act on the chips at all, and the verdict on the best one."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from diagnosis.spec import Experiment
+from packing.deposition import draw_shapes
+from packing.effects import EFFECTS, shaped
+from packing.errors import InputError
+
+__all__ = ["applicable_effects", "effect_verdict", "percent"]
+
+
+def percent(value: float) -> str:
+    """A fraction as a rounded percentage, ``n/a`` when undefined."""
+    return "n/a" if value is None or not math.isfinite(value) else f"{100 * value:.0f} %"
+
+
+def applicable_effects(experiment: Experiment) -> tuple[list[str], dict[str, str]]:
+    """Candidate effects that can act on every condition's chips, and why the others
+    cannot (a warp needs a flat convex chip, for instance)."""
+    scenarios = [c.scenario for c in experiment.conditions if c.scenario is not None]
+    scenarios = scenarios or [experiment.scenario]
+    shapes = [draw_shapes(s, 1, np.random.default_rng(s.seed))[0] for s in scenarios]
+    usable, skipped = [], {}
+    for name in experiment.candidate_effects:
+        try:
+            for shape in shapes:
+                shaped(shape, {name: EFFECTS.get(name).prior[1]})
+        except InputError as exc:
+            skipped[name] = str(exc)
+            continue
+        usable.append(name)
+    return usable, skipped
+
+
+def effect_verdict(significant: list[str], which: dict) -> dict:
+    """``unexplained`` when the gap the best effect closes on held-out data has an
+    interval reaching 0, else ``explained`` with the effects tied with it."""
+    gap = ", ".join(significant)
+    if not which["ranking"]:
+        return dict(kind="unexplained", text=f"Gap in {gap}; no candidate effect applies.")
+    top = which["ranking"][0]
+    lo, hi = top["held_out_reduction_ci95"]
+    shown = f"{percent(top['held_out_reduction'])} [{percent(lo)}, {percent(hi)}]"
+    closed_lo = top["gap_closed_ci95"][0]
+    if not np.isfinite(closed_lo) or closed_lo <= 0:
+        return dict(
+            kind="unexplained",
+            text=f"Gap in {gap}; no candidate effect closes a significant part of it on "
+            f"held-out data (best: {top['effect']}, {shown}).",
+        )
+    others = [e for e in which["indistinguishable"] if e != top["effect"]]
+    text = (
+        f"Gap in {gap}; {top['effect']} closes {shown} of it on held-out conditions at "
+        f"strength {top['strength']:.3g} {top['unit']}."
+    )
+    if others:
+        text += f" Indistinguishable from it: {', '.join(others)}."
+    return dict(kind="explained", effect=top["effect"], indistinguishable=others, text=text)
