@@ -443,8 +443,7 @@ class Description:
             "schema": SCHEMA,
             "parameters": {k: getattr(self.spec, k) for k in self.spec.__dataclass_fields__},
             "descriptors": self.sections,
-            "wall_time_s": {k: round(v, 4) for k, v in self.timings_s.items()},
-        }
+        }  # timings go to the run's manifest: a result file holds only results
 
 
 def check_names(names: Sequence[str] | None) -> list[str]:

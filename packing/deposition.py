@@ -25,6 +25,7 @@ from collections.abc import Callable, Mapping
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from packing.checkpoint import DepositionState, round_trip
 from packing.config import Scenario
 from packing.effects import EFFECTS, Effect, FlightState, check_effects, setup_effects, shaped
 from packing.errors import InputError, SimulationError
@@ -391,6 +392,8 @@ def deposit(
     scenario: Scenario,
     progress: Callable[[int, BatchResult], None] | None = None,
     effects: Mapping[str, float] | None = None,
+    resume: DepositionState | None = None,
+    on_batch: Callable[[DepositionState], None] | None = None,
 ) -> Stack:
     """Run the batch deposition of ``scenario`` and return the settled :class:`Stack`.
 
@@ -403,25 +406,97 @@ def deposit(
     All random draws come from ``numpy.random.default_rng(scenario.seed)``.
     ``effects`` switches unmodelled effects on (``{name: strength}``, see
     :mod:`packing.effects`); the diagnosis uses them.
+
+    Every batch runs in a new physics world built from the state the previous batch left
+    (:mod:`packing.checkpoint`); ``on_batch(state)`` is called with that state after each
+    batch, so a caller can save it, and ``resume`` continues from a saved one. A resumed
+    deposition ends bit for bit where an uninterrupted one does.
     """
     preset = PRESETS.get(scenario.physics.preset, key="physics.preset")
     strengths = check_effects(effects or {}, scenario.kind)
     setup = setup_effects(preset, scenario.physics, strengths)
     if strengths:
         scenario = dataclasses.replace(scenario, physics=setup.physics)
-    per_step = list(setup.per_step)
-    shaped_cache: dict[int, ChipShape] = {}
-    rng = np.random.default_rng(scenario.seed)
+    d = scenario.deposition
+    container = scenario.kind == "container"
+    n_batches = -(-d.chips // d.batch_size)
+    state = _initial_state(scenario) if resume is None else resume
+    if state.batches_done > n_batches or len(state.chip_batch) > d.chips:
+        raise InputError(
+            f"deposition state: {state.batches_done} batches and {len(state.chip_batch)} "
+            f"chips done, more than the scenario's {n_batches} batches of {d.chips} chips"
+        )
+    while state.batches_done < n_batches and not state.full:
+        state = _deposit_batch(scenario, preset, setup, strengths, state, n_batches, progress)
+        # What a resumed run would read back from the state file: both go on from this.
+        state = round_trip(state)
+        if on_batch is not None:
+            on_batch(state)
+    warnings = list(state.warnings)
+    if container and not state.full:
+        message = (
+            f"the container is not full after {len(state.chip_batch)} chips "
+            "(deposition.chips); raise deposition.chips"
+        )
+        log.warning(message)
+        warnings.append(message)
+    shapes_of = [state.pool[i] for i in state.chip_shape]
+    distinct = list(dict.fromkeys(shapes_of))
+    index = {id(shape): k for k, shape in enumerate(distinct)}
+    distinct = _unique_names(distinct)
+    return Stack(
+        shapes=tuple(distinct),
+        shape_index=np.array([index[id(shape)] for shape in shapes_of], dtype=int),
+        batch=np.asarray(state.chip_batch),
+        batches=state.results,
+        target_size_mm=(2 * scenario.container.radius_mm if container else d.target_size_mm),
+        warnings=tuple(warnings),
+    )
+
+
+def _initial_state(scenario: Scenario) -> DepositionState:
+    return DepositionState(
+        batches_done=0,
+        time_s=0.0,
+        rng_state=np.random.default_rng(scenario.seed).bit_generator.state,
+        pool=(),
+        chip_shape=np.empty(0, dtype=np.int64),
+        chip_batch=np.empty(0, dtype=np.int64),
+        positions=np.empty((0, 3)),
+        quaternions=np.empty((0, 4)),
+        results=(),
+        warnings=(),
+    )
+
+
+def _deposit_batch(
+    scenario: Scenario,
+    preset,
+    setup,
+    strengths: dict[str, float],
+    state: DepositionState,
+    n_batches: int,
+    progress: Callable[[int, BatchResult], None] | None,
+) -> DepositionState:
+    """Release and settle the next batch in a world rebuilt from ``state``; returns the
+    state after it."""
+    wall_start = time.perf_counter()
+    batch = state.batches_done + 1
     d, s = scenario.deposition, scenario.settling
     container = scenario.kind == "container"
-    batch_of: list[int] = []
-    shapes_of: list[ChipShape] = []
-    results: list[BatchResult] = []
-    warnings: list[str] = []
-    cache: dict = {}
-    full = False
-
+    rng = np.random.Generator(np.random.PCG64())
+    rng.bit_generator.state = state.rng_state
+    shapes_of = [state.pool[i] for i in state.chip_shape]
+    cache = {(k, size): state.pool[i] for k, size, i in state.cache}
+    reshaped = {id(state.pool[a]): (state.pool[a], state.pool[b]) for a, b in state.reshaped}
+    batch_of = state.chip_batch.tolist()
+    warnings = list(state.warnings)
+    per_step = list(setup.per_step)
+    floor = setup.contact
+    reference_mass = state.floor_reference_mass_g
+    results = state.results
     with ChipWorld(preset, scenario.physics) as world:
+        world.time_s = state.time_s
         loads = None
         if per_step:
 
@@ -431,52 +506,54 @@ def deposit(
         if container:
             c = scenario.container
             world.add_container_wall(c.radius_mm, c.height_mm, c.wall_segments)
-        n_batches = -(-d.chips // d.batch_size)
-        for batch in range(1, n_batches + 1):
-            wall_start = time.perf_counter()
-            count = min(d.batch_size, d.chips - len(batch_of))
-            shapes = draw_shapes(scenario, count, rng, cache)
-            if strengths:
-                shapes = [
-                    shaped_cache.setdefault(id(shape), shaped(shape, strengths)) for shape in shapes
-                ]
-            occupied = (*world.poses(), shapes_of) if world.n_chips else None
-            positions, quaternions = release_poses(scenario, shapes, rng, occupied)
-            new = [
-                world.add_chip(shape, p, q)
-                for shape, p, q in zip(shapes, positions, quaternions, strict=True)
-            ]
-            batch_of += [batch] * count
-            shapes_of += shapes
-            if batch == 1:
-                floor = setup.contact
-                world.set_floor_compliance(
-                    floor.floor_compliance_mm_n, floor.floor_damping_ratio, world.mass_g(new[0])
-                )
-            settled, steps, wakes, start_time = settle(world, new, scenario, loads, warnings)
-            for name, value in strengths.items():
-                effect = EFFECTS.get(name)
-                for _ in range(getattr(effect, "taps", 1)):
-                    everyone = list(range(world.n_chips))
-                    if not effect.after_batch(world, everyone, value, rng):
-                        break
-                    settled, more, _, _ = settle(world, everyone, scenario, loads, warnings)
-                    steps += more
-            if not settled:
-                message = (
-                    f"batch {batch} did not settle within {s.max_time_s:g} s of simulated "
-                    "time; the chips still moving were frozen where they were"
-                )
-                log.warning(message)
-                warnings.append(message)
-            if container:
-                c = scenario.container
-                full = reaches_rim(world.poses()[0], c.radius_mm, c.height_mm)
-            last = batch == n_batches or full
-            if container and not last:
-                if progress is not None:
-                    progress(batch, None)
-                continue
+        for shape, p, q in zip(shapes_of, state.positions, state.quaternions, strict=True):
+            world.freeze(world.add_chip(shape, p, q))
+        if reference_mass is not None:
+            world.set_floor_compliance(
+                floor.floor_compliance_mm_n, floor.floor_damping_ratio, reference_mass
+            )
+        count = min(d.batch_size, d.chips - len(batch_of))
+        shapes = draw_shapes(scenario, count, rng, cache)
+        if strengths:
+            for shape in shapes:
+                if id(shape) not in reshaped:
+                    reshaped[id(shape)] = (shape, shaped(shape, strengths))
+            shapes = [reshaped[id(shape)][1] for shape in shapes]
+        occupied = (*world.poses(), shapes_of) if world.n_chips else None
+        positions, quaternions = release_poses(scenario, shapes, rng, occupied)
+        new = [
+            world.add_chip(shape, p, q)
+            for shape, p, q in zip(shapes, positions, quaternions, strict=True)
+        ]
+        batch_of += [batch] * count
+        shapes_of += shapes
+        if reference_mass is None:
+            reference_mass = world.mass_g(new[0])
+            world.set_floor_compliance(
+                floor.floor_compliance_mm_n, floor.floor_damping_ratio, reference_mass
+            )
+        settled, steps, wakes, start_time = settle(world, new, scenario, loads, warnings)
+        for name, value in strengths.items():
+            effect = EFFECTS.get(name)
+            for _ in range(getattr(effect, "taps", 1)):
+                everyone = list(range(world.n_chips))
+                if not effect.after_batch(world, everyone, value, rng):
+                    break
+                settled, more, _, _ = settle(world, everyone, scenario, loads, warnings)
+                steps += more
+        if not settled:
+            message = (
+                f"batch {batch} did not settle within {s.max_time_s:g} s of simulated "
+                "time; the chips still moving were frozen where they were"
+            )
+            log.warning(message)
+            warnings.append(message)
+        final_positions, final_quaternions = world.poses()
+        full = container and reaches_rim(
+            final_positions, scenario.container.radius_mm, scenario.container.height_mm
+        )
+        result = None
+        if not container or batch == n_batches or full:
             result = _batch_result(
                 world,
                 scenario,
@@ -488,7 +565,7 @@ def deposit(
                 settled,
                 time.perf_counter() - wall_start,
             )
-            results.append(result)
+            results = (*results, result)
             log.info(
                 "batch %d settled=%s in %.2f s simulated, %.2f s wall",
                 batch,
@@ -496,27 +573,28 @@ def deposit(
                 result.sim_time_s,
                 result.wall_time_s,
             )
-            if progress is not None:
-                progress(batch, result)
-            if last:
-                break
-    if container and not full:
-        message = (
-            f"the container is not full after {len(batch_of)} chips (deposition.chips); "
-            "raise deposition.chips"
-        )
-        log.warning(message)
-        warnings.append(message)
-    distinct = list(dict.fromkeys(shapes_of))
-    index = {id(shape): k for k, shape in enumerate(distinct)}
-    distinct = _unique_names(distinct)
-    return Stack(
-        shapes=tuple(distinct),
-        shape_index=np.array([index[id(shape)] for shape in shapes_of], dtype=int),
-        batch=np.asarray(batch_of),
-        batches=tuple(results),
-        target_size_mm=(2 * scenario.container.radius_mm if container else d.target_size_mm),
+        time_s = world.time_s
+    if progress is not None:
+        progress(batch, result)
+    pool: dict[int, ChipShape] = {}
+    for shape in [*shapes_of, *cache.values(), *(x for pair in reshaped.values() for x in pair)]:
+        pool.setdefault(id(shape), shape)
+    where = {key: k for k, key in enumerate(pool)}
+    return DepositionState(
+        batches_done=batch,
+        time_s=time_s,
+        rng_state=rng.bit_generator.state,
+        pool=tuple(pool.values()),
+        chip_shape=np.array([where[id(shape)] for shape in shapes_of], dtype=np.int64),
+        chip_batch=np.array(batch_of, dtype=np.int64),
+        positions=final_positions,
+        quaternions=final_quaternions,
+        results=results,
         warnings=tuple(warnings),
+        cache=tuple((k, size, where[id(shape)]) for (k, size), shape in cache.items()),
+        reshaped=tuple((where[a], where[id(b)]) for a, (_, b) in reshaped.items()),
+        floor_reference_mass_g=reference_mass,
+        full=bool(full),
     )
 
 

@@ -217,7 +217,7 @@ def _run(args: argparse.Namespace) -> None:
             f"deposition {manifest['wall_time_s']['packing']:.1f} s; written to {path}"
         )
         if "geometry" in manifest:
-            _print_geometry(path)
+            _print_geometry(path, manifest["geometry"]["descriptor_time_s"])
         for kind, m in manifest.get("mesh", {}).items():
             if "error" in m:
                 print(f"{kind} mesh: not written (see the warning above)")
@@ -229,7 +229,7 @@ def _run(args: argparse.Namespace) -> None:
             )
 
 
-def _print_geometry(path) -> None:
+def _print_geometry(path, seconds: float) -> None:
     import json
     from pathlib import Path
 
@@ -252,7 +252,6 @@ def _print_geometry(path) -> None:
         )
     if "layers" in d:
         parts.append(f"highest layer {int(d['layers']['scalars']['highest_layer']['value'])}")
-    seconds = sum(data["wall_time_s"].values())
     print(f"descriptors in {seconds:.2f} s: " + "; ".join(parts))
 
 
@@ -339,7 +338,7 @@ def _describe(args: argparse.Namespace) -> None:
         overwrite=args.overwrite,
     )
     if not args.quiet:
-        _print_geometry(args.run_dir)
+        _print_geometry(args.run_dir, manifest["geometry"]["descriptor_time_s"])
         print(f"written to {args.run_dir}/geometry ({len(manifest['geometry']['files'])} files)")
 
 

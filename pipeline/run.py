@@ -20,7 +20,7 @@ from packing import BatchResult, Scenario, Stack, deposit
 from packing.config import printable
 from packing.errors import InputError, SimulationError
 from packing.overlap import vertex_heights_mm
-from pipeline.rundir import RunDirectory, StageWriter
+from pipeline.rundir import StagedRun, StageWriter
 from pipeline.scenario_files import dumps_toml
 
 __all__ = [
@@ -71,6 +71,56 @@ def check_stage(to: str, scenario: Scenario | None = None) -> None:
         raise InputError(f"--to {printable(to)}: unknown stage; valid stages: {', '.join(STAGES)}")
 
 
+def stage_inputs(
+    scenario: Scenario, descriptors: Sequence[str] | None = None, figures: bool = True
+) -> dict[str, str]:
+    """The SHA-256 of what each stage's result depends on (the stage cache's keys).
+
+    packing: every scenario key but the name and the [geometry] and [mesh] tables, the
+    content of any chip geometry file, and the versions of the code; geometry: the
+    packing's hash, [geometry], the descriptor list and figures; mesh: the packing's
+    hash, [geometry] (layers and contact distances) and [mesh]. Changing a key thus
+    redoes exactly the stages downstream of it.
+    """
+    from packing.config import scenario_to_dict
+
+    data = scenario_to_dict(scenario)
+    versions = _versions()
+    files = {}
+    for spec in scenario.chips:
+        if spec.file:
+            try:
+                files[spec.file] = hashlib.sha256(Path(spec.file).read_bytes()).hexdigest()
+            except OSError as exc:
+                raise InputError(f"chip.file {spec.file!r}: unreadable ({exc.strerror})") from None
+    packing = {k: v for k, v in data.items() if k not in ("name", "geometry", "mesh")}
+    packing.update(files=files, versions=versions)
+    if scenario.kind == "drop":
+        packing["figures"] = figures  # the drop stage draws Fig. 15
+    hashes = {"packing": _sha256(packing)}
+    hashes["geometry"] = _sha256(
+        {
+            "packing": hashes["packing"],
+            "geometry": data["geometry"],
+            "descriptors": list(descriptors) if descriptors else None,
+            "figures": figures,
+        }
+    )
+    hashes["mesh"] = _sha256(
+        {
+            "packing": hashes["packing"],
+            "geometry": data["geometry"],
+            "mesh": data["mesh"],
+            "figures": figures,
+        }
+    )
+    return hashes
+
+
+def _sha256(data: Any) -> str:
+    return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
+
+
 def run_pipeline(
     scenario: Scenario,
     out: str | Path,
@@ -80,23 +130,148 @@ def run_pipeline(
     command: list[str] | None = None,
     descriptors: Sequence[str] | None = None,
     figures: bool = True,
-) -> tuple[Path, Stack, dict[str, Any]]:
+) -> tuple[Path, Stack | None, dict[str, Any]]:
     """Run the stages up to ``to`` into the run directory ``out``.
 
-    Returns (run directory, stack, manifest).
+    Resumable and cached (see :class:`pipeline.rundir.StagedRun`): after a crash the same
+    call resumes from the last completed batch or stage, and on a finished run it redoes
+    only the stages whose inputs changed (``overwrite``: all of them). The result is the
+    same, bit for bit, however often the run was interrupted.
+
+    Returns (run directory, stack (None for drops), manifest).
     """
     check_stage(to, scenario)
     if to != "packing":
         from geometry.describe import check_names
 
         check_names(descriptors)
-    run = RunDirectory(out, overwrite=overwrite)
+    inputs = stage_inputs(scenario, descriptors, figures)
+    wanted = STAGES[: STAGES.index(to) + 1]
+    run = StagedRun(out, overwrite=overwrite)
     run.check()  # fail on a bad --out before minutes of simulation
+    started = datetime.now(UTC).isoformat(timespec="seconds")
+    times: dict[str, float] = {}
+    reused: list[str] = []
     with run:
-        stack, manifest = _single_run(
-            run, "", scenario, to, progress, command, descriptors, figures
-        )
+        resolved = dumps_toml(scenario)
+        run.write_text("scenario.toml", resolved)
+        for stage in wanted:
+            if run.reusable(stage, inputs[stage]):
+                reused.append(stage)
+                log.info("%s: reused (inputs unchanged)", stage)
+                continue
+            start = time.perf_counter()
+            if stage == "packing":
+                _packing_stage(run, scenario, inputs["packing"], progress, figures)
+            else:
+                run.invalidate(stage)
+                stack = _read_stack(run.folder("packing"))
+                with run.stage(stage, inputs[stage]) as record:
+                    if stage == "geometry":
+                        record.summary = _geometry(
+                            record.folder, _history(stack), scenario, descriptors, figures
+                        )
+                    else:
+                        record.summary = _mesh(
+                            record.folder, _history(stack)[-1], scenario, figures
+                        )
+            times[stage] = round(time.perf_counter() - start, 3)
+        for stage in STAGES[len(wanted) :]:  # kept from an earlier run only if still valid
+            if stage in run.stages and not run.reusable(stage, inputs[stage]):
+                run.invalidate(stage)
+        manifest = _staged_manifest(run, scenario, command, resolved, wanted, times, reused)
+        manifest["started_utc"] = started
+        run.complete(manifest)
+    stack = _read_stack(Path(out) / "packing") if scenario.kind != "drop" else None
     return Path(out), stack, manifest
+
+
+def _packing_stage(run: StagedRun, scenario: Scenario, inputs: str, progress, figures) -> None:
+    """Deposit (resuming a killed run's batches) or drop, and write the packing folder."""
+    resume = run.begin_packing(inputs)
+    if scenario.kind == "drop":
+        from packing.drop import drop_chips
+
+        drops = drop_chips(scenario)
+        with run.stage("packing", inputs) as record:
+            statistics = _drop_files(_inside(record.folder), "", scenario, drops, figures)
+            record.summary = {"drop": statistics}
+            record.warnings = list(drops.warnings)
+        return
+    if resume is not None and progress is not None:
+        progress(resume.batches_done, resume.results[-1] if resume.results else None)
+    stack = deposit(scenario, progress=progress, resume=resume, on_batch=run.save_batch)
+    with run.stage("packing", inputs) as record:
+        _write_packing(_inside(record.folder), "", stack)
+        record.summary = {"packing": _packing_summary(stack)}
+        if scenario.kind == "container":
+            record.summary["container"] = container_summary(stack, scenario)
+        record.warnings = list(stack.warnings)
+
+
+def _inside(folder: Path) -> Callable[[str], Path]:
+    """``path(name)`` for a stage's files named ``STAGE/...``, built in ``folder``."""
+
+    def path(name: str) -> Path:
+        p = folder / name.split("/", 1)[1]
+        p.parent.mkdir(parents=True, exist_ok=True)
+        return p
+
+    return path
+
+
+def _read_stack(folder: Path) -> Stack:
+    """The packing stage's exact record (``stack.npz``): later stages always start from
+    it, so a resumed or cached run computes from the very numbers a fresh one does."""
+    from packing.checkpoint import stack_from_arrays
+
+    path = folder / "stack.npz"
+    try:
+        with np.load(path, allow_pickle=False) as arrays:
+            return stack_from_arrays(dict(arrays), str(path))
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: unreadable stack record ({exc})") from None
+
+
+def _history(stack: Stack):
+    from geometry.arrangement import arrangements_from_stack
+
+    return arrangements_from_stack(stack)
+
+
+def _staged_manifest(
+    run: StagedRun, scenario: Scenario, command, resolved: str, wanted, times, reused
+) -> dict[str, Any]:
+    """The run's manifest: provenance, and each stage's summary, input hash and timing."""
+    manifest: dict[str, Any] = {
+        "tool": "chipstack",
+        "kind": "run",
+        "command": command or [],
+        "versions": _versions(),
+        "platform": platform.platform(),
+        "scenario": scenario.name,
+        "scenario_sha256": hashlib.sha256(resolved.encode()).hexdigest(),
+        "seed": scenario.seed,
+    }
+    completed = [s for s in STAGES if run.reusable(s, run.stages.get(s, {}).get("inputs_sha256"))]
+    manifest["stages_completed"] = completed
+    manifest["stages_reused"] = reused
+    resumed = run.stages.get("packing", {}).get("resumed_after_batch")
+    if resumed is not None and "packing" not in reused:
+        manifest["resumed_after_batch"] = resumed
+    manifest["finished_utc"] = datetime.now(UTC).isoformat(timespec="seconds")
+    manifest["wall_time_s"] = times
+    warnings: list[str] = []
+    for stage in completed:
+        entry = run.stages[stage]
+        summary = entry.get("summary", {})
+        if stage == "packing":
+            manifest.update(summary)  # packing (container) or drop
+        else:
+            manifest[stage] = summary
+        warnings += entry.get("warnings", [])
+    manifest["warnings"] = warnings
+    return manifest
 
 
 @dataclass(frozen=True)
@@ -139,21 +314,6 @@ def compute_run(
         description = describe(history, scenario.geometry, descriptors)
         times["geometry"] = round(time.perf_counter() - start, 3)
     return RepeatResult(scenario, stack, description, history, times, started)
-
-
-def _single_run(
-    run: RunDirectory,
-    prefix: str,
-    scenario: Scenario,
-    to: str,
-    progress,
-    command,
-    descriptors,
-    figures: bool,
-) -> tuple[Stack, dict[str, Any]]:
-    result = compute_run(scenario, to, descriptors, progress)
-    manifest = write_run(run.path, prefix, result, to, command, figures)
-    return result.stack, manifest
 
 
 def write_run(
@@ -235,11 +395,21 @@ def container_summary(stack: Stack, scenario: Scenario) -> dict[str, Any]:
 
 
 def _write_drops(path, prefix, result: RepeatResult, command, figures, resolved) -> dict:
-    """Files of a drop experiment: every final pose, the statistics and Fig. 15."""
+    """Files of a drop experiment and its manifest."""
+    statistics = _drop_files(path, prefix, result.scenario, result.drops, figures)
+    manifest = _run_manifest(
+        result, command, resolved, ["packing"], dict(result.times), result.drops.warnings
+    )
+    manifest["drop"] = statistics
+    path(f"{prefix}manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    return manifest
+
+
+def _drop_files(path, prefix, scenario: Scenario, drops, figures: bool) -> dict:
+    """Every final pose, the statistics and Fig. 15; returns the statistics."""
     from export.tables import write_drops_csv
     from geometry.scatter import drop_statistics
 
-    scenario, drops = result.scenario, result.drops
     write_drops_csv(path(f"{prefix}packing/drops.csv"), drops)
     statistics = drop_statistics(drops.positions[:, :2], scenario.drop.yaw_deg)
     statistics["settled"] = int(drops.settled.sum())
@@ -255,12 +425,7 @@ def _write_drops(path, prefix, result: RepeatResult, command, figures, resolved)
             statistics,
             scenario.drop.yaw_deg,
         )
-    manifest = _run_manifest(
-        result, command, resolved, ["packing"], dict(result.times), drops.warnings
-    )
-    manifest["drop"] = statistics
-    path(f"{prefix}manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
-    return manifest
+    return statistics
 
 
 def _geometry(
@@ -291,6 +456,7 @@ def _write_geometry(folder: Path, description, history, scenario: Scenario, figu
         "descriptors": list(description.records),
         "files": sorted(files),
         "descriptor_time_s": round(sum(description.timings_s.values()), 4),
+        "descriptor_times_s": {k: round(v, 4) for k, v in description.timings_s.items()},
     }
 
 
@@ -551,10 +717,13 @@ def _write_packing(path: Callable[[str], Path], prefix: str, stack: Stack) -> No
         write_pvd,
         write_stack_vtp,
     )
+    from packing.checkpoint import stack_to_arrays
     from packing.shapes import shape_record
 
     shapes = {"schema": "chipstack.shapes/1", "shapes": [shape_record(s) for s in stack.shapes]}
     path(f"{prefix}packing/shapes.json").write_text(json.dumps(shapes) + "\n")
+    # The exact record (float64 poses, contacts) later stages start from.
+    np.savez(path(f"{prefix}packing/stack.npz"), **stack_to_arrays(stack))
     series = []
     for result in stack.batches:
         tag = f"batch_{result.batch:02d}"

@@ -8,15 +8,27 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 import shutil
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from packing.errors import InputError
 from pipeline.locks import DirectoryLock
 
-__all__ = ["RunDirectory", "StageWriter", "EnsembleDirectory"]
+__all__ = [
+    "RunDirectory",
+    "StagedRun",
+    "StageWriter",
+    "EnsembleDirectory",
+    "Interrupted",
+    "write_atomically",
+    "save_npz_atomically",
+]
+
+log = logging.getLogger(__name__)
 
 
 def _nearest_existing(path: Path) -> Path:
@@ -307,3 +319,342 @@ class EnsembleDirectory:
             os.replace(item, destination)
         staged.rmdir()
         (self.target / self.STATE).unlink(missing_ok=True)
+
+
+# -- single runs: built stage by stage, resumable, cached ----------------------------------
+
+STAGE_ORDER = ("packing", "geometry", "mesh")
+
+
+class Interrupted(KeyboardInterrupt):
+    """An interrupted run; ``hint`` says what was kept (for the one-line message)."""
+
+    def __init__(self, hint: str) -> None:
+        super().__init__(hint)
+        self.hint = hint
+
+
+def _fsync_file(path: Path) -> None:
+    with open(path, "rb") as f:
+        os.fsync(f.fileno())
+
+
+def write_atomically(path: Path, data: bytes | str) -> Path:
+    """Write ``path`` through a temporary sibling renamed over it: a reader (or a run
+    resumed after a crash) sees the old file or the new one, never a part."""
+    temporary = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        with open(temporary, "wb") as f:
+            f.write(data.encode("utf-8") if isinstance(data, str) else data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(temporary, path)
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def save_npz_atomically(path: Path, arrays: dict[str, Any]) -> Path:
+    import io
+
+    import numpy as np
+
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    return write_atomically(path, buffer.getvalue())
+
+
+def _link_or_copy(source: str, destination: str) -> None:
+    # Hard links cost nothing; every later write replaces a file (rename) or writes a new
+    # one, so the linked original is never changed. Where links fail, copy.
+    try:
+        os.link(source, destination)
+    except OSError:
+        shutil.copy2(source, destination)
+
+
+@dataclass
+class StageRecord:
+    """What a finished stage puts in the manifest (filled in by the caller)."""
+
+    folder: Path
+    summary: dict[str, Any] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+
+
+class StagedRun:
+    """A single run's directory, built stage by stage so that nothing is lost or
+    half-written, and rebuilt only where its inputs changed.
+
+    The run is assembled in a hidden sibling (``.NAME.partial``) and renamed to ``NAME``
+    when every asked-for stage is done. In it, ``manifest.json`` is the journal: for each
+    stage, the hash of its inputs and whether it is complete; for the packing stage in
+    progress, how many batches are done (their state is in ``.packing-state.npz``). Each
+    stage's folder is built hidden and renamed into place when complete; every other file
+    is written to a temporary name and renamed. So after a crash or ``kill -9`` the same
+    command finds the journal and resumes from the last completed batch or stage.
+
+    Run again on a finished run, a stage whose inputs hash is unchanged is reused (its
+    files hard-linked into the new build, so the finished run stays whole until the new
+    one replaces it); a stage whose inputs changed, and every stage after it, is redone.
+    ``overwrite`` redoes everything.
+    """
+
+    JOURNAL = "manifest.json"
+    STATE = ".packing-state.npz"
+
+    def __init__(self, target: str | Path, overwrite: bool = False) -> None:
+        self._checker = RunDirectory(target, overwrite=True)
+        self.given = self._checker.given
+        self.target = self._checker.target
+        self.overwrite = overwrite
+        self.work = self.target.parent / f".{self.target.name}.partial"
+        self._old = self.target.parent / f".{self.target.name}.old"
+        self.journal: dict[str, Any] = {}
+        self.resumed = False
+        self._lock: DirectoryLock | None = None
+
+    # -- opening -----------------------------------------------------------------------------
+    def check(self) -> None:
+        """Refuse early (before any work) a target that cannot or must not be written."""
+        out = f"--out {self.given!r}"
+        self._checker.check_location()
+        try:
+            if self.target.exists() and any(self.target.iterdir()):
+                manifest = self.target / self.JOURNAL
+                if not manifest.is_file():
+                    raise InputError(f"{out}: not an earlier run (no manifest.json); not replaced")
+                if not self.overwrite:
+                    known = _read_journal(manifest)
+                    if known is None or known.get("kind") != "run":
+                        raise InputError(
+                            f"{out}: holds an ensemble or an unreadable manifest, not a single "
+                            "run (use --overwrite to replace it)"
+                        )
+        except OSError as exc:
+            raise InputError(f"{out}: {exc.strerror or exc}") from None
+
+    def __enter__(self) -> StagedRun:
+        self.check()
+        self._lock = DirectoryLock(self.target, f"--out {self.given!r}")
+        self._lock.acquire()
+        try:
+            self._open()
+        except OSError as exc:
+            self._lock.release()
+            reason = exc.strerror or exc
+            raise InputError(f"--out {self.given!r}: cannot create ({reason})") from None
+        except BaseException:
+            self._lock.release()
+            raise
+        return self
+
+    def _open(self) -> None:
+        if self._old.exists():  # left by a swap a crash cut short; the new run is in place
+            shutil.rmtree(self._old, ignore_errors=True)
+        if self.overwrite and self.work.exists():
+            shutil.rmtree(self.work)
+        if self.work.is_dir():
+            journal = _read_journal(self.work / self.JOURNAL)
+            if journal is not None and journal.get("kind") == "run":
+                self.journal, self.resumed = journal, True
+                log.info("resuming the unfinished run in %s", self.work)
+                for stale in self.work.glob(".*.tmp*"):  # a stage or file a kill cut short
+                    _remove(stale)
+                return
+            log.warning("%s: unreadable journal; starting the run again", self.work)
+            shutil.rmtree(self.work)
+        if not self.overwrite and (self.target / self.JOURNAL).is_file():
+            shutil.copytree(self.target, self.work, copy_function=_link_or_copy, symlinks=True)
+            self.journal = _read_journal(self.work / self.JOURNAL) or {}
+            self.journal.setdefault("stages", {})
+            return
+        self.work.mkdir(parents=True)
+        self.journal = {"tool": "chipstack", "kind": "run", "status": "running", "stages": {}}
+        self._write_journal()
+
+    # -- the journal -------------------------------------------------------------------------
+    @property
+    def stages(self) -> dict[str, Any]:
+        stages = self.journal.setdefault("stages", {})
+        if not isinstance(stages, dict):
+            self.journal["stages"] = stages = {}
+        return stages
+
+    def _write_journal(self) -> None:
+        self.journal["status"] = "running"
+        write_atomically(self.work / self.JOURNAL, json.dumps(self.journal, indent=2) + "\n")
+
+    def reusable(self, stage: str, inputs: str) -> bool:
+        """Whether ``stage`` is complete here with inputs hashing to ``inputs``."""
+        entry = self.stages.get(stage)
+        return (
+            isinstance(entry, dict)
+            and entry.get("status") == "complete"
+            and entry.get("inputs_sha256") == inputs
+            and (self.work / stage).is_dir()
+        )
+
+    def invalidate(self, stage: str) -> None:
+        """Drop ``stage`` and every stage after it (their folders and journal entries)."""
+        for name in STAGE_ORDER[STAGE_ORDER.index(stage) :]:
+            self.stages.pop(name, None)
+            _remove(self.work / name)
+        if stage == "packing":
+            (self.work / self.STATE).unlink(missing_ok=True)
+        self.journal["stages_completed"] = [s for s in STAGE_ORDER if s in self.stages]
+        self._write_journal()
+
+    def begin_packing(self, inputs: str):
+        """Start the packing stage, or find where a killed run left it: returns the
+        deposition state after its last completed batch, or None to start afresh."""
+        from packing.checkpoint import state_from_arrays
+
+        entry = self.stages.get("packing")
+        state_file = self.work / self.STATE
+        if (
+            isinstance(entry, dict)
+            and entry.get("status") == "running"
+            and entry.get("inputs_sha256") == inputs
+            and state_file.is_file()
+        ):
+            try:
+                import numpy as np
+
+                with np.load(state_file, allow_pickle=False) as arrays:
+                    state = state_from_arrays(dict(arrays), str(state_file))
+            except (OSError, ValueError, InputError) as exc:
+                log.warning("%s: unreadable (%s); depositing from the start", state_file, exc)
+            else:
+                if state.batches_done == entry.get("batches_completed"):
+                    entry["resumed_after_batch"] = state.batches_done
+                    self._write_journal()
+                    log.info("resuming the deposition after batch %d", state.batches_done)
+                    return state
+        self.invalidate("packing")
+        self.stages["packing"] = {"inputs_sha256": inputs, "status": "running"}
+        self.stages["packing"]["batches_completed"] = 0
+        self._write_journal()
+        return None
+
+    def save_batch(self, state) -> None:
+        """Record a completed batch: its state file first, then the journal."""
+        from packing.checkpoint import state_to_arrays
+
+        save_npz_atomically(self.work / self.STATE, state_to_arrays(state))
+        self.stages["packing"]["batches_completed"] = state.batches_done
+        self._write_journal()
+
+    @contextlib.contextmanager
+    def stage(self, name: str, inputs: str):
+        """Build stage ``name``'s folder hidden; on success rename it into place and record
+        it complete with the caller's summary (``record.summary``, ``record.warnings``)."""
+        partial = self.work / f".{name}.tmp"
+        _remove(partial)
+        partial.mkdir()
+        record = StageRecord(partial)
+        try:
+            yield record
+            for file in partial.rglob("*"):
+                if file.is_file():
+                    _fsync_file(file)
+            _remove(self.work / name)
+            os.replace(partial, self.work / name)
+        except BaseException:
+            _remove(partial)
+            raise
+        entry = {"inputs_sha256": inputs, "status": "complete"}
+        entry["completed_utc"] = _now()
+        entry.update(summary=record.summary, warnings=record.warnings)
+        previous = self.stages.get(name)
+        if isinstance(previous, dict) and "resumed_after_batch" in previous:
+            entry["resumed_after_batch"] = previous["resumed_after_batch"]
+        self.stages[name] = entry
+        if name == "packing":
+            (self.work / self.STATE).unlink(missing_ok=True)
+        self.journal["stages_completed"] = [
+            s for s in STAGE_ORDER if self.stages.get(s, {}).get("status") == "complete"
+        ]
+        self._write_journal()
+
+    def folder(self, stage: str) -> Path:
+        return self.work / stage
+
+    def write_text(self, name: str, text: str) -> Path:
+        return write_atomically(self.work / name, text)
+
+    # -- closing -----------------------------------------------------------------------------
+    def complete(self, manifest: dict[str, Any]) -> None:
+        """Write the final manifest and put the run in place under its name."""
+        stages = self.stages
+        self.journal = manifest
+        self.journal["stages"] = stages
+        final = {**manifest, "status": "complete"}
+        write_atomically(self.work / self.JOURNAL, json.dumps(final, indent=2) + "\n")
+        if self.target.exists():
+            os.replace(self.target, self._old)
+        os.replace(self.work, self.target)
+        shutil.rmtree(self._old, ignore_errors=True)
+
+    def _kept(self) -> bool:
+        """Whether the build holds work worth resuming (a batch or a stage)."""
+        if not self.work.is_dir():
+            return False
+        return any(
+            isinstance(e, dict) and (e.get("status") == "complete" or e.get("batches_completed"))
+            for e in self.stages.values()
+        )
+
+    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+        try:
+            self._close(exc_type, exc)
+        finally:
+            if self._lock is not None:
+                self._lock.release()
+
+    def _close(self, exc_type: object, exc: object) -> None:
+        if exc_type is None:
+            return
+        out = f"--out {self.given!r}"
+        keep = isinstance(exc, OSError | KeyboardInterrupt) and self._kept()
+        if not keep:
+            # Bad input or broken physics: the same command would fail the same way, so
+            # what was done is of no use; nothing is left behind.
+            shutil.rmtree(self.work, ignore_errors=True)
+        where = f"the completed stages and batches are kept in {str(self.work)!r}"
+        if isinstance(exc, KeyboardInterrupt):
+            raise Interrupted(
+                f"{where}: run the same command to resume" if keep else "nothing was written"
+            ) from None
+        if isinstance(exc, OSError):
+            reason = exc.strerror or str(exc)
+            if keep:
+                raise InputError(
+                    f"{out}: cannot write the run ({reason}); {where}: free space or fix "
+                    "the directory, then run the same command to resume"
+                ) from None
+            raise InputError(
+                f"{out}: cannot write the run ({reason}); nothing was written"
+            ) from None
+
+
+def _read_journal(path: Path) -> dict[str, Any] | None:
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    return data if isinstance(data, dict) else None
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
+
+
+def _now() -> str:
+    from datetime import UTC, datetime
+
+    return datetime.now(UTC).isoformat(timespec="seconds")

@@ -22,6 +22,36 @@ target_size_mm = 80.0
 release_height_mm = [60.0, 120.0]
 """
 
+DROP_SPEC = """
+kind = "drop"
+name = "two heights"
+scenario = "single-chip-drop"
+observations = "data.csv"
+[measurement]
+position_sd_mm = 0.5
+angle_sd_deg = 0.5
+[diagnosis]
+sim_drops = {sim_drops}
+bootstrap = 100
+grid_points = 4
+effects = {effects}
+[[condition]]
+name = "low"
+height_mm = 200
+[[condition]]
+name = "high"
+height_mm = 600
+yaw_deg = 30
+"""
+
+
+def drop_spec(folder: Path, effects=("restitution", "friction", "compliant_floor"), sim=60):
+    """A two-condition drop experiment spec in ``folder`` (its data: ``data.csv``)."""
+    spec = folder / "spec.toml"
+    listed = "[" + ", ".join(f'"{e}"' for e in effects) + "]"
+    spec.write_text(DROP_SPEC.format(sim_drops=sim, effects=listed))
+    return spec
+
 
 def run_cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
     return subprocess.run(

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import SMALL_SCENARIO, run_cli
+from conftest import SMALL_SCENARIO, drop_spec, run_cli
 
 from diagnosis.observables import drop_observables, observable_names
 from diagnosis.statistics import energy_test, gap_statistic, holm
@@ -19,36 +19,7 @@ from packing.effects import AIR_DENSITY_G_MM3, EFFECTS, FlightState, check_effec
 from packing.errors import InputError
 from packing.shapes import make_shape
 
-DROP_SPEC = """
-kind = "drop"
-name = "two heights"
-scenario = "single-chip-drop"
-observations = "data.csv"
-[measurement]
-position_sd_mm = 0.5
-angle_sd_deg = 0.5
-[diagnosis]
-sim_drops = {sim_drops}
-bootstrap = 100
-grid_points = 4
-effects = {effects}
-[[condition]]
-name = "low"
-height_mm = 200
-[[condition]]
-name = "high"
-height_mm = 600
-yaw_deg = 30
-"""
-
 NAMES = observable_names(True, True)
-
-
-def _drop_spec(folder: Path, effects=("restitution", "friction", "compliant_floor"), sim=60):
-    spec = folder / "spec.toml"
-    listed = "[" + ", ".join(f'"{e}"' for e in effects) + "]"
-    spec.write_text(DROP_SPEC.format(sim_drops=sim, effects=listed))
-    return spec
 
 
 # -- observables and statistics ------------------------------------------------------------
@@ -218,132 +189,9 @@ def test_stack_deposition_with_effects(small_scenario):
         assert not np.allclose(stack.positions, base.positions), strengths
 
 
-# -- bad input from the command line ---------------------------------------------------------
-def _write_drops(path: Path, rows: list[list], header=("condition", "drop", "x_mm", "y_mm")):
-    with open(path, "w", newline="") as f:
-        writer = csv.writer(f)
-        writer.writerow(header)
-        writer.writerows(rows)
-
-
-def _good_rows(n=12):
-    rows = []
-    for condition in ("low", "high"):
-        rows += [[condition, k, 0.5 * k, -0.25 * k] for k in range(1, n + 1)]
-    return rows
-
-
-@pytest.mark.parametrize(
-    "case, expected",
-    [
-        ("missing_column", "missing column 'y_mm'"),
-        ("misnamed_column", "missing column 'x_mm' (columns needed"),
-        ("non_numeric", "line 3: x_mm 'abc' is not a number"),
-        ("nan", "x_mm must be finite"),
-        ("undefined_condition", "condition 'middle' is not defined in the spec"),
-        ("few_drops", "has 9 drops; at least 10 are needed"),
-        ("duplicate_drop", "drop '1' of 'low' appears twice"),
-        ("duplicate_column", "column 'x_mm' appears twice"),
-        ("empty", "the observations file is empty"),
-        ("unknown_effect", "diagnosis.effects: unknown effect 'wind'; valid names:"),
-        ("missing_condition", "no drops for condition 'high'"),
-    ],
-)
-def test_diagnose_rejects_bad_input(tmp_path, case, expected):
-    spec = _drop_spec(tmp_path, effects=("wind",) if case == "unknown_effect" else ("friction",))
-    data = tmp_path / "data.csv"
-    rows = _good_rows()
-    if case == "missing_column":
-        _write_drops(data, [r[:3] for r in rows], header=("condition", "drop", "x_mm"))
-    elif case == "misnamed_column":
-        _write_drops(data, rows, header=("condition", "drop", "x", "y_mm"))
-    elif case == "non_numeric":
-        rows[1][2] = "abc"
-        _write_drops(data, rows)
-    elif case == "nan":
-        rows[4][2] = "nan"
-        _write_drops(data, rows)
-    elif case == "undefined_condition":
-        rows[5][0] = "middle"
-        _write_drops(data, rows)
-    elif case == "few_drops":
-        _write_drops(
-            data, [r for r in rows if r[0] == "high"] + [r for r in rows if r[0] == "low"][:9]
-        )
-    elif case == "duplicate_drop":
-        rows[1][1] = 1
-        _write_drops(data, rows)
-    elif case == "duplicate_column":
-        _write_drops(data, rows, header=("condition", "drop", "x_mm", "x_mm"))
-    elif case == "empty":
-        data.write_text("")
-    elif case == "missing_condition":
-        _write_drops(data, [r for r in rows if r[0] == "low"])
-    else:
-        _write_drops(data, rows)
-    out = tmp_path / "out"
-    result = run_cli("diagnose", str(spec), "--out", str(out), "--workers", "1")
-    assert result.returncode == 2, result.stderr
-    assert expected in result.stderr
-    assert len(result.stderr.strip().splitlines()) == 1, result.stderr
-    assert "Traceback" not in result.stderr
-    assert not out.exists()
-    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out")]
-
-
-@pytest.mark.parametrize(
-    "args, expected",
-    [
-        (["--effect", "wind=1"], "--effect: unknown effect 'wind'; valid names: air_drag"),
-        (["--effect", "warp"], "expected NAME=STRENGTH"),
-        (["--effect", "warp=abc"], "strength 'abc' is not a number"),
-        (["--effect", "warp=50"], "outside the prior range"),
-        (["--effect", "vibration=100"], "acts on stack, container"),
-        (["--drops", "0"], "--drops: must be between 1 and 100000"),
-        (["--position-sd-mm", "nan"], "--position-sd-mm: must be between 0 and 100"),
-        (["--angle-sd-deg", "-1"], "--angle-sd-deg: must be between 0 and 45"),
-    ],
-)
-def test_synth_rejects_bad_input(tmp_path, args, expected):
-    spec = _drop_spec(tmp_path)
-    out = tmp_path / "data.csv"
-    result = run_cli("synth", str(spec), "-o", str(out), *args)
-    assert result.returncode == 2
-    assert expected in result.stderr
-    assert len(result.stderr.strip().splitlines()) == 1, result.stderr
-    assert not out.exists()
-
-
-def test_spec_errors_name_the_key(tmp_path):
-    spec = tmp_path / "spec.toml"
-    data = tmp_path / "data.csv"
-    _write_drops(data, _good_rows())
-    for text, expected in [
-        (
-            'kind = "pour"\nobservations = "data.csv"',
-            "kind: expected one of drop, stack, container",
-        ),
-        ('kind = "drop"\nobservations = "data.csv"', "condition: give at least one"),
-        (
-            'kind = "drop"\nobservations = "data.csv"\n[[condition]]\nname = "low"\nheight_mm = -5',
-            "condition[0].height_mm: -5 is outside",
-        ),
-        (
-            'kind = "drop"\nobservations = "data.csv"\ncolour = 1\n[[condition]]\nname = "low"',
-            "spec.colour: unknown key",
-        ),
-        ('kind = "drop"\nobservations = "data.csv"\n[[condition', "malformed TOML"),
-    ]:
-        spec.write_text(text)
-        result = run_cli("diagnose", str(spec), "--out", str(tmp_path / "o"))
-        assert result.returncode == 2, text
-        assert expected in result.stderr, (text, result.stderr)
-        assert not (tmp_path / "o").exists()
-
-
 # -- end to end ----------------------------------------------------------------------------
 def test_synth_writes_observations_reproducibly(tmp_path):
-    spec = _drop_spec(tmp_path)
+    spec = drop_spec(tmp_path)
     a, b = tmp_path / "a.csv", tmp_path / "b.csv"
     for path in (a, b):
         result = run_cli(
@@ -372,7 +220,7 @@ def test_synth_writes_observations_reproducibly(tmp_path):
 
 @pytest.mark.slow
 def test_diagnose_finds_a_withheld_effect_and_no_gap_without_one(tmp_path):
-    spec = _drop_spec(tmp_path)
+    spec = drop_spec(tmp_path)
     data = tmp_path / "data.csv"
     made = run_cli(
         "synth",

@@ -332,7 +332,7 @@ def test_a_stack_that_cannot_be_meshed_conformally_is_one_clear_line(tmp_path, s
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in result.stderr, result.stderr
     assert re.search(r"chips \d+", lines[0]) and "mesh.kind = 'voxel'" in lines[0]
-    assert not out.exists() and not list(tmp_path.glob(".run.partial-*"))
+    assert not out.exists() and not list(tmp_path.glob(".run*"))
 
 
 def test_a_single_chip_meshes_conformally():

@@ -1,0 +1,492 @@
+"""The catalogue of bad input, met from the command line.
+
+Every case must be refused with one line on stderr naming the key, file, column or flag
+at fault, exit status 2, no traceback, and nothing written: the folder the case works in
+holds exactly what it held before. Sections: scenarios, geometry files, experiment specs
+and observation files, run directories, command-line flags.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import resource
+import shutil
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+from conftest import SMALL_SCENARIO, drop_spec, run_cli
+
+
+def _tree(folder: Path) -> dict[str, bytes | None]:
+    """Every path under ``folder`` (hidden ones too) with its content."""
+    return {
+        p.relative_to(folder).as_posix(): (p.read_bytes() if p.is_file() else None)
+        for p in sorted(folder.rglob("*"))
+    }
+
+
+def assert_refused(result: subprocess.CompletedProcess, named: str, folder: Path, before) -> None:
+    assert result.returncode == 2, (result.returncode, result.stderr)
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    assert "Traceback" not in result.stderr
+    assert named in lines[0], lines[0]
+    assert _tree(folder) == before, "a refused input wrote something"
+
+
+# -- scenarios -----------------------------------------------------------------------------
+BAD_SCENARIOS = {
+    "unknown key": ("[deposition]\nchips = 10\nbatch_size = 5\ncolour = 3\n", "deposition.colour"),
+    "unknown section": ("[chips]\nn = 3\n", "chips"),
+    "wrong type": ('[deposition]\nchips = "many"\n', "deposition.chips"),
+    "float count": ("[deposition]\nchips = 10.5\n", "deposition.chips"),
+    "boolean size": ("[chip]\nlength_mm = true\n", "chip.length_mm"),
+    "table for a number": ("[chip]\nlength_mm = { a = 1 }\n", "chip.length_mm"),
+    "zero size": ("[chip]\nlength_mm = 0\n", "chip.length_mm"),
+    "negative size": ("[deposition]\ntarget_size_mm = -150\n", "deposition.target_size_mm"),
+    "absurd size": ("[deposition]\ntarget_size_mm = 1e300\n", "deposition.target_size_mm"),
+    "absurd release": (
+        "[deposition]\nrelease_height_mm = [1e300, 1e300]\n",
+        "deposition.release_height_mm",
+    ),
+    "zero count": ("[deposition]\nchips = 0\n", "deposition.chips"),
+    "zero batch": ("[deposition]\nbatch_size = 0\n", "deposition.batch_size"),
+    "absurd count": ("[deposition]\nchips = 100000000\nbatch_size = 5\n", "deposition.chips"),
+    "batch above chips": ("[deposition]\nchips = 10\nbatch_size = 20\n", "deposition.batch_size"),
+    "nan": ("[settling]\nspeed_mm_s = nan\n", "settling.speed_mm_s"),
+    "infinite": ("[chip]\nwidth_mm = inf\n", "chip.width_mm"),
+    "inverted range": (
+        "[deposition]\nrelease_height_mm = [200.0, 100.0]\n",
+        "deposition.release_height_mm",
+    ),
+    "three-value range": (
+        "[deposition]\nrelease_height_mm = [100.0, 150.0, 200.0]\n",
+        "deposition.release_height_mm",
+    ),
+    "release touching the floor": (
+        "[deposition]\nrelease_height_mm = [5.0, 200.0]\n",
+        "deposition.release_height_mm",
+    ),
+    "infinite fibre direction": (
+        "[chip]\nfibre_directions_deg = [inf]\n",
+        "chip.fibre_directions_deg",
+    ),
+    "chip as thick as wide": ("[chip]\nwidth_mm = 2.0\n", "chip.thickness_mm"),
+    "time step out of range": ("[physics]\ntime_step_s = 0.5\n", "physics.time_step_s"),
+    "friction out of range": ("[physics]\nfriction = 1e9\n", "physics.friction"),
+    "hold longer than cap": ("[settling]\nhold_time_s = 20.0\n", "settling.hold_time_s"),
+    "negative seed": ("seed = -3\n", "seed"),
+    "name with a slash": ('name = "../../escape"\n', "name"),
+    "unknown preset": ('[physics]\npreset = "stiff"\n', "physics.preset"),
+    "unknown shape": ('[chip]\nshape = "blob"\n', "chip.shape"),
+    "unknown orientation": ('[deposition]\norientation = "tumbling"\n', "deposition.orientation"),
+    "malformed": ("[deposition\nchips = 3\n", "malformed TOML"),
+    "empty": ("", "empty"),
+    "chip larger than the target": (
+        "[chip]\nlength_mm = 200.0\nwidth_mm = 200.0\n",
+        "chip.length_mm",
+    ),
+    "mix weights summing to zero": (
+        '[[mix]]\nshape = "box"\nweight = 0.0\n',
+        "mix: the weights sum to 0",
+    ),
+    "wrong length unit": ('[chip]\nshape = "file"\nfile = "c.obj"\nunits = "furlong"\n', "units"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_SCENARIOS))
+def test_bad_scenario(case, tmp_path):
+    text, named = BAD_SCENARIOS[case]
+    (tmp_path / "bad.toml").write_text(text)
+    before = _tree(tmp_path)
+    result = run_cli("run", str(tmp_path / "bad.toml"), "--out", str(tmp_path / "out"))
+    assert_refused(result, named, tmp_path, before)
+
+
+def test_unknown_preset_lists_the_valid_ones(tmp_path):
+    path = tmp_path / "bad.toml"
+    path.write_text('[physics]\npreset = "stiff"\n')
+    result = run_cli("run", str(path), "--out", str(tmp_path / "o"))
+    assert "default" in result.stderr and "paper" in result.stderr
+
+
+# -- geometry files ------------------------------------------------------------------------
+CUBE_VERTICES = [(x, y, z) for x in (0, 20) for y in (0, 10) for z in (0, 2)]
+CUBE_FACES = [
+    (1, 2, 4), (1, 4, 3), (5, 7, 8), (5, 8, 6), (1, 5, 6), (1, 6, 2),
+    (3, 4, 8), (3, 8, 7), (1, 3, 7), (1, 7, 5), (2, 6, 8), (2, 8, 4),
+]  # fmt: skip
+
+
+def _obj(vertices=CUBE_VERTICES, faces=CUBE_FACES) -> str:
+    lines = [f"v {x} {y} {z}" for x, y, z in vertices]
+    return "\n".join(lines + [f"f {a} {b} {c}" for a, b, c in faces]) + "\n"
+
+
+def _two_cubes(shift: float) -> str:
+    moved = [(x + shift, y, z) for x, y, z in CUBE_VERTICES]
+    faces = CUBE_FACES + [(a + 8, b + 8, c + 8) for a, b, c in CUBE_FACES]
+    return _obj(CUBE_VERTICES + moved, faces)
+
+
+BAD_GEOMETRY_FILES = {
+    "empty file": ("c.stl", "", "the geometry file is empty"),
+    "garbage bytes": ("c.stl", b"\x00\xff" * 300, "c.stl"),
+    "open surface": ("c.obj", _obj(faces=CUBE_FACES[:-2]), "not watertight"),
+    "a face turned inside out": (
+        "c.obj",
+        _obj(faces=[*CUBE_FACES[:-1], CUBE_FACES[-1][::-1]]),
+        "c.obj",
+    ),
+    "two separate bodies": ("c.obj", _two_cubes(40.0), "separate bodies"),
+    "self-intersecting (two cubes through each other)": ("c.obj", _two_cubes(5.0), "c.obj"),
+    "NaN vertex": ("c.obj", _obj(vertices=[(float("nan"), 0, 0), *CUBE_VERTICES[1:]]), "c.obj"),
+    "no faces": ("c.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\n", "c.obj"),
+    "unsupported type": ("c.step", _obj(), "unsupported geometry file type '.step'"),
+    "missing file": (None, None, "geometry file not found"),
+    # a 20 mm chip said to be in metres
+    "metres read as millimetres": ("c.obj", _obj(), "chip (22360.7 mm across) is larger"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_GEOMETRY_FILES))
+def test_bad_geometry_file(case, tmp_path):
+    name, content, named = BAD_GEOMETRY_FILES[case]
+    name = name or "nope.stl"
+    if content is not None:
+        path = tmp_path / name
+        path.write_bytes(content if isinstance(content, bytes) else content.encode())
+    units = 'units = "m"\n' if case.startswith("metres") else ""
+    (tmp_path / "s.toml").write_text(f'[chip]\nshape = "file"\nfile = "{name}"\n{units}')
+    before = _tree(tmp_path)
+    result = run_cli("run", str(tmp_path / "s.toml"), "--out", str(tmp_path / "out"))
+    assert_refused(result, named, tmp_path, before)
+
+
+# -- experiment specs and observation files -------------------------------------------------
+def _write_drops(path: Path, rows: list[list], header=("condition", "drop", "x_mm", "y_mm")):
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(header)
+        writer.writerows(rows)
+
+
+def _good_rows(n=12):
+    rows = []
+    for condition in ("low", "high"):
+        rows += [[condition, k, 0.5 * k, -0.25 * k] for k in range(1, n + 1)]
+    return rows
+
+
+def _rows_with(change: Callable[[list[list]], None]) -> list[list]:
+    rows = _good_rows()
+    change(rows)
+    return rows
+
+
+def _set(row: int, column: int, value):
+    return lambda rows: rows[row].__setitem__(column, value)
+
+
+HEADER = ("condition", "drop", "x_mm", "y_mm")
+BAD_OBSERVATIONS = {
+    "missing column": (
+        ("condition", "drop", "x_mm"),
+        [r[:3] for r in _good_rows()],
+        "missing column 'y_mm'",
+    ),
+    "misnamed column": (
+        ("condition", "drop", "x", "y_mm"),
+        _good_rows(),
+        "missing column 'x_mm' (columns needed",
+    ),
+    "duplicated column": (
+        ("condition", "drop", "x_mm", "x_mm"),
+        _good_rows(),
+        "column 'x_mm' appears twice",
+    ),
+    "not a number": (HEADER, _rows_with(_set(1, 2, "abc")), "line 3: x_mm 'abc' is not a number"),
+    "NaN": (HEADER, _rows_with(_set(4, 2, "nan")), "x_mm must be finite"),
+    "infinite": (HEADER, _rows_with(_set(4, 3, "inf")), "y_mm must be finite"),
+    "undefined condition": (
+        HEADER,
+        _rows_with(_set(5, 0, "middle")),
+        "condition 'middle' is not defined in the spec",
+    ),
+    "too few drops": (
+        HEADER,
+        [r for r in _good_rows() if r[0] == "high"]
+        + [r for r in _good_rows() if r[0] == "low"][:9],
+        "has 9 drops; at least 10 are needed",
+    ),
+    "duplicated drop id": (HEADER, _rows_with(_set(1, 1, 1)), "drop '1' of 'low' appears twice"),
+    "a condition without drops": (
+        HEADER,
+        [r for r in _good_rows() if r[0] == "low"],
+        "no drops for condition 'high'",
+    ),
+    "empty file": (None, None, "the observations file is empty"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_OBSERVATIONS))
+def test_bad_observation_file(case, tmp_path):
+    header, rows, named = BAD_OBSERVATIONS[case]
+    spec = drop_spec(tmp_path, effects=("friction",))
+    data = tmp_path / "data.csv"
+    if header is None:
+        data.write_text("")
+    else:
+        _write_drops(data, rows, header)
+    before = _tree(tmp_path)
+    result = run_cli("diagnose", str(spec), "--out", str(tmp_path / "out"), "--workers", "1")
+    assert_refused(result, named, tmp_path, before)
+
+
+CONDITION = '[[condition]]\nname = "low"\nheight_mm = 200\n'
+BAD_SPECS = {
+    "unknown kind": ('kind = "pour"\nobservations = "data.csv"\n', "kind: expected one of"),
+    "no condition": ('kind = "drop"\nobservations = "data.csv"\n', "condition: give at least one"),
+    "negative height": (
+        'kind = "drop"\nobservations = "data.csv"\n' + CONDITION.replace("200", "-5"),
+        "condition[0].height_mm: -5 is outside",
+    ),
+    "unknown key": (
+        'kind = "drop"\nobservations = "data.csv"\ncolour = 1\n' + CONDITION,
+        "spec.colour: unknown key",
+    ),
+    "malformed TOML": ('kind = "drop"\nobservations = "data.csv"\n[[condition', "malformed TOML"),
+    "missing observations file": (
+        'kind = "drop"\nobservations = "missing.csv"\n' + CONDITION,
+        "missing.csv",
+    ),
+    "unknown effect": (
+        'kind = "drop"\nobservations = "data.csv"\n[diagnosis]\neffects = ["wind"]\n' + CONDITION,
+        "diagnosis.effects: unknown effect 'wind'; valid names:",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_SPECS))
+def test_bad_experiment_spec(case, tmp_path):
+    text, named = BAD_SPECS[case]
+    _write_drops(tmp_path / "data.csv", _good_rows())
+    (tmp_path / "spec.toml").write_text(text)
+    before = _tree(tmp_path)
+    result = run_cli("diagnose", str(tmp_path / "spec.toml"), "--out", str(tmp_path / "o"))
+    assert_refused(result, named, tmp_path, before)
+
+
+# -- run directories -----------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory) -> Path:
+    """A real packing run to damage (copied per case)."""
+    folder = tmp_path_factory.mktemp("finished")
+    (folder / "s.toml").write_text(SMALL_SCENARIO)
+    result = run_cli("run", str(folder / "s.toml"), "--out", str(folder / "run"), "--quiet")
+    assert result.returncode == 0, result.stderr
+    return folder / "run"
+
+
+def _small_fsize():
+    # A file system with room for nothing: every write past 512 bytes fails (EFBIG).
+    resource.setrlimit(resource.RLIMIT_FSIZE, (512, 512))
+
+
+def _read_only(folder: Path) -> Callable[[], None]:
+    """Make ``folder`` unwritable, also for root (immutable); returns the undo."""
+    if os.geteuid() != 0:
+        folder.chmod(0o555)
+        return lambda: folder.chmod(0o755)
+    made = subprocess.run(["chattr", "+i", str(folder)], capture_output=True)
+    if made.returncode != 0:
+        pytest.skip(f"root cannot make a read-only folder here: {made.stderr.decode().strip()}")
+    return lambda: subprocess.run(["chattr", "-i", str(folder)], check=True)
+
+
+def _case_run_dir(case: str, d: Path, run: Path):
+    """(arguments, expected text, undo) for run-directory case ``case`` in folder ``d``."""
+    scenario = d / "s.toml"
+    scenario.write_text(SMALL_SCENARIO)
+    undo = None
+    if case == "output is a file":
+        (d / "out").write_text("x")
+        return ["run", str(scenario), "--out", str(d / "out")], "not a directory", undo
+    if case == "output holds other files":
+        (d / "out").mkdir()
+        (d / "out" / "thesis.tex").write_text("x")
+        args = ["run", str(scenario), "--out", str(d / "out"), "--overwrite"]
+        return args, "no manifest.json", undo
+    if case == "output holds an ensemble":
+        shutil.copytree(run, d / "out")
+        text = (
+            (d / "out" / "manifest.json").read_text().replace('"kind": "run"', '"kind": "ensemble"')
+        )
+        (d / "out" / "manifest.json").write_text(text)
+        return ["run", str(scenario), "--out", str(d / "out")], "ensemble", undo
+    if case == "output is a symbolic link":
+        (d / "real").mkdir()
+        (d / "out").symlink_to(d / "real")
+        return ["run", str(scenario), "--out", str(d / "out")], "symbolic link", undo
+    if case == "output is the current directory":
+        return ["run", str(scenario), "--out", "."], "current directory", undo
+    if case == "read-only output folder":
+        (d / "locked").mkdir()
+        undo = _read_only(d / "locked")
+        return ["run", str(scenario), "--out", str(d / "locked" / "out")], "cannot write", undo
+    if case == "describe: not a run":
+        (d / "notes").mkdir()
+        return ["describe", str(d / "notes")], "not a run directory (no manifest.json)", undo
+    if case == "describe: missing directory":
+        return ["describe", str(d / "gone")], "no such run directory", undo
+    copy = d / "run"
+    shutil.copytree(run, copy)
+    if case == "describe: corrupted manifest":
+        (copy / "manifest.json").write_text("{ not json")
+        return ["describe", str(copy)], "manifest.json: unreadable manifest", undo
+    if case == "describe: NaN pose":
+        poses = copy / "packing" / "poses_after_batch_02.csv"
+        lines = poses.read_text().splitlines()
+        fields = lines[3].split(",")
+        fields[3] = "nan"
+        lines[3] = ",".join(fields)
+        poses.write_text("\n".join(lines) + "\n")
+        return ["describe", str(copy)], "poses_after_batch_02.csv line 4: NaN", undo
+    if case == "describe: duplicated chip id":
+        poses = copy / "packing" / "poses_after_batch_01.csv"
+        lines = poses.read_text().splitlines()
+        lines[2] = lines[1]
+        poses.write_text("\n".join(lines) + "\n")
+        return ["describe", str(copy)], "poses_after_batch_01.csv line 3: chip 0, expected 1", undo
+    if case == "describe: missing batch file":
+        (copy / "packing" / "poses_after_batch_01.csv").unlink()
+        return ["describe", str(copy)], "batch files must be numbered 1 to N", undo
+    if case == "compare: missing run":
+        return ["compare", str(d / "gone"), str(copy), "--out", str(d / "cmp")], "gone", undo
+    raise AssertionError(case)
+
+
+RUN_DIRECTORY_CASES = [
+    "output is a file",
+    "output holds other files",
+    "output holds an ensemble",
+    "output is a symbolic link",
+    "output is the current directory",
+    "read-only output folder",
+    "describe: not a run",
+    "describe: missing directory",
+    "describe: corrupted manifest",
+    "describe: NaN pose",
+    "describe: duplicated chip id",
+    "describe: missing batch file",
+    "compare: missing run",
+]
+
+
+@pytest.mark.parametrize("case", RUN_DIRECTORY_CASES)
+def test_bad_run_directory(case, tmp_path, finished_run):
+    d = tmp_path / "case"
+    d.mkdir()
+    args, named, undo = _case_run_dir(case, d, finished_run)
+    before = _tree(d)
+    try:
+        result = run_cli(*args, cwd=d)
+    finally:
+        if undo is not None:
+            undo()
+    assert_refused(result, named, d, before)
+
+
+def test_a_full_output_folder(tmp_path):
+    """No room at all: refused at the first write, and nothing is left."""
+    (tmp_path / "s.toml").write_text(SMALL_SCENARIO)
+    before = _tree(tmp_path)
+    result = subprocess.run(
+        [sys.executable, "-m", "pipeline", "run", str(tmp_path / "s.toml")]
+        + ["--out", str(tmp_path / "out"), "--quiet"],
+        capture_output=True,
+        text=True,
+        preexec_fn=_small_fsize,
+        timeout=600,
+    )
+    assert_refused(
+        result, "cannot write the run (File too large); nothing was written", tmp_path, before
+    )
+
+
+# -- command-line flags --------------------------------------------------------------------
+BAD_FLAGS = {
+    "seed not a number": (["run", "--seed", "abc"], "--seed"),
+    "negative seed": (["run", "--seed", "-1"], "--seed: must not be negative"),
+    "unknown stage": (["run", "--to", "consolidate"], "--to consolidate: unknown stage"),
+    "stage with a newline": (["run", "--to", "mesh\nmore"], "--to"),
+    "one repeat": (["run", "--repeats", "1"], "--repeats: must be between 2"),
+    "absurd repeats": (["run", "--repeats", "5000"], "--repeats: must be between 2"),
+    "unknown mesh format": (["run", "--to", "mesh", "--formats", "stl"], "--formats"),
+    "unknown descriptor": (
+        ["run", "--to", "geometry", "--descriptors", "colour"],
+        "unknown descriptor 'colour'; valid names: contacts",
+    ),
+    "descriptors without geometry": (
+        ["run", "--descriptors", "contacts"],
+        "--descriptors: only with --to geometry",
+    ),
+    "workers without repeats": (["run", "--workers", "2"], "--workers"),
+    "unknown validation case": (["validate", "--cases", "nope"], "--cases"),
+    "missing scenario file": (["run", "nope.toml"], "nope.toml"),
+    "scenario is a directory": (["run", "."], "is a directory"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_FLAGS))
+def test_bad_flag(case, tmp_path):
+    args, named = BAD_FLAGS[case]
+    if args[0] == "run" and not (len(args) > 1 and args[1].endswith((".toml", "."))):
+        (tmp_path / "s.toml").write_text(SMALL_SCENARIO)
+        args = ["run", "s.toml", *args[1:]]
+    before = _tree(tmp_path)
+    result = (
+        run_cli(*args, "--out", "out", cwd=tmp_path)
+        if args[0] == "run"
+        else run_cli(*args, cwd=tmp_path)
+    )
+    assert_refused(result, named, tmp_path, before)
+
+
+BAD_SYNTH_FLAGS = {
+    "unknown effect": (["--effect", "wind=1"], "--effect: unknown effect 'wind'; valid names:"),
+    "effect without strength": (["--effect", "warp"], "expected NAME=STRENGTH"),
+    "strength not a number": (["--effect", "warp=abc"], "strength 'abc' is not a number"),
+    "strength beyond the prior": (["--effect", "warp=50"], "outside the prior range"),
+    "effect of another kind": (["--effect", "vibration=100"], "acts on stack, container"),
+    "zero drops": (["--drops", "0"], "--drops: must be between 1 and 100000"),
+    "NaN noise": (["--position-sd-mm", "nan"], "--position-sd-mm: must be between 0 and 100"),
+    "negative noise": (["--angle-sd-deg", "-1"], "--angle-sd-deg: must be between 0 and 45"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_SYNTH_FLAGS))
+def test_bad_synth_flag(case, tmp_path):
+    args, named = BAD_SYNTH_FLAGS[case]
+    spec = drop_spec(tmp_path)
+    before = _tree(tmp_path)
+    result = run_cli("synth", str(spec), "-o", str(tmp_path / "data.csv"), *args)
+    assert_refused(result, named, tmp_path, before)
+
+
+def test_the_catalogue_holds_at_least_40_cases():
+    cases = (
+        len(BAD_SCENARIOS)
+        + len(BAD_GEOMETRY_FILES)
+        + len(BAD_OBSERVATIONS)
+        + len(BAD_SPECS)
+        + len(RUN_DIRECTORY_CASES)
+        + 1  # the full output folder
+        + len(BAD_FLAGS)
+        + len(BAD_SYNTH_FLAGS)
+    )
+    assert cases >= 40

@@ -1,0 +1,259 @@
+"""Crash safety and the stage cache, with real runs of the CLI.
+
+A run is killed with SIGKILL at several points (after some batches, after a stage), then
+the same command is run again; its files must equal, byte for byte, those of a run that
+was never interrupted. A finished run run again reuses exactly the stages whose inputs
+did not change.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from conftest import run_cli
+
+SCENARIO = """
+name = "resumable"
+seed = 11
+[chip]
+length_mm = 20.0
+width_mm = 10.0
+thickness_mm = 2.0
+[deposition]
+chips = 48
+batch_size = 8
+target_size_mm = 70.0
+release_height_mm = [40.0, 100.0]
+"""
+ARGS = ("--to", "mesh", "--formats", "vtu,inp", "--quiet")
+VOLATILE = {"wall_time_s", "descriptor_time_s", "descriptor_times_s", "mesh_time_s"}
+
+
+def _files(run: Path) -> dict[str, bytes]:
+    """Every file of a run but its manifest (which records times and the command)."""
+    return {
+        p.relative_to(run).as_posix(): p.read_bytes()
+        for p in sorted(run.rglob("*"))
+        if p.is_file() and p.name != "manifest.json"
+    }
+
+
+def _stable(value):
+    """A manifest without what differs between identical runs: times and the command."""
+    if isinstance(value, dict):
+        return {
+            k: _stable(v)
+            for k, v in value.items()
+            if k not in VOLATILE
+            and k not in ("command", "started_utc", "finished_utc", "completed_utc")
+            and k not in ("stages_reused", "resumed_after_batch")
+        }
+    if isinstance(value, list):
+        return [_stable(v) for v in value]
+    return value
+
+
+def _manifest(run: Path) -> dict:
+    return json.loads((run / "manifest.json").read_text())
+
+
+def _journal(partial: Path) -> dict:
+    try:
+        return json.loads((partial / "manifest.json").read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+@pytest.fixture(scope="module")
+def scenario(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("resume") / "resumable.toml"
+    path.write_text(SCENARIO)
+    return path
+
+
+@pytest.fixture(scope="module")
+def reference(scenario) -> Path:
+    out = scenario.parent / "reference"
+    result = run_cli("run", str(scenario), "--out", str(out), *ARGS)
+    assert result.returncode == 0, result.stderr
+    return out
+
+
+def _kill_when(scenario: Path, out: Path, reached) -> dict:
+    """Start the run, SIGKILL it as soon as ``reached(journal)`` holds; returns the journal
+    at the kill."""
+    partial = out.parent / f".{out.name}.partial"
+    process = subprocess.Popen(
+        [sys.executable, "-m", "pipeline", "run", str(scenario), "--out", str(out), *ARGS],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
+    deadline = time.time() + 300
+    journal: dict = {}
+    try:
+        while process.poll() is None and time.time() < deadline:
+            journal = _journal(partial)
+            if reached(journal):
+                os.kill(process.pid, signal.SIGKILL)
+                break
+            time.sleep(0.005)
+    finally:
+        if process.poll() is None and not reached(journal):
+            process.kill()
+        process.wait()
+    assert process.returncode == -signal.SIGKILL, "the run ended before the kill point"
+    return journal
+
+
+def _batches(journal: dict) -> int:
+    return journal.get("stages", {}).get("packing", {}).get("batches_completed", 0) or 0
+
+
+def _complete(stage: str):
+    return lambda j: j.get("stages", {}).get(stage, {}).get("status") == "complete"
+
+
+KILL_POINTS = {
+    "after batch 1": lambda j: _batches(j) >= 1,
+    "after batch 4": lambda j: _batches(j) >= 4,
+    "after the packing stage": _complete("packing"),
+    "after the geometry stage": _complete("geometry"),
+}
+
+
+@pytest.mark.parametrize("point", list(KILL_POINTS))
+def test_a_killed_run_resumes_to_the_same_bits(scenario, reference, tmp_path, point):
+    out = tmp_path / "run"
+    journal = _kill_when(scenario, out, KILL_POINTS[point])
+    assert not out.exists(), "a killed first run must leave nothing under its name"
+    assert (tmp_path / ".run.partial" / "manifest.json").is_file()
+    assert (tmp_path / ".run.lock").exists()  # the dead process's lock, stale now
+
+    again = run_cli("run", str(scenario), "--out", str(out), *ARGS)
+    assert again.returncode == 0, again.stderr
+    assert "stale lock" in again.stderr
+    manifest = _manifest(out)
+    if point.startswith("after batch"):
+        done = _batches(journal)
+        assert manifest["resumed_after_batch"] >= done  # it went on, not back to batch 0
+        assert manifest["stages_reused"] == []
+    else:
+        stage = point.split()[2]
+        assert stage in manifest["stages_reused"]
+    assert _files(out) == _files(reference)
+    assert _stable(manifest) == _stable(_manifest(reference))
+    assert not list(tmp_path.glob(".run.*")), "the build, its state and the lock are gone"
+
+
+def test_a_kill_while_updating_a_finished_run_leaves_it_whole(scenario, reference, tmp_path):
+    """Rebuilding the mesh of a finished run, killed half way: the finished run stays as it
+    was, and the next start completes the update."""
+    out = tmp_path / "run"
+    subprocess.run(["cp", "-a", str(reference), str(out)], check=True)
+    before = _files(out)
+    changed = tmp_path / "coarser.toml"
+    changed.write_text(SCENARIO + "[mesh]\nvoxel_mm = 0.4\n")
+    process = subprocess.Popen(
+        [sys.executable, "-m", "pipeline", "run", str(changed), "--out", str(out), *ARGS],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    partial = tmp_path / ".run.partial"
+    deadline = time.time() + 120
+    while time.time() < deadline and not (partial / ".mesh.tmp").exists():
+        time.sleep(0.005)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    assert process.returncode == -signal.SIGKILL
+    assert _files(out) == before
+    again = run_cli("run", str(changed), "--out", str(out), *ARGS)
+    assert again.returncode == 0, again.stderr
+    assert _manifest(out)["stages_reused"] == ["packing", "geometry"]
+    assert _files(out)["packing/stack.npz"] == before["packing/stack.npz"]
+    assert _files(out)["mesh/stack_voxel.vtu"] != before["mesh/stack_voxel.vtu"]
+
+
+def _inode(run: Path, name: str) -> int:
+    return (run / name).stat().st_ino
+
+
+def test_the_stage_cache_redoes_exactly_the_stages_downstream_of_a_change(
+    scenario, reference, tmp_path
+):
+    out = tmp_path / "run"
+    subprocess.run(["cp", "-a", str(reference), str(out)], check=True)
+    files = {s: f"{s}/{n}" for s, n in [("packing", "stack.npz"), ("geometry", "descriptors.json")]}
+    files["mesh"] = "mesh/stack_voxel.vtu"
+
+    def rerun(text: str, *extra: str) -> tuple[list[str], dict[str, bool]]:
+        before = {s: _inode(out, f) for s, f in files.items()}
+        path = tmp_path / "changed.toml"
+        path.write_text(text)
+        result = run_cli("run", str(path), "--out", str(out), *ARGS, *extra)
+        assert result.returncode == 0, result.stderr
+        kept = {s: _inode(out, f) == before[s] for s, f in files.items()}
+        return _manifest(out)["stages_reused"], kept
+
+    everything = ["packing", "geometry", "mesh"]
+    reused, kept = rerun(SCENARIO)
+    assert reused == everything and all(kept.values())
+    reused, kept = rerun(SCENARIO.replace('"resumable"', '"renamed"'))
+    assert reused == everything and all(kept.values())  # the name is not an input
+    assert _manifest(out)["scenario"] == "renamed"
+    reused, kept = rerun(SCENARIO + '[mesh]\npore_space = "box"\n')
+    assert reused == ["packing", "geometry"] and kept == {
+        "packing": True,
+        "geometry": True,
+        "mesh": False,
+    }
+    reused, kept = rerun(SCENARIO + "[geometry]\nlayer_mm = 2.5\n")
+    assert reused == ["packing"] and kept == {"packing": True, "geometry": False, "mesh": False}
+    reused, kept = rerun(SCENARIO.replace("seed = 11", "seed = 12"))
+    assert reused == [] and not any(kept.values())
+    assert _files(out)["packing/stack.npz"] != _files(reference)["packing/stack.npz"]
+    reused, kept = rerun(SCENARIO, "--overwrite")
+    assert reused == [] and _files(out) == _files(reference)
+    # --to packing on a meshed run keeps the later stages whose inputs are unchanged, and
+    # drops those whose inputs changed (here the mesh formats, back to the default)
+    changed = str(tmp_path / "changed.toml")
+    result = run_cli("run", changed, "--out", str(out), "--quiet", "--formats", "vtu,inp")
+    assert result.returncode == 0, result.stderr
+    assert _manifest(out)["stages_completed"] == everything
+    result = run_cli("run", changed, "--out", str(out), "--quiet")
+    assert result.returncode == 0, result.stderr
+    assert _manifest(out)["stages_completed"] == ["packing", "geometry"]
+    assert not (out / "mesh").exists()
+
+
+def _file_size_limit():
+    # The disk fills: no file may grow past 20 kB (writes fail with EFBIG).
+    import resource
+
+    resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, 20_000))
+
+
+def test_a_full_disk_keeps_the_batches_and_the_run_resumes_once_there_is_room(
+    scenario, reference, tmp_path
+):
+    out = tmp_path / "run"
+    command = [sys.executable, "-m", "pipeline", "run", str(scenario), "--out", str(out), *ARGS]
+    full = subprocess.run(command, capture_output=True, text=True, preexec_fn=_file_size_limit)
+    assert full.returncode == 2, full.stderr
+    lines = full.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in full.stderr
+    assert "cannot write the run (File too large)" in lines[0]
+    assert "run the same command to resume" in lines[0]
+    assert not out.exists()
+    kept = _journal(tmp_path / ".run.partial")
+    assert _batches(kept) >= 1
+    again = run_cli("run", str(scenario), "--out", str(out), *ARGS)
+    assert again.returncode == 0, again.stderr
+    assert _manifest(out)["resumed_after_batch"] == _batches(kept)
+    assert _files(out) == _files(reference)
