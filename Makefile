@@ -12,9 +12,10 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install --quiet -e '.[test]'
 	touch $(STAMP)
 
-# The paper scenario through every stage: deposition, descriptors, voxel mesh.
+# The paper scenario through every stage: deposition, descriptors, voxel mesh. Run again,
+# the stage cache reuses what is unchanged (a killed run resumes where it stopped).
 run: $(STAMP)
-	$(BIN)/pipeline run --to mesh --out runs/paper-squares --seed 0 --overwrite
+	$(BIN)/pipeline run --to mesh --out runs/paper-squares --seed 0
 
 test: $(STAMP)
 	$(BIN)/ruff check .
