@@ -208,13 +208,20 @@ def _run(args: argparse.Namespace) -> None:
         for bar in bars:
             bar.close()
     if not args.quiet:
+        times = manifest["wall_time_s"]
+        if manifest["stages_reused"]:
+            print(f"reused (inputs unchanged): {', '.join(manifest['stages_reused'])}")
+        if "drop" in manifest:
+            print(f"{manifest['drop']['settled']} settled drops written to {path}")
+            return
         summary = manifest["packing"]
         last = summary["batches"][-1]
+        took = f"{times['packing']:.1f} s" if "packing" in times else "reused"
         print(
             f"{stack.n_chips} chips in {len(stack.batches)} batches, "
             f"top {last['top_mm']:.1f} mm, {summary['outside_target']} outside the target, "
             f"max interpenetration {last['max_chip_penetration_mm']:.3f} mm; "
-            f"deposition {manifest['wall_time_s']['packing']:.1f} s; written to {path}"
+            f"deposition {took}; written to {path}"
         )
         if "geometry" in manifest:
             _print_geometry(path, manifest["geometry"]["descriptor_time_s"])

@@ -204,6 +204,10 @@ def test_the_stage_cache_redoes_exactly_the_stages_downstream_of_a_change(
     everything = ["packing", "geometry", "mesh"]
     reused, kept = rerun(SCENARIO)
     assert reused == everything and all(kept.values())
+    loud = run_cli("run", str(tmp_path / "changed.toml"), "--out", str(out), *ARGS[:-1])
+    assert loud.returncode == 0, loud.stderr  # the summary of a run made of reused stages
+    assert "reused (inputs unchanged): packing, geometry, mesh" in loud.stdout
+    assert "deposition reused" in loud.stdout
     reused, kept = rerun(SCENARIO.replace('"resumable"', '"renamed"'))
     assert reused == everything and all(kept.values())  # the name is not an input
     assert _manifest(out)["scenario"] == "renamed"
