@@ -32,7 +32,7 @@ from diagnosis.observables import (
 )
 from diagnosis.spec import DropData, Experiment
 from diagnosis.statistics import bootstrap_indices, energy_test, gap_statistic, holm, interval
-from diagnosis.verdicts import applicable_effects, effect_verdict
+from diagnosis.verdicts import applicable_effects, effect_verdict, how_far
 from packing.config import Scenario
 from packing.drop import DropProtocol, simulate_drops
 from packing.effects import EFFECTS, contact_model
@@ -632,16 +632,7 @@ class _DropDiagnosis:
                         p_after=ds.p_value(float(np.mean(z1**2))),
                     )
                 )
-        top = which["ranking"][0]
-        return dict(
-            effect=best,
-            strength=top["strength"],
-            strength_ci95=top["strength_ci95"],
-            reduction=top["held_out_reduction"],
-            reduction_ci95=top["held_out_reduction_ci95"],
-            observables=rows,
-            conditions=totals,
-        )
+        return how_far(best, which["ranking"][0], rows, totals)
 
     def _verdict(self, where: dict, which: dict) -> dict:
         significant = [t["condition"] for t in where["tests"] if t["significant"]]

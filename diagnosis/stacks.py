@@ -25,7 +25,7 @@ from scipy.stats import chi2
 
 from diagnosis.spec import Experiment, QuantityData
 from diagnosis.statistics import holm, interval
-from diagnosis.verdicts import applicable_effects, effect_verdict
+from diagnosis.verdicts import applicable_effects, effect_verdict, how_far
 from packing.config import Scenario
 from packing.deposition import deposit
 from packing.effects import EFFECTS, contact_model
@@ -398,16 +398,7 @@ class _StackDiagnosis:
                         p_after=float(chi2.sf(g1 * k, k)),
                     )
                 )
-        top = which["ranking"][0]
-        return dict(
-            effect=best,
-            strength=top["strength"],
-            strength_ci95=top["strength_ci95"],
-            reduction=top["held_out_reduction"],
-            reduction_ci95=top["held_out_reduction_ci95"],
-            observables=rows,
-            conditions=totals,
-        )
+        return how_far(best, which["ranking"][0], rows, totals)
 
     def _verdict(self, where, which) -> dict:
         significant = [t["condition"] for t in where["tests"] if t["significant"]]

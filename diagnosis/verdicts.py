@@ -12,7 +12,7 @@ from packing.deposition import draw_shapes
 from packing.effects import EFFECTS, shaped
 from packing.errors import InputError
 
-__all__ = ["applicable_effects", "effect_verdict", "percent"]
+__all__ = ["applicable_effects", "effect_verdict", "how_far", "percent"]
 
 
 def percent(value: float) -> str:
@@ -62,3 +62,17 @@ def effect_verdict(significant: list[str], which: dict) -> dict:
     if others:
         text += f" Indistinguishable from it: {', '.join(others)}."
     return dict(kind="explained", effect=top["effect"], indistinguishable=others, text=text)
+
+
+def how_far(best: str, top: dict, rows: list, conditions: list) -> dict:
+    """The "how far" section: the best effect's fitted strength and held-out gap closed
+    (from its ranking entry ``top``), with the per-observable and per-condition rows."""
+    return dict(
+        effect=best,
+        strength=top["strength"],
+        strength_ci95=top["strength_ci95"],
+        reduction=top["held_out_reduction"],
+        reduction_ci95=top["held_out_reduction_ci95"],
+        observables=rows,
+        conditions=conditions,
+    )

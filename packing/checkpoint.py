@@ -96,6 +96,14 @@ def _json(arrays: dict[str, np.ndarray], name: str, where: str) -> Any:
         raise InputError(f"{where}: unreadable field {name!r} ({exc})") from None
 
 
+def _meta(arrays, schema: str, what: str, where: str) -> dict[str, Any]:
+    """The record's ``meta`` table, refused unless it carries ``schema``."""
+    meta = _json(arrays, "meta", where)
+    if not isinstance(meta, dict) or meta.get("schema") != schema:
+        raise InputError(f"{where}: not a {what} ({schema})")
+    return meta
+
+
 def _results_to_arrays(
     results: tuple[BatchResult, ...], timings: bool = True
 ) -> dict[str, np.ndarray]:
@@ -169,9 +177,7 @@ def state_to_arrays(state: DepositionState) -> dict[str, np.ndarray]:
 def state_from_arrays(arrays, where: str = "deposition state") -> DepositionState:
     """Rebuild a :class:`DepositionState`; a damaged record raises InputError naming
     ``where``."""
-    meta = _json(arrays, "meta", where)
-    if not isinstance(meta, dict) or meta.get("schema") != STATE_SCHEMA:
-        raise InputError(f"{where}: not a deposition state ({STATE_SCHEMA})")
+    meta = _meta(arrays, STATE_SCHEMA, "deposition state", where)
     pool = _shapes_from(arrays, "pool", where)
     try:
         chip_shape = np.asarray(arrays["chip_shape"], dtype=np.int64)
@@ -230,9 +236,7 @@ def stack_to_arrays(stack: Stack) -> dict[str, np.ndarray]:
 
 def stack_from_arrays(arrays, where: str = "stack") -> Stack:
     """Rebuild a :class:`Stack` written by :func:`stack_to_arrays`."""
-    meta = _json(arrays, "meta", where)
-    if not isinstance(meta, dict) or meta.get("schema") != STACK_SCHEMA:
-        raise InputError(f"{where}: not a stack record ({STACK_SCHEMA})")
+    meta = _meta(arrays, STACK_SCHEMA, "stack record", where)
     shapes = _shapes_from(arrays, "shapes", where)
     try:
         shape_index = np.asarray(arrays["shape_index"], dtype=np.int64)

@@ -20,7 +20,7 @@ from packing import BatchResult, Scenario, Stack, deposit
 from packing.config import printable
 from packing.errors import InputError, SimulationError
 from packing.overlap import vertex_heights_mm
-from pipeline.rundir import StagedRun, StageWriter
+from pipeline.rundir import StagedRun, StageWriter, write_atomically
 from pipeline.scenario_files import dumps_toml
 
 __all__ = [
@@ -152,6 +152,15 @@ def run_pipeline(
     started = datetime.now(UTC).isoformat(timespec="seconds")
     times: dict[str, float] = {}
     reused: list[str] = []
+    loaded: dict[str, Any] = {}
+
+    def packed() -> tuple[Stack, list]:
+        """The packing's exact record and its arrangements, read once."""
+        if not loaded:
+            loaded["stack"] = _read_stack(run.folder("packing"))
+            loaded["history"] = _history(loaded["stack"])
+        return loaded["stack"], loaded["history"]
+
     with run:
         resolved = dumps_toml(scenario)
         run.write_text("scenario.toml", resolved)
@@ -165,24 +174,22 @@ def run_pipeline(
                 _packing_stage(run, scenario, inputs["packing"], progress, figures)
             else:
                 run.invalidate(stage)
-                stack = _read_stack(run.folder("packing"))
+                history = packed()[1]
                 with run.stage(stage, inputs[stage]) as record:
                     if stage == "geometry":
                         record.summary = _geometry(
-                            record.folder, _history(stack), scenario, descriptors, figures
+                            record.folder, history, scenario, descriptors, figures
                         )
                     else:
-                        record.summary = _mesh(
-                            record.folder, _history(stack)[-1], scenario, figures
-                        )
+                        record.summary = _mesh(record.folder, history[-1], scenario, figures)
             times[stage] = round(time.perf_counter() - start, 3)
         for stage in STAGES[len(wanted) :]:  # kept from an earlier run only if still valid
             if stage in run.stages and not run.reusable(stage, inputs[stage]):
                 run.invalidate(stage)
         manifest = _staged_manifest(run, scenario, command, resolved, wanted, times, reused)
         manifest["started_utc"] = started
+        stack = packed()[0] if scenario.kind != "drop" else None
         run.complete(manifest)
-    stack = _read_stack(Path(out) / "packing") if scenario.kind != "drop" else None
     return Path(out), stack, manifest
 
 
@@ -253,7 +260,7 @@ def _staged_manifest(
         "scenario_sha256": hashlib.sha256(resolved.encode()).hexdigest(),
         "seed": scenario.seed,
     }
-    completed = [s for s in STAGES if run.reusable(s, run.stages.get(s, {}).get("inputs_sha256"))]
+    completed = run.completed
     manifest["stages_completed"] = completed
     manifest["stages_reused"] = reused
     resumed = run.stages.get("packing", {}).get("resumed_after_batch")
@@ -568,7 +575,7 @@ def describe_run(
             s for s in manifest.get("stages_completed", []) if s != "geometry"
         ] + ["geometry"]
         manifest.setdefault("wall_time_s", {})["geometry"] = round(time.perf_counter() - start, 3)
-    StageWriter.replace_json(Path(run_dir) / "manifest.json", manifest)
+    write_atomically(Path(run_dir) / "manifest.json", json.dumps(manifest, indent=2) + "\n")
     return manifest
 
 

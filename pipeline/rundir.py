@@ -191,13 +191,6 @@ class StageWriter:
             ) from None
         shutil.rmtree(old, ignore_errors=True)
 
-    @staticmethod
-    def replace_json(path: Path, data: Any) -> None:
-        """Write a JSON file by writing a temporary sibling and renaming it over the file."""
-        temporary = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-        temporary.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
-        os.replace(temporary, path)
-
 
 class EnsembleDirectory:
     """An ensemble's directory, written run by run so an interrupted ensemble resumes.
@@ -269,7 +262,7 @@ class EnsembleDirectory:
                 self._clear()
                 self._clear_first = False
             self.target.mkdir(parents=True, exist_ok=True)
-            StageWriter.replace_json(self.target / self.STATE, self.identity)
+            write_atomically(self.target / self.STATE, json.dumps(self.identity, indent=2) + "\n")
         except OSError as exc:
             raise InputError(f"--out {self.given!r}: cannot create ({exc.strerror})") from None
         self._created = True
@@ -486,6 +479,15 @@ class StagedRun:
         self.journal["status"] = "running"
         write_atomically(self.work / self.JOURNAL, json.dumps(self.journal, indent=2) + "\n")
 
+    @property
+    def completed(self) -> list[str]:
+        """The stages complete in the build, in order."""
+        return [
+            s
+            for s in STAGE_ORDER
+            if isinstance(self.stages.get(s), dict) and self.stages[s].get("status") == "complete"
+        ]
+
     def reusable(self, stage: str, inputs: str) -> bool:
         """Whether ``stage`` is complete here with inputs hashing to ``inputs``."""
         entry = self.stages.get(stage)
@@ -503,7 +505,7 @@ class StagedRun:
             _remove(self.work / name)
         if stage == "packing":
             (self.work / self.STATE).unlink(missing_ok=True)
-        self.journal["stages_completed"] = [s for s in STAGE_ORDER if s in self.stages]
+        self.journal["stages_completed"] = self.completed
         self._write_journal()
 
     def begin_packing(self, inputs: str):
@@ -573,9 +575,7 @@ class StagedRun:
         self.stages[name] = entry
         if name == "packing":
             (self.work / self.STATE).unlink(missing_ok=True)
-        self.journal["stages_completed"] = [
-            s for s in STAGE_ORDER if self.stages.get(s, {}).get("status") == "complete"
-        ]
+        self.journal["stages_completed"] = self.completed
         self._write_journal()
 
     def folder(self, stage: str) -> Path:
