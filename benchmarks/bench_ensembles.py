@@ -18,8 +18,9 @@ import time
 from pathlib import Path
 
 from packing import scenario_from_dict
+from pipeline.ensemble import run_ensemble
 from pipeline.execution import Executor
-from pipeline.run import compute_run, derive_seed, run_ensemble
+from pipeline.run import compute_run, derive_seed
 
 
 def ensemble_seconds(workers: int) -> float:

@@ -23,6 +23,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from core.schema import Scenario
 from diagnosis.observables import (
     DROP_OBSERVABLES,
     anisotropy,
@@ -33,7 +34,6 @@ from diagnosis.observables import (
 from diagnosis.spec import DropData, Experiment
 from diagnosis.statistics import bootstrap_indices, energy_test, gap_statistic, holm, interval
 from diagnosis.verdicts import applicable_effects, effect_verdict, how_far
-from packing.config import Scenario
 from packing.drop import DropProtocol, simulate_drops
 from packing.effects import EFFECTS, contact_model
 from packing.presets import PRESETS

@@ -17,10 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from packing.config import Scenario, printable, scenario_from_dict, scenario_to_dict
+from core.errors import InputError
+from core.schema import Scenario, printable, scenario_from_dict, scenario_to_dict
 from packing.drop import DropProtocol
 from packing.effects import EFFECTS
-from packing.errors import InputError
 
 __all__ = [
     "Condition",

@@ -23,13 +23,13 @@ from collections.abc import Callable
 import numpy as np
 from scipy.stats import chi2
 
+from core.errors import InputError
+from core.schema import Scenario
 from diagnosis.spec import Experiment, QuantityData
 from diagnosis.statistics import holm, interval
 from diagnosis.verdicts import applicable_effects, effect_verdict, how_far
-from packing.config import Scenario
 from packing.deposition import deposit
 from packing.effects import EFFECTS, contact_model
-from packing.errors import InputError
 from packing.presets import PRESETS
 
 __all__ = ["QUANTITIES", "diagnose_stacks", "simulate_quantities", "synthesize_quantities"]
@@ -67,7 +67,7 @@ def simulate_quantities(scenario: Scenario, strengths: dict[str, float], seed: i
     """One deposition of ``scenario`` with effects, reduced to every quantity of its kind."""
     stack = deposit(scenario.with_seed(seed), effects=strengths)
     if scenario.kind == "container":
-        from geometry.container import container_fill
+        from packing.fill import container_fill
 
         volumes = np.array([stack.shapes[k].volume_mm3 for k in stack.shape_index])
         c = scenario.container

@@ -7,10 +7,10 @@ import math
 
 import numpy as np
 
+from core.errors import InputError
 from diagnosis.spec import Experiment
 from packing.deposition import draw_shapes
 from packing.effects import EFFECTS, shaped
-from packing.errors import InputError
 
 __all__ = ["applicable_effects", "effect_verdict", "how_far", "percent"]
 

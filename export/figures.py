@@ -7,7 +7,7 @@ Figure 6: :func:`render_stack`; Figure 7: :func:`plot_contact_types`; Figure 9:
 Every function writes exactly the file at ``path`` (PNG, 150 dpi for the charts, whatever
 its suffix) and never modifies its inputs. Lengths are in mm. The charts are drawn on a
 ``matplotlib.figure.Figure`` with its own Agg canvas, so neither pyplot nor the global
-matplotlib backend is touched. Bad arguments raise :class:`packing.errors.InputError`, a
+matplotlib backend is touched. Bad arguments raise :class:`core.errors.InputError`, a
 ``ValueError`` whose one-line message starts with the argument's name.
 """
 
@@ -31,7 +31,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Patch, Rectangle
 from matplotlib.ticker import MaxNLocator
 
-from packing.errors import InputError
+from core.errors import InputError
 
 __all__ = [
     "neh_colormap",

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from core.registry import Registry
 from meshing.mesh import PORE, VolumeMesh
-from packing.registry import Registry
 
 __all__ = ["MESH_FORMATS", "write_mesh", "to_meshio", "MATERIALS"]
 

@@ -2,16 +2,17 @@
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from packing.errors import InputError
+from core.errors import InputError
 from packing.shapes import ChipShape
 
-__all__ = ["Arrangement", "arrangements_from_stack", "MAX_COORDINATE_MM"]
+__all__ = ["Arrangement", "arrangements_from_stack", "stack_history", "MAX_COORDINATE_MM"]
 
 MAX_COORDINATE_MM = 1e6  # 1 km: beyond any conveyor, and well inside float arithmetic
 
@@ -112,6 +113,19 @@ class Arrangement:
     def inside_target(self) -> np.ndarray:
         """(n,) bool: the chip's centre of mass lies over the target square."""
         return (np.abs(self.positions[:, :2]) <= self.target_size_mm / 2).all(axis=1)
+
+
+_HISTORIES: dict[int, list[Arrangement]] = {}  # by id of a live stack (stacks are unhashable)
+
+
+def stack_history(stack) -> list[Arrangement]:
+    """:func:`arrangements_from_stack`, built once per stack object (every stage of a run
+    that reads the stack shares it; forgotten when the stack is)."""
+    key = id(stack)
+    if key not in _HISTORIES:
+        _HISTORIES[key] = arrangements_from_stack(stack)
+        weakref.finalize(stack, _HISTORIES.pop, key, None)
+    return _HISTORIES[key]
 
 
 def arrangements_from_stack(stack) -> list[Arrangement]:

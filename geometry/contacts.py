@@ -22,9 +22,9 @@ import manifold3d as m3
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
+from core.errors import InputError
 from geometry.arrangement import Arrangement
 from geometry.solids import chip_solid
-from packing.errors import InputError
 
 __all__ = [
     "KINDS",

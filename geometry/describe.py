@@ -16,6 +16,9 @@ from typing import Any
 
 import numpy as np
 
+from core.errors import InputError
+from core.registry import Registry
+from core.schema import GeometrySpec
 from geometry.arrangement import Arrangement
 from geometry.contacts import GROUND, KINDS, PLACES, ContactTable, contact_counts, find_contacts
 from geometry.layers import LayerFilling, layer_filling, slab_fractions
@@ -29,9 +32,6 @@ from geometry.overlaps import Overlaps, find_overlaps
 from geometry.rays import RayMaps, ray_maps
 from geometry.solids import chip_solids, target_prism, union_solid
 from geometry.voxels import VoxelImage, voxel_solid_profile, voxelize
-from packing.config import GeometrySpec
-from packing.errors import InputError
-from packing.registry import Registry
 
 __all__ = ["DESCRIPTORS", "Description", "describe", "SCHEMA"]
 
@@ -449,21 +449,10 @@ class Description:
 def check_names(names: Sequence[str] | None) -> list[str]:
     """The descriptors to compute, in registry order; raises naming an unknown one."""
     if names is None:
-        return list(DESCRIPTORS_ORDER)
+        return DESCRIPTORS.in_order()
     for name in names:
         DESCRIPTORS.get(name, key="descriptors")
-    return [n for n in DESCRIPTORS_ORDER if n in set(names)]
-
-
-DESCRIPTORS_ORDER = (
-    "contacts",
-    "thickness",
-    "layers",
-    "overlaps",
-    "orientation",
-    "stack",
-    "voxels",
-)
+    return [n for n in DESCRIPTORS.in_order() if n in set(names)]
 
 
 def describe(

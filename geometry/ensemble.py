@@ -11,8 +11,8 @@ from typing import Any
 
 import numpy as np
 
+from core.errors import InputError
 from geometry.stats import compare, holm, summarize
-from packing.errors import InputError
 
 __all__ = ["ENSEMBLE_SCHEMA", "summarize_runs", "compare_ensembles", "ALPHA"]
 

@@ -18,9 +18,9 @@ from dataclasses import dataclass
 import manifold3d as m3
 import numpy as np
 
+from core.errors import InputError
 from geometry.arrangement import Arrangement
 from geometry.solids import target_prism
-from packing.errors import InputError
 
 __all__ = ["LayerFilling", "layer_counts", "full_layer_count", "slab_fractions"]
 

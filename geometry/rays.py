@@ -15,9 +15,9 @@ from functools import cached_property
 
 import numpy as np
 
+from core.errors import InputError
 from geometry.arrangement import Arrangement
 from geometry.solids import shape_pieces
-from packing.errors import InputError
 
 __all__ = ["PixelGrid", "pixel_grid", "column_intervals", "RayMaps", "ray_maps"]
 

@@ -15,7 +15,7 @@ are dimensionless.
 - :func:`compare` -> :class:`Comparison`: all of the above for two samples at once.
 
 Bad input (empty or too small samples, NaN, infinity, non-numbers, more than one
-dimension, out-of-range parameters) raises :class:`packing.errors.InputError` whose
+dimension, out-of-range parameters) raises :class:`core.errors.InputError` whose
 message starts with the argument's name. No function modifies its inputs.
 """
 
@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy import stats as _sps
 
-from packing.errors import InputError
+from core.errors import InputError
 
 __all__ = [
     "Comparison",

@@ -15,9 +15,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.errors import InputError
 from geometry.arrangement import Arrangement
 from geometry.rays import column_intervals
-from packing.errors import InputError
 
 __all__ = ["VoxelImage", "voxelize", "voxel_solid_profile"]
 

@@ -24,9 +24,9 @@ import time
 
 import numpy as np
 
+from core.errors import ChipstackError, InputError
 from geometry.arrangement import Arrangement
 from meshing.mesh import PORE, VolumeMesh, boundary_node_sets, element_attributes
-from packing.errors import ChipstackError, InputError
 from packing.overlap import penetrating_pairs
 
 __all__ = ["GmshSession", "MeshingError", "conformal_mesh", "overlapping_pairs"]

@@ -13,10 +13,10 @@ import time
 
 import numpy as np
 
+from core.errors import InputError
 from geometry.arrangement import Arrangement
 from geometry.voxels import voxelize
 from meshing.mesh import VolumeMesh, boundary_node_sets, element_attributes
-from packing.errors import InputError
 
 __all__ = ["voxel_mesh"]
 

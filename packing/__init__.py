@@ -2,9 +2,9 @@
 
 import logging
 
-from packing.config import Scenario, scenario_from_dict, scenario_to_dict
+from core.errors import ChipstackError, InputError, SimulationError
+from core.schema import Scenario, scenario_from_dict, scenario_to_dict
 from packing.deposition import deposit
-from packing.errors import ChipstackError, InputError, SimulationError
 from packing.presets import PRESETS, PhysicsPreset
 from packing.shapes import SHAPES, ChipShape, make_shape
 from packing.stack import BatchResult, Stack

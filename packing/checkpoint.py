@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from packing.errors import InputError
+from core.errors import InputError
 from packing.shapes import ChipShape, shape_from_record, shape_record
 from packing.stack import BatchResult, Stack
 from packing.world import ContactRecord

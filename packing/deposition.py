@@ -25,13 +25,13 @@ from collections.abc import Callable, Mapping
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from core.errors import InputError, SimulationError
+from core.schema import Scenario
 from packing.checkpoint import DepositionState, round_trip
-from packing.config import Scenario
 from packing.effects import EFFECTS, Effect, FlightState, check_effects, setup_effects, shaped
-from packing.errors import InputError, SimulationError
 from packing.overlap import box_penetration_depth, floor_penetration_mm
 from packing.presets import PRESETS
-from packing.shapes import VARIES_PER_CHIP, ChipShape, make_shape
+from packing.shapes import ChipShape, make_shape, varies_per_chip
 from packing.stack import BatchResult, Stack
 from packing.world import GRAVITY_MM_S2, ChipWorld
 
@@ -87,9 +87,9 @@ def draw_shapes(
         spec = specs[k]
         size = _size_factor(spec, rng)
         key = (k, size)
-        if spec.shape in VARIES_PER_CHIP or key not in cache:
+        if varies_per_chip(spec) or key not in cache:
             shape = make_shape(spec, rng, size)
-            if spec.shape in VARIES_PER_CHIP:
+            if varies_per_chip(spec):
                 shapes.append(shape)
                 continue
             cache[key] = shape

@@ -17,7 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from packing.config import Scenario
+from core.errors import SimulationError
+from core.schema import Scenario
 from packing.deposition import (
     CHECK_INTERVAL_S,
     _RestTracker,
@@ -26,7 +27,6 @@ from packing.deposition import (
     settle,
 )
 from packing.effects import EFFECTS, setup_effects, shaped
-from packing.errors import SimulationError
 from packing.presets import PRESETS
 from packing.shapes import ChipShape
 from packing.world import ChipWorld

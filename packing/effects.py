@@ -26,8 +26,8 @@ import numpy as np
 from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
-from packing.errors import InputError
-from packing.registry import Registry
+from core.errors import InputError
+from core.registry import Registry
 from packing.shapes import ChipShape
 
 __all__ = [
@@ -499,7 +499,7 @@ class EffectSetup:
     that act at every step."""
 
     contact: ContactModel
-    physics: object  # packing.config.PhysicsSpec
+    physics: object  # core.schema.PhysicsSpec
     per_step: tuple[tuple[Effect, float], ...]
 
 

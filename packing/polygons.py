@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from packing.errors import InputError
+from core.errors import InputError
 
 __all__ = [
     "signed_area",

@@ -24,8 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
-from packing.config import LENGTH_UNITS_MM, ChipSpec, printable
-from packing.errors import InputError
+from core.errors import InputError, printable
+from core.schema import LENGTH_UNITS_MM, ChipSpec
+from packing.bullet import vhacd
+from packing.chipshape import ChipShape, _fibres, _frozen
+from packing.polygons import convex_partition, counter_clockwise
 
 __all__ = ["shape_from_file", "FILE_SUFFIXES", "MAX_DECOMPOSITION_ERROR"]
 
@@ -88,7 +91,6 @@ def _read(path: str, mtime: float, units: str):
         pieces = [np.asarray(hull.vertices)]
     elif (outline := _prism_outline(mesh)) is not None:
         # A flat chip cut from a sheet: its outline, partitioned exactly.
-        from packing.polygons import convex_partition
 
         low, high = float(mesh.vertices[:, 2].min()), float(mesh.vertices[:, 2].max())
         pieces = [
@@ -129,28 +131,16 @@ def _prism_outline(mesh) -> np.ndarray | None:
         previous, current = current, following
     if len(loop) != len(neighbours):
         return None
-    from packing.polygons import counter_clockwise
-
     return counter_clockwise(mesh.vertices[loop, :2])
 
 
 def _decompose(mesh, shown: str) -> list[np.ndarray]:
     import trimesh
 
-    from packing.world import pybullet
-
     with tempfile.TemporaryDirectory(prefix="chipstack-vhacd-") as tmp:
         source, target = os.path.join(tmp, "in.obj"), os.path.join(tmp, "out.obj")
         mesh.export(source)
-        pybullet.vhacd(
-            source,
-            target,
-            os.path.join(tmp, "log.txt"),
-            resolution=1000000,
-            concavity=1e-4,
-            depth=32,
-            maxNumVerticesPerCH=64,
-        )
+        vhacd(source, target, os.path.join(tmp, "log.txt"))
         pieces = _obj_objects(target)
     pieces = [p for p in pieces if len(p) >= 4]
     if not pieces:
@@ -181,7 +171,6 @@ def _obj_objects(path: str) -> list[np.ndarray]:
 
 def shape_from_file(spec: ChipSpec, size: float = 1.0):
     """The chip in ``spec.file`` (units ``spec.units``), scaled by ``size`` in its plane."""
-    from packing.shapes import ChipShape, _fibres, _frozen
 
     path = spec.file
     try:

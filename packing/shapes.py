@@ -17,13 +17,16 @@ factor (for size distributions), and are registered in ``SHAPES``.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
-from packing.config import ChipSpec
-from packing.errors import InputError
+from core.errors import InputError
+from core.registry import Registry
+from core.schema import ChipSpec
+from packing.chipshape import DEFAULT_FIBRES_DEG, ChipShape, _fibres, _frozen
 from packing.polygons import (
     check_simple,
     convex_partition,
@@ -32,11 +35,14 @@ from packing.polygons import (
     regular_polygon,
     star_polygon,
 )
-from packing.registry import Registry
+from packing.shapefiles import shape_from_file
 
 __all__ = [
     "ChipShape",
     "SHAPES",
+    "ShapeKind",
+    "check_chip",
+    "varies_per_chip",
     "make_shape",
     "box_shape",
     "prism_shape",
@@ -46,76 +52,6 @@ __all__ = [
 ]
 
 CYLINDER_SIDES = 24  # polygon standing for a round fibre in the exact geometry
-
-
-@dataclass(frozen=True, eq=False)
-class ChipShape:
-    """A rigid chip in its own frame.
-
-    Attributes
-    ----------
-    name: unique name within a stack, e.g. ``box 20x20x2`` or ``star 5 30x2 #12``.
-    kind: the registry name of the builder (``box``, ``star``, ...).
-    vertices: (V, 3) mm, corners of the exact boundary.
-    faces: vertex-index loops, counter-clockwise seen from outside.
-    convex_pieces: (Vi, 3) mm corner arrays of convex pieces whose union is the chip.
-    fibre_directions: (F, 3) unit vectors in the local frame.
-    volume_mm3: exact volume (mm^3).
-    inertia_mm2: (3,) principal moments of inertia per unit mass about the local axes
-        (mm^2; multiply by the mass in g for g mm^2).
-    half_extents: (3,) mm, half sizes of the local bounding box.
-    box_centre: (3,) mm, centre of the local bounding box (0 for symmetric chips).
-    collision: ``box`` (one PyBullet box), ``cylinder`` (a PyBullet cylinder along local
-        x of radius ``radius_mm``) or ``hull`` (one convex hull per piece).
-    thickness_mm: the chip's extent along local z.
-    """
-
-    name: str
-    kind: str
-    vertices: np.ndarray
-    faces: tuple[tuple[int, ...], ...]
-    convex_pieces: tuple[np.ndarray, ...]
-    fibre_directions: np.ndarray
-    volume_mm3: float
-    inertia_mm2: np.ndarray
-    half_extents: np.ndarray
-    box_centre: np.ndarray
-    collision: str = field(default="hull")
-    radius_mm: float = field(default=0.0)
-
-    @property
-    def thickness_mm(self) -> float:
-        return 2.0 * float(self.half_extents[2])
-
-    @property
-    def circumradius_mm(self) -> float:
-        """Radius of the smallest centred sphere holding the chip (mm)."""
-        return float(np.linalg.norm(self.vertices, axis=1).max())
-
-    @property
-    def plan_area_mm2(self) -> float:
-        """Area of the chip's outline (mm^2): volume over thickness."""
-        return self.volume_mm3 / self.thickness_mm
-
-
-def _frozen(array: np.ndarray) -> np.ndarray:
-    array = np.array(array, dtype=float)
-    array.setflags(write=False)
-    return array
-
-
-DEFAULT_FIBRES_DEG = {"beam": (0.0,), "fibre": (0.0,)}  # others: woven twill (0, 90)
-
-
-def _fibres(spec: ChipSpec, kind: str, axes: np.ndarray | None = None) -> np.ndarray:
-    """Unit fibre directions in the chip frame; ``axes`` (2, 2): the frame's x and y axes
-    (columns) in the coordinates the directions are given in."""
-    degrees = spec.fibre_directions_deg or DEFAULT_FIBRES_DEG.get(kind, (0.0, 90.0))
-    angles = np.radians(np.asarray(degrees, dtype=float))
-    plane = np.column_stack([np.cos(angles), np.sin(angles)])
-    if axes is not None:
-        plane = plane @ axes
-    return np.column_stack([plane, np.zeros(len(plane))])
 
 
 def _at_height(outline: np.ndarray, z: float) -> np.ndarray:
@@ -288,29 +224,103 @@ def _slender(kind: str):
 
 def file_shape(spec: ChipSpec, rng: np.random.Generator | None = None, size: float = 1.0):
     """A chip read from a geometry file (STL, OBJ, PLY); see :mod:`packing.shapefiles`."""
-    from packing.shapefiles import shape_from_file
-
     return shape_from_file(spec, size)
 
 
 Builder = Callable[[ChipSpec, "np.random.Generator | None", float], ChipShape]
-SHAPES: Registry[Builder] = Registry("shape")
-SHAPES.register("box", box_shape)
-SHAPES.register("polygon", polygon_shape)
-SHAPES.register("star", star_shape)
-SHAPES.register("random_polygon", random_polygon_shape)
-SHAPES.register("beam", _slender("beam"))
-SHAPES.register("fibre", _slender("fibre"))
-SHAPES.register("file", file_shape)
+SizeCheck = Callable[[ChipSpec, str], None]
 
-VARIES_PER_CHIP = {"random_polygon"}  # a new outline for every chip
+
+@dataclass(frozen=True)
+class ShapeKind:
+    """One registered shape: how to build it, which sizes make one, and how big it is.
+
+    ``check(spec, key)`` refuses sizes that do not make this shape (``key`` names the
+    scenario table); ``extent(spec)`` is (largest in-plane extent, circumradius) in mm
+    of a chip of nominal size, used to check it fits the target and clears the floor.
+    """
+
+    build: Builder
+    check: SizeCheck
+    extent: Callable[[ChipSpec], tuple[float, float]]
+    varies_per_chip: bool = False  # a new outline for every chip
+
+
+def _plate_check(spec: ChipSpec, key: str) -> None:
+    if spec.thickness_mm >= spec.length_mm:
+        raise InputError(f"{key}.thickness_mm: a chip must be thinner than it is across")
+
+
+def _box_check(spec: ChipSpec, key: str) -> None:
+    if spec.thickness_mm >= min(spec.length_mm, spec.width_mm):
+        raise InputError(f"{key}.thickness_mm: a chip must be thinner than it is long and wide")
+
+
+def _slender_check(spec: ChipSpec, key: str) -> None:
+    if spec.section == "box" and spec.width_mm > spec.length_mm:
+        raise InputError(f"{key}.width_mm: a {spec.shape} must not be wider than it is long")
+    if spec.section == "box" and spec.thickness_mm > spec.width_mm:
+        raise InputError(f"{key}.thickness_mm: a {spec.shape} must not be thicker than it is wide")
+    if spec.thickness_mm >= spec.length_mm:
+        raise InputError(f"{key}.thickness_mm: a {spec.shape} must be longer than it is thick")
+
+
+def _file_check(spec: ChipSpec, key: str) -> None:
+    if not spec.file:
+        raise InputError(f"{key}.file: give the geometry file of a `file` chip")
+
+
+def _rectangle_extent(spec: ChipSpec) -> tuple[float, float]:
+    width = spec.width_mm if spec.shape == "box" or spec.section == "box" else spec.thickness_mm
+    across = math.hypot(spec.length_mm, width)
+    return across, 0.5 * math.hypot(across, spec.thickness_mm)
+
+
+def _round_extent(spec: ChipSpec) -> tuple[float, float]:
+    return spec.length_mm, 0.5 * math.hypot(spec.length_mm, spec.thickness_mm)
+
+
+def _file_extent(spec: ChipSpec) -> tuple[float, float]:
+    shape = shape_from_file(spec)
+    across = 2 * float(np.linalg.norm(shape.vertices[:, :2], axis=1).max())
+    return across, shape.circumradius_mm
+
+
+SHAPES: Registry[ShapeKind] = Registry("shape")
+SHAPES.register("box", ShapeKind(box_shape, _box_check, _rectangle_extent))
+SHAPES.register("polygon", ShapeKind(polygon_shape, _plate_check, _round_extent))
+SHAPES.register("star", ShapeKind(star_shape, _plate_check, _round_extent))
+SHAPES.register(
+    "random_polygon",
+    ShapeKind(random_polygon_shape, _plate_check, _round_extent, varies_per_chip=True),
+)
+SHAPES.register("beam", ShapeKind(_slender("beam"), _slender_check, _rectangle_extent))
+SHAPES.register("fibre", ShapeKind(_slender("fibre"), _slender_check, _rectangle_extent))
+SHAPES.register("file", ShapeKind(file_shape, _file_check, _file_extent))
+
+
+def varies_per_chip(spec: ChipSpec) -> bool:
+    """Whether every chip of this spec gets its own outline (random polygons)."""
+    return SHAPES.get(spec.shape, key="chip.shape").varies_per_chip
+
+
+def check_chip(spec: ChipSpec, key: str) -> tuple[float, float]:
+    """Refuse a chip spec that makes no chip (naming ``key``); returns its nominal
+    (largest in-plane extent, circumradius) in mm."""
+    kind = SHAPES.get(spec.shape, key=f"{key}.shape")
+    if spec.shape != "file" and spec.file:
+        raise InputError(f'{key}.file: only read when shape = "file" (shape is {spec.shape!r})')
+    kind.check(spec, key)
+    if spec.size_distribution != "fixed" and spec.size_spread == 0:
+        raise InputError(f"{key}.size_spread: a {spec.size_distribution} size needs a spread > 0")
+    return kind.extent(spec)
 
 
 def make_shape(
     spec: ChipSpec, rng: np.random.Generator | None = None, size: float = 1.0
 ) -> ChipShape:
     """Build the shape named by ``spec.shape`` from the registry."""
-    return SHAPES.get(spec.shape, key="chip.shape")(spec, rng, size)
+    return SHAPES.get(spec.shape, key="chip.shape").build(spec, rng, size)
 
 
 def shape_record(shape: ChipShape) -> dict:

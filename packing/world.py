@@ -19,10 +19,8 @@ Choices that make a chip stack right before fast (measured; see the README):
 
 from __future__ import annotations
 
-import ctypes
 import logging
 import os
-import sys
 import tempfile
 from dataclasses import dataclass
 
@@ -30,30 +28,11 @@ import numpy as np
 from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
-from packing.config import PhysicsSpec
-from packing.errors import SimulationError
+from core.errors import SimulationError
+from core.schema import PhysicsSpec
+from packing.bullet import pybullet
+from packing.chipshape import ChipShape
 from packing.presets import PhysicsPreset
-from packing.shapes import ChipShape
-
-
-def _import_pybullet_quietly():
-    # pybullet prints its build time to stderr from C on import: noise in a one-line error.
-    sys.stderr.flush()
-    saved = os.dup(2)
-    try:
-        with open(os.devnull, "w") as devnull:
-            os.dup2(devnull.fileno(), 2)
-            import pybullet as module
-
-            ctypes.CDLL(None).fflush(None)  # the C buffer, before fd 2 is restored
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
-    return module
-
-
-pybullet = _import_pybullet_quietly()
-
 
 __all__ = ["MM_PER_UNIT", "GRAVITY_MM_S2", "ChipWorld", "GROUND", "ContactRecord"]
 

@@ -12,7 +12,7 @@ import logging
 import os
 import sys
 
-from packing.errors import ChipstackError
+from core.errors import ChipstackError
 
 __all__ = ["main"]
 
@@ -147,8 +147,6 @@ def _names(text: str | None) -> list[str] | None:
 
 
 def _run(args: argparse.Namespace) -> None:
-    from tqdm import tqdm
-
     from pipeline.run import run_pipeline
     from pipeline.scenario_files import load_scenario
 
@@ -159,12 +157,12 @@ def _run(args: argparse.Namespace) -> None:
         scenario = scenario.with_seed(args.seed)
     out = args.out or f"runs/{scenario.name}-seed{scenario.seed}"
     descriptors = _names(args.descriptors)
-    if descriptors is not None and args.to not in ("geometry", "mesh"):
-        raise ChipstackError("--descriptors: only with --to geometry or --to mesh")
+    if descriptors is not None and args.to == "packing":
+        raise ChipstackError("--descriptors: only with --to geometry or a later stage")
     if args.formats is not None:
         import dataclasses
 
-        from packing.config import check_formats
+        from meshing.stage import check_formats
 
         formats = tuple(f.strip() for f in args.formats.split(",") if f.strip())
         check_formats(formats, "--formats")
@@ -176,96 +174,83 @@ def _run(args: argparse.Namespace) -> None:
         return
     if args.workers is not None or args.scheduler is not None:
         raise ChipstackError("--workers, --scheduler: only with --repeats (a single run is local)")
-    n_batches = -(-scenario.deposition.chips // scenario.deposition.batch_size)
-    bars: list[tqdm] = []  # drawn at the first batch, so early errors stay one line
-
-    def progress(batch: int, result) -> None:
-        if not bars:
-            bars.append(
-                tqdm(
-                    total=n_batches,
-                    desc="depositing",
-                    unit="batch",
-                    disable=args.quiet,
-                    file=sys.stderr,
-                )
-            )
-        if result is not None:  # containers report only their last batch
-            bars[0].set_postfix(chips=len(result.positions), sim_s=f"{result.sim_time_s:.2f}")
-        bars[0].update(1)
-
+    bars = _StageBars(args.quiet)
     try:
-        path, stack, manifest = run_pipeline(
+        path, _, manifest = run_pipeline(
             scenario,
             out,
             to=args.to,
             overwrite=args.overwrite,
-            progress=progress,
+            progress=bars.update,
             command=sys.argv,
             descriptors=descriptors,
         )
     finally:
-        for bar in bars:
-            bar.close()
+        bars.close()
     if not args.quiet:
-        times = manifest["wall_time_s"]
-        if manifest["stages_reused"]:
-            print(f"reused (inputs unchanged): {', '.join(manifest['stages_reused'])}")
-        if "drop" in manifest:
-            print(f"{manifest['drop']['settled']} settled drops written to {path}")
-            return
-        summary = manifest["packing"]
-        last = summary["batches"][-1]
-        took = f"{times['packing']:.1f} s" if "packing" in times else "reused"
-        print(
-            f"{stack.n_chips} chips in {len(stack.batches)} batches, "
-            f"top {last['top_mm']:.1f} mm, {summary['outside_target']} outside the target, "
-            f"max interpenetration {last['max_chip_penetration_mm']:.3f} mm; "
-            f"deposition {took}; written to {path}"
-        )
-        if "geometry" in manifest:
-            _print_geometry(path, manifest["geometry"]["descriptor_time_s"])
-        for kind, m in manifest.get("mesh", {}).items():
-            if "error" in m:
-                print(f"{kind} mesh: not written (see the warning above)")
-                continue
-            print(
-                f"{kind} mesh: {m['elements']:,} elements, {m['nodes']:,} nodes, quality min "
-                f"{m['quality_min']:.3f}, largest chip volume error "
-                f"{100 * m['chip_volume_error_max']:.2f} %; in {m['info']['mesh_time_s']:.1f} s"
+        _print_run(path, manifest)
+
+
+class _StageBars:
+    """One progress bar per stage, drawn at its first report (so that early errors
+    stay one line) and closed when the next stage starts."""
+
+    VERBS = {"packing": "depositing", "geometry": "describing", "mesh": "meshing"}
+
+    def __init__(self, quiet: bool) -> None:
+        self.quiet = quiet
+        self.bar = None
+        self.stage = None
+
+    def update(self, stage: str, done: int, total: int, detail: dict) -> None:
+        from tqdm import tqdm
+
+        if stage != self.stage:
+            self.close()
+            self.stage = stage
+            self.bar = tqdm(
+                total=total,
+                desc=self.VERBS.get(stage, stage),
+                unit="batch" if stage == "packing" else "step",
+                disable=self.quiet,
+                file=sys.stderr,
             )
+        if detail:
+            self.bar.set_postfix(detail)
+        self.bar.update(done - self.bar.n)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
 
 
-def _print_geometry(path, seconds: float) -> None:
-    import json
+def _print_run(path, manifest: dict) -> None:
+    """Each completed stage's lines of summary, with where the run was written."""
     from pathlib import Path
 
-    data = json.loads((Path(path) / "geometry" / "descriptors.json").read_text())
-    d = data["descriptors"]
-    parts = []
-    if "contacts" in d:
-        s = d["contacts"]["scalars"]
-        parts.append(
-            "contacts per chip: "
-            + ", ".join(
-                f"{k} {s[k + '_per_chip']['value']:.2f}" for k in ("point", "line", "surface")
-            )
-        )
-    if "stack" in d:
-        s = d["stack"]["scalars"]
-        parts.append(
-            f"mean height {s['height_mean_mm']['value']:.1f} mm, "
-            f"volume fraction {s['volume_fraction']['value']:.3f}"
-        )
-    if "layers" in d:
-        parts.append(f"highest layer {int(d['layers']['scalars']['highest_layer']['value'])}")
-    print(f"descriptors in {seconds:.2f} s: " + "; ".join(parts))
+    from core.stages import load_stages
+
+    times = manifest["wall_time_s"]
+    if manifest["stages_reused"]:
+        print(f"reused (inputs unchanged): {', '.join(manifest['stages_reused'])}")
+    first = load_stages()[0]
+    for stage in load_stages():
+        if stage.name not in manifest["stages_completed"]:
+            continue
+        summary = manifest if stage is first else manifest.get(stage.name, {})
+        lines = stage.report(summary, Path(path) / stage.name)
+        if stage is first and lines and "drop" not in manifest:
+            took = f"{times[stage.name]:.1f} s" if stage.name in times else "reused"
+            lines[0] += f"; deposition {took}; written to {path}"
+        for line in lines:
+            print(line)
 
 
 def _ensemble(args: argparse.Namespace, scenario, out: str, descriptors) -> None:
     from tqdm import tqdm
 
-    from pipeline.run import run_ensemble
+    from pipeline.ensemble import run_ensemble
 
     bars: list[tqdm] = []
 
@@ -336,7 +321,7 @@ def _ensemble(args: argparse.Namespace, scenario, out: str, descriptors) -> None
 
 
 def _describe(args: argparse.Namespace) -> None:
-    from pipeline.run import describe_run
+    from pipeline.describe import describe_run
 
     manifest = describe_run(
         args.run_dir,
@@ -345,7 +330,13 @@ def _describe(args: argparse.Namespace) -> None:
         overwrite=args.overwrite,
     )
     if not args.quiet:
-        _print_geometry(args.run_dir, manifest["geometry"]["descriptor_time_s"])
+        from pathlib import Path
+
+        from geometry.stage import STAGE
+
+        folder = Path(args.run_dir) / "geometry"
+        for line in STAGE.report(manifest["geometry"], folder):
+            print(line)
         print(f"written to {args.run_dir}/geometry ({len(manifest['geometry']['files'])} files)")
 
 

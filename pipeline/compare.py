@@ -6,9 +6,9 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from core.errors import InputError
+from core.schema import printable
 from geometry.ensemble import compare_ensembles
-from packing.config import printable
-from packing.errors import InputError
 from pipeline.rundir import RunDirectory
 from pipeline.stackfiles import read_json
 
@@ -117,7 +117,7 @@ def compare_runs(
     command: list[str] | None = None,
 ) -> tuple[dict[str, Any], str]:
     """Compare two ensembles; writes compare.json, compare.md and Fig. 12 into ``out``."""
-    from pipeline.figures import comparison_figures
+    from export.run_figures import comparison_figures
 
     ensembles = (load_ensemble(run_a), load_ensemble(run_b))
     labels = (Path(run_a).name or str(run_a), Path(run_b).name or str(run_b))

@@ -11,14 +11,14 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from core.errors import InputError
+from core.schema import printable
 from diagnosis.drops import diagnose_drops
 from diagnosis.spec import Experiment, load_experiment, read_drop_observations
 from diagnosis.stacks import QUANTITIES, diagnose_stacks, synthesize_quantities
 from diagnosis.synth import synthesize_drops
 from export.diagnosis_report import write_diagnosis
-from packing.config import printable
 from packing.effects import EFFECTS, check_effects
-from packing.errors import InputError
 from pipeline.execution import Executor
 from pipeline.rundir import RunDirectory
 from pipeline.scenario_files import load_scenario

@@ -15,8 +15,8 @@ import uuid
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from packing.config import printable
-from packing.errors import InputError
+from core.errors import InputError
+from core.schema import printable
 
 __all__ = ["Executor", "CONNECT_TIMEOUT_S"]
 

@@ -15,7 +15,7 @@ import socket
 import time
 from pathlib import Path
 
-from packing.errors import InputError
+from core.errors import InputError
 
 __all__ = ["DirectoryLock", "lock_path"]
 

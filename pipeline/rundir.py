@@ -15,7 +15,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from packing.errors import InputError
+from core.errors import InputError
+from core.stages import Checkpoint, stage_names
 from pipeline.locks import DirectoryLock
 
 __all__ = [
@@ -316,8 +317,6 @@ class EnsembleDirectory:
 
 # -- single runs: built stage by stage, resumable, cached ----------------------------------
 
-STAGE_ORDER = ("packing", "geometry", "mesh")
-
 
 class Interrupted(KeyboardInterrupt):
     """An interrupted run; ``hint`` says what was kept (for the one-line message)."""
@@ -395,7 +394,6 @@ class StagedRun:
     """
 
     JOURNAL = "manifest.json"
-    STATE = ".packing-state.npz"
 
     def __init__(self, target: str | Path, overwrite: bool = False) -> None:
         self._checker = RunDirectory(target, overwrite=True)
@@ -484,7 +482,7 @@ class StagedRun:
         """The stages complete in the build, in order."""
         return [
             s
-            for s in STAGE_ORDER
+            for s in stage_names()
             if isinstance(self.stages.get(s), dict) and self.stages[s].get("status") == "complete"
         ]
 
@@ -500,53 +498,29 @@ class StagedRun:
 
     def invalidate(self, stage: str) -> None:
         """Drop ``stage`` and every stage after it (their folders and journal entries)."""
-        for name in STAGE_ORDER[STAGE_ORDER.index(stage) :]:
+        names = stage_names()
+        for name in names[names.index(stage) :]:
             self.stages.pop(name, None)
             _remove(self.work / name)
-        if stage == "packing":
-            (self.work / self.STATE).unlink(missing_ok=True)
+            _state_file(self.work, name).unlink(missing_ok=True)
         self.journal["stages_completed"] = self.completed
         self._write_journal()
 
-    def begin_packing(self, inputs: str):
-        """Start the packing stage, or find where a killed run left it: returns the
-        deposition state after its last completed batch, or None to start afresh."""
-        from packing.checkpoint import state_from_arrays
-
-        entry = self.stages.get("packing")
-        state_file = self.work / self.STATE
-        if (
+    def checkpoint(self, stage: str, inputs: str) -> RunCheckpoint:
+        """Start ``stage`` (one that saves partial state), keeping what a killed run of it
+        with the same inputs completed; the stage resumes through the returned object."""
+        entry = self.stages.get(stage)
+        if not (
             isinstance(entry, dict)
             and entry.get("status") == "running"
             and entry.get("inputs_sha256") == inputs
-            and state_file.is_file()
+            and _state_file(self.work, stage).is_file()
         ):
-            try:
-                import numpy as np
-
-                with np.load(state_file, allow_pickle=False) as arrays:
-                    state = state_from_arrays(dict(arrays), str(state_file))
-            except (OSError, ValueError, InputError) as exc:
-                log.warning("%s: unreadable (%s); depositing from the start", state_file, exc)
-            else:
-                if state.batches_done == entry.get("batches_completed"):
-                    entry["resumed_after_batch"] = state.batches_done
-                    self._write_journal()
-                    log.info("resuming the deposition after batch %d", state.batches_done)
-                    return state
-        self.invalidate("packing")
-        self.stages["packing"] = {"inputs_sha256": inputs, "status": "running"}
-        self.stages["packing"]["batches_completed"] = 0
-        self._write_journal()
-        return None
-
-    def save_batch(self, state) -> None:
-        """Record a completed batch: its state file first, then the journal."""
-        from packing.checkpoint import state_to_arrays
-
-        save_npz_atomically(self.work / self.STATE, state_to_arrays(state))
-        self.stages["packing"]["batches_completed"] = state.batches_done
-        self._write_journal()
+            self.invalidate(stage)
+            self.stages[stage] = {"inputs_sha256": inputs, "status": "running"}
+            self.stages[stage]["batches_completed"] = 0
+            self._write_journal()
+        return RunCheckpoint(self, stage)
 
     @contextlib.contextmanager
     def stage(self, name: str, inputs: str):
@@ -573,8 +547,7 @@ class StagedRun:
         if isinstance(previous, dict) and "resumed_after_batch" in previous:
             entry["resumed_after_batch"] = previous["resumed_after_batch"]
         self.stages[name] = entry
-        if name == "packing":
-            (self.work / self.STATE).unlink(missing_ok=True)
+        _state_file(self.work, name).unlink(missing_ok=True)
         self.journal["stages_completed"] = self.completed
         self._write_journal()
 
@@ -637,6 +610,55 @@ class StagedRun:
             raise InputError(
                 f"{out}: cannot write the run ({reason}); nothing was written"
             ) from None
+
+
+class RunCheckpoint(Checkpoint):
+    """A stage's partial state in the build: ``.STAGE-state.npz`` and the journal's count
+    of completed steps (batches), written state file first."""
+
+    def __init__(self, run: StagedRun, stage: str) -> None:
+        self.run, self.stage = run, stage
+        self.path = _state_file(run.work, stage)
+
+    @property
+    def _entry(self) -> dict[str, Any]:
+        return self.run.stages[self.stage]
+
+    def resume(self, decode):
+        """``decode(arrays, where)`` of the saved state, or None to start afresh (nothing
+        saved, a count that disagrees with the journal, or an unreadable file)."""
+        if not self.path.is_file():
+            return None
+        try:
+            import numpy as np
+
+            with np.load(self.path, allow_pickle=False) as arrays:
+                state = decode(dict(arrays), str(self.path))
+        except (OSError, ValueError, InputError) as exc:
+            log.warning(
+                "%s: unreadable (%s); starting %s from the start", self.path, exc, self.stage
+            )
+        else:
+            done = getattr(state, "batches_done", None)
+            if done is not None and done == self._entry.get("batches_completed"):
+                self._entry["resumed_after_batch"] = done
+                self.run._write_journal()
+                log.info("resuming %s after batch %d", self.stage, done)
+                return state
+        self.path.unlink(missing_ok=True)
+        self._entry["batches_completed"] = 0
+        self.run._write_journal()
+        return None
+
+    def save(self, arrays: dict[str, Any], done: int) -> None:
+        """Record ``done`` completed batches: the state file first, then the journal."""
+        save_npz_atomically(self.path, arrays)
+        self._entry["batches_completed"] = done
+        self.run._write_journal()
+
+
+def _state_file(work: Path, stage: str) -> Path:
+    return work / f".{stage}-state.npz"
 
 
 def _read_journal(path: Path) -> dict[str, Any] | None:

@@ -8,8 +8,8 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from packing.config import Scenario, printable, scenario_from_dict, scenario_to_dict
-from packing.errors import InputError
+from core.errors import InputError
+from core.schema import Scenario, printable, scenario_from_dict, scenario_to_dict
 
 __all__ = ["BUILTIN", "builtin_names", "load_scenario", "dumps_toml"]
 

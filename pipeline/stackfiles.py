@@ -9,11 +9,11 @@ from pathlib import Path
 
 import numpy as np
 
+from core.errors import InputError
+from core.schema import MAX_LENGTH_MM, Scenario, printable
 from export.tables import POSE_COLUMNS
 from geometry.arrangement import Arrangement
-from packing.config import MAX_LENGTH_MM, Scenario, printable
-from packing.errors import InputError
-from packing.shapes import VARIES_PER_CHIP, make_shape, shape_from_record
+from packing.shapes import make_shape, shape_from_record, varies_per_chip
 from pipeline.scenario_files import load_scenario
 
 __all__ = ["load_run", "read_json"]
@@ -87,7 +87,7 @@ def _read_shapes(path: Path, scenario: Scenario) -> dict:
     """The run's chip shapes by name (``packing/shapes.json``; runs from before that file
     existed rebuild their single shape from the scenario)."""
     if not path.is_file():
-        if len(scenario.chips) == 1 and scenario.chips[0].shape not in VARIES_PER_CHIP:
+        if len(scenario.chips) == 1 and not varies_per_chip(scenario.chips[0]):
             shape = make_shape(scenario.chips[0])
             return {shape.name: shape}
         raise InputError(f"{path}: missing; the chip shapes of this run are unknown")

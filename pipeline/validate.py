@@ -25,8 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from packing.config import printable
-from packing.errors import InputError
+from core.errors import InputError
+from core.schema import printable
 from pipeline.run import derive_seed
 from pipeline.scenario_files import load_scenario
 
@@ -47,8 +47,8 @@ MEASURED = {"container AR 25": 18.0, "container AR 10": 37.0}
 
 
 def _drop_task(scenario) -> dict:
-    from geometry.scatter import drop_statistics
     from packing.drop import drop_chips
+    from packing.scatter import drop_statistics
 
     drops = drop_chips(scenario)
     stats = drop_statistics(drops.positions[:, :2], scenario.drop.yaw_deg)
@@ -90,7 +90,7 @@ def _mat_task(scenario) -> dict:
 
 def _container_task(scenario) -> dict:
     from packing import deposit
-    from pipeline.run import container_summary
+    from packing.stage import container_summary
 
     return container_summary(deposit(scenario), scenario)
 
@@ -208,7 +208,7 @@ def _rows(results: dict[str, list], folder: Path, seed: int) -> list[dict[str, A
     if "drop" in results:
         runs = results["drop"]
         from export.figures import plot_drops
-        from geometry.scatter import drop_statistics
+        from packing.scatter import drop_statistics
 
         first = runs[0]
         plot_drops(folder / "fig15_drops.png", np.array(first["xy"]), first)

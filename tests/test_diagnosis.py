@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 from conftest import SMALL_SCENARIO, drop_spec, run_cli
 
+from core.errors import InputError
+from core.schema import ChipSpec
 from diagnosis.observables import drop_observables, observable_names
 from diagnosis.statistics import energy_test, gap_statistic, holm
-from packing.config import ChipSpec
 from packing.effects import AIR_DENSITY_G_MM3, EFFECTS, FlightState, check_effects
-from packing.errors import InputError
 from packing.shapes import make_shape
 
 NAMES = observable_names(True, True)

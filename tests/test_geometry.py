@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from core.errors import InputError
+from core.schema import ChipSpec, GeometrySpec
 from geometry.arrangement import Arrangement
 from geometry.contacts import GROUND, KINDS, PLACES, classify_patch, find_contacts
 from geometry.describe import DESCRIPTORS, describe
@@ -17,8 +19,6 @@ from geometry.overlaps import find_overlaps
 from geometry.rays import ray_maps
 from geometry.solids import chip_solids, union_solid
 from geometry.voxels import voxel_solid_profile, voxelize
-from packing.config import ChipSpec, GeometrySpec
-from packing.errors import InputError
 from packing.shapes import box_shape
 
 SQUARE = box_shape(ChipSpec())  # 20 x 20 x 2 mm, fibres at 0 and 90 deg

@@ -13,12 +13,12 @@ import pytest
 import pyvista
 from scipy.spatial.transform import Rotation
 
+from core.schema import ChipSpec
 from export.mesh_files import MESH_FORMATS, write_mesh
 from geometry.arrangement import Arrangement
 from geometry.contacts import find_contacts
 from meshing import PORE, GmshSession, MeshingError, check_mesh, conformal_mesh, voxel_mesh
 from meshing.checks import element_faces, exact_chip_volumes
-from packing.config import ChipSpec
 from packing.shapes import box_shape
 
 SQUARE = box_shape(ChipSpec())

@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
+from core.schema import ChipSpec, PhysicsSpec
 from packing import PRESETS, ChipWorld, deposit, make_shape, scenario_from_dict
-from packing.config import ChipSpec, PhysicsSpec
 from packing.overlap import floor_penetration_mm, penetrating_pairs
 from packing.world import GROUND
 

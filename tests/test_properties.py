@@ -9,8 +9,8 @@ import math
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from packing.config import scenario_from_dict
-from packing.errors import InputError
+from core.errors import InputError
+from core.schema import scenario_from_dict
 from pipeline.scenario_files import _parse, dumps_toml
 
 KEYS = {

@@ -108,7 +108,7 @@ def test_describe_refuses_a_run_another_process_holds(tmp_path, small_scenario):
 def _world_with_chip(z_mm: float, x_mm: float = 0.0):
     import numpy as np
 
-    from packing.config import ChipSpec, PhysicsSpec
+    from core.schema import ChipSpec, PhysicsSpec
     from packing.presets import PRESETS
     from packing.shapes import make_shape
     from packing.world import ChipWorld
@@ -126,8 +126,8 @@ def test_energy_growing_without_bound_is_an_error_naming_the_chips():
     import numpy as np
     import pytest
 
+    from core.errors import SimulationError
     from packing.deposition import _RestTracker
-    from packing.errors import SimulationError
 
     world, chip = _world_with_chip(50.0)
     try:

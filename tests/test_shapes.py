@@ -11,8 +11,8 @@ import pytest
 import trimesh
 from conftest import run_cli
 
+from core.schema import ChipSpec
 from packing import InputError, deposit, scenario_from_dict
-from packing.config import ChipSpec
 from packing.deposition import draw_shapes
 from packing.polygons import check_simple, convex_partition, is_convex, signed_area, star_polygon
 from packing.shapes import SHAPES, make_shape, shape_from_record, shape_record

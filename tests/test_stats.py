@@ -10,6 +10,7 @@ import pytest
 from scipy import stats as sps
 
 import geometry.stats as gs
+from core.errors import InputError
 from geometry.stats import (
     Comparison,
     Summary,
@@ -20,7 +21,6 @@ from geometry.stats import (
     summarize,
     welch,
 )
-from packing.errors import InputError
 
 # Student-t quantiles from tables, not from scipy, so a wrong quantile call fails.
 T975_DF4 = 2.7764451051977987

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from conftest import run_cli
 
-from geometry.container import container_fill
-from geometry.scatter import disc_radius, drop_statistics, rayleigh_p
 from packing import scenario_from_dict
+from packing.fill import container_fill
+from packing.scatter import disc_radius, drop_statistics, rayleigh_p
 
 
 def test_drop_statistics_of_points_on_the_diagonals():

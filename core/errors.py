@@ -11,3 +11,9 @@ class InputError(ChipstackError, ValueError):
 
 class SimulationError(ChipstackError, RuntimeError):
     """The physics went wrong (NaN poses, runaway energy, ...)."""
+
+
+def printable(text: object) -> str:
+    """``text`` as is when it prints on one line, else its repr (messages stay one line)."""
+    text = str(text)
+    return text if text.isprintable() else repr(text)

@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from typing import Generic, TypeVar
 
-from packing.errors import InputError
+from core.errors import InputError
 
 T = TypeVar("T")
 
@@ -34,7 +34,12 @@ class Registry(Generic[T]):
             ) from None
 
     def names(self) -> list[str]:
+        """The registered names, sorted (for messages and listings)."""
         return sorted(self._items)
+
+    def in_order(self) -> list[str]:
+        """The registered names in the order they were registered."""
+        return list(self._items)
 
     def __contains__(self, name: object) -> bool:
         return name in self._items

@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from packing.errors import InputError
+from core.errors import InputError
 
 __all__ = ["drop_statistics", "rayleigh_p", "disc_radius"]
 

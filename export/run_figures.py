@@ -8,11 +8,11 @@ from typing import Any
 
 import numpy as np
 
+from geometry.contacts import KINDS
+
 log = logging.getLogger(__name__)
 
 __all__ = ["single_run_figures", "ensemble_figures", "comparison_figures", "mesh_figure"]
-
-_KINDS = ("point", "line", "surface")
 
 
 def single_run_figures(folder: Path, description, arrangement) -> list[str]:
@@ -24,7 +24,7 @@ def single_run_figures(folder: Path, description, arrangement) -> list[str]:
     records = description.records
     if "contacts" in records:
         profiles = description.sections["contacts"]["profiles"]
-        mean = {kind: np.array(profiles[f"{kind}_per_chip_by_batch"]["values"]) for kind in _KINDS}
+        mean = {kind: np.array(profiles[f"{kind}_per_chip_by_batch"]["values"]) for kind in KINDS}
         batches = np.array(profiles["point_per_chip_by_batch"]["index"])
         figures.plot_contact_types(folder / "contact_types.png", batches, mean)
         written.append("figures/contact_types.png")
@@ -82,7 +82,7 @@ def ensemble_figures(folder: Path, summary: dict[str, Any]) -> list[str]:
         profiles = d["contacts"]["profiles"]
         batches = np.array(profiles["point_per_chip_by_batch"]["index"])
         mean, low, high = {}, {}, {}
-        for kind in _KINDS:
+        for kind in KINDS:
             mean[kind], low[kind], high[kind] = _bands(profiles[f"{kind}_per_chip_by_batch"])
         figures.plot_contact_types(folder / "contact_types.png", batches, mean, low, high)
         written.append("figures/contact_types.png")

@@ -1,0 +1,27 @@
+"""The neutral core under every stage: the typed scenario schema, the error types, the
+registry mechanism and the stage mechanism. It imports no stage package."""
+
+import logging
+
+from core.errors import ChipstackError, InputError, SimulationError, printable
+from core.registry import Registry
+from core.schema import Scenario, scenario_from_dict, scenario_to_dict
+from core.stages import Stage, StageInputs, StageOptions, StageOutput, load_stages
+
+__all__ = [
+    "ChipstackError",
+    "InputError",
+    "Registry",
+    "Scenario",
+    "SimulationError",
+    "Stage",
+    "StageInputs",
+    "StageOptions",
+    "StageOutput",
+    "load_stages",
+    "printable",
+    "scenario_from_dict",
+    "scenario_to_dict",
+]
+
+logging.getLogger(__name__).addHandler(logging.NullHandler())

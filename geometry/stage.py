@@ -1,0 +1,111 @@
+"""The geometry stage: the descriptors of a settled stack, written to ``geometry/``."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from core.schema import Scenario
+from core.stages import Stage, StageInputs, StageOptions, StageOutput
+from export.descriptors import write_description
+from geometry.arrangement import stack_history
+from geometry.contacts import KINDS
+from geometry.describe import Description, check_names, describe
+
+__all__ = ["GeometryStage", "STAGE", "write_geometry"]
+
+
+class GeometryStage(Stage):
+    """Every registered descriptor (or the ones asked for) of the stack after each batch."""
+
+    name = "geometry"
+    upstream = ("packing",)
+    sections = ("geometry",)
+    repeat_statistics = True
+
+    def check_options(self, options: StageOptions) -> None:
+        check_names(options.descriptors)
+
+    def key_extra(self, scenario: Scenario, options: StageOptions) -> dict[str, Any]:
+        return {
+            "descriptors": list(options.descriptors) if options.descriptors else None,
+            "figures": options.figures,
+        }
+
+    def compute(self, inputs: StageInputs) -> Description:
+        history = stack_history(inputs.result("packing"))
+        report = inputs.options.progress
+        if report is not None:
+            report(self.name, 0, 1, {})
+        description = describe(history, inputs.scenario.geometry, inputs.options.descriptors)
+        if report is not None:
+            report(self.name, 1, 1, {})
+        return description
+
+    def write(self, result: Description, folder: Path, inputs: StageInputs) -> StageOutput:
+        history = stack_history(inputs.result("packing"))
+        summary = write_geometry(folder, result, history, inputs.scenario, inputs.options.figures)
+        return StageOutput(summary)
+
+    def load(self, folder: Path, scenario: Scenario) -> dict[str, Any]:
+        """The written ``descriptors.json`` (downstream stages read numbers, not arrays)."""
+        return json.loads((folder / "descriptors.json").read_text())
+
+    def report(self, summary: Mapping[str, Any], folder: Path) -> list[str]:
+        data = json.loads((folder / "descriptors.json").read_text())
+        d = data["descriptors"]
+        parts = []
+        if "contacts" in d:
+            s = d["contacts"]["scalars"]
+            parts.append(
+                "contacts per chip: "
+                + ", ".join(f"{k} {s[k + '_per_chip']['value']:.2f}" for k in KINDS)
+            )
+        if "stack" in d:
+            s = d["stack"]["scalars"]
+            parts.append(
+                f"mean height {s['height_mean_mm']['value']:.1f} mm, "
+                f"volume fraction {s['volume_fraction']['value']:.3f}"
+            )
+        if "layers" in d:
+            parts.append(f"highest layer {int(d['layers']['scalars']['highest_layer']['value'])}")
+        seconds = summary["descriptor_time_s"]
+        return [f"descriptors in {seconds:.2f} s: " + "; ".join(parts)]
+
+    def summarize_repeats(self, folders, seeds) -> dict[str, Any]:
+        """Mean and 95 % confidence interval of every descriptor over the repeats."""
+        from geometry.ensemble import summarize_runs  # scipy.stats: 0.7 s to import
+
+        sections = [json.loads((f / "descriptors.json").read_text()) for f in folders]
+        summary = summarize_runs(sections, list(seeds))
+        summary["runs"] = [f.parent.name for f in folders]
+        return summary
+
+    def write_repeats(self, summary: dict[str, Any], path) -> None:
+        from export.run_figures import ensemble_figures  # matplotlib only when drawing
+
+        path("ensemble.json").write_text(json.dumps(summary, indent=2) + "\n")
+        ensemble_figures(path("figures/x").parent, summary)
+
+
+STAGE = GeometryStage()
+
+
+def write_geometry(
+    folder: Path, description: Description, history, scenario: Scenario, figures: bool
+) -> dict[str, Any]:
+    """Write a computed description's files into ``folder``; returns the manifest entry."""
+    extra = {"scenario": scenario.name, "seed": scenario.seed, "chips": history[-1].n_chips}
+    files = write_description(folder, description, history[-1], extra)
+    if figures:
+        from export.run_figures import single_run_figures  # matplotlib only when drawing
+
+        files += single_run_figures(folder / "figures", description, history[-1])
+    return {
+        "descriptors": list(description.records),
+        "files": sorted(files),
+        "descriptor_time_s": round(sum(description.timings_s.values()), 4),
+        "descriptor_times_s": {k: round(v, 4) for k, v in description.timings_s.items()},
+    }

@@ -1,0 +1,81 @@
+"""The rigid chip every shape builder makes, in its own frame (see :mod:`packing.shapes`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from core.schema import ChipSpec
+
+__all__ = ["ChipShape", "DEFAULT_FIBRES_DEG"]
+
+
+@dataclass(frozen=True, eq=False)
+class ChipShape:
+    """A rigid chip in its own frame.
+
+    Attributes
+    ----------
+    name: unique name within a stack, e.g. ``box 20x20x2`` or ``star 5 30x2 #12``.
+    kind: the registry name of the builder (``box``, ``star``, ...).
+    vertices: (V, 3) mm, corners of the exact boundary.
+    faces: vertex-index loops, counter-clockwise seen from outside.
+    convex_pieces: (Vi, 3) mm corner arrays of convex pieces whose union is the chip.
+    fibre_directions: (F, 3) unit vectors in the local frame.
+    volume_mm3: exact volume (mm^3).
+    inertia_mm2: (3,) principal moments of inertia per unit mass about the local axes
+        (mm^2; multiply by the mass in g for g mm^2).
+    half_extents: (3,) mm, half sizes of the local bounding box.
+    box_centre: (3,) mm, centre of the local bounding box (0 for symmetric chips).
+    collision: ``box`` (one PyBullet box), ``cylinder`` (a PyBullet cylinder along local
+        x of radius ``radius_mm``) or ``hull`` (one convex hull per piece).
+    thickness_mm: the chip's extent along local z.
+    """
+
+    name: str
+    kind: str
+    vertices: np.ndarray
+    faces: tuple[tuple[int, ...], ...]
+    convex_pieces: tuple[np.ndarray, ...]
+    fibre_directions: np.ndarray
+    volume_mm3: float
+    inertia_mm2: np.ndarray
+    half_extents: np.ndarray
+    box_centre: np.ndarray
+    collision: str = field(default="hull")
+    radius_mm: float = field(default=0.0)
+
+    @property
+    def thickness_mm(self) -> float:
+        return 2.0 * float(self.half_extents[2])
+
+    @property
+    def circumradius_mm(self) -> float:
+        """Radius of the smallest centred sphere holding the chip (mm)."""
+        return float(np.linalg.norm(self.vertices, axis=1).max())
+
+    @property
+    def plan_area_mm2(self) -> float:
+        """Area of the chip's outline (mm^2): volume over thickness."""
+        return self.volume_mm3 / self.thickness_mm
+
+
+def _frozen(array: np.ndarray) -> np.ndarray:
+    array = np.array(array, dtype=float)
+    array.setflags(write=False)
+    return array
+
+
+DEFAULT_FIBRES_DEG = {"beam": (0.0,), "fibre": (0.0,)}  # others: woven twill (0, 90)
+
+
+def _fibres(spec: ChipSpec, kind: str, axes: np.ndarray | None = None) -> np.ndarray:
+    """Unit fibre directions in the chip frame; ``axes`` (2, 2): the frame's x and y axes
+    (columns) in the coordinates the directions are given in."""
+    degrees = spec.fibre_directions_deg or DEFAULT_FIBRES_DEG.get(kind, (0.0, 90.0))
+    angles = np.radians(np.asarray(degrees, dtype=float))
+    plane = np.column_stack([np.cos(angles), np.sin(angles)])
+    if axes is not None:
+        plane = plane @ axes
+    return np.column_stack([plane, np.zeros(len(plane))])

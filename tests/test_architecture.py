@@ -1,0 +1,147 @@
+"""The shape of the code: a neutral core, stages from the registry, no import cycle, and
+results byte-identical to those recorded before the stages became registered objects."""
+
+from __future__ import annotations
+
+import ast
+import re
+import json
+from pathlib import Path
+
+import pytest
+from conftest import run_cli
+from golden import result_hashes
+
+from core.stages import load_stages, stage_names
+
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGES = ("core", "packing", "geometry", "meshing", "export", "diagnosis", "pipeline")
+
+
+def _module_name(path: Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _imports(path: Path) -> set[str]:
+    """Project modules ``path`` imports anywhere in it (inside functions too)."""
+    found = set()
+    tree = ast.parse(path.read_text())
+    typing_only = {  # imports for type annotations only never run
+        id(inner)
+        for node in ast.walk(tree)
+        if isinstance(node, ast.If) and getattr(node.test, "id", "") == "TYPE_CHECKING"
+        for inner in ast.walk(node)
+    }
+    for node in ast.walk(tree):
+        if id(node) in typing_only:
+            continue
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+        elif isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        else:
+            continue
+        found.update(n for n in names if n.split(".")[0] in PACKAGES)
+    return found
+
+
+def _graph() -> dict[str, set[str]]:
+    modules = {_module_name(p): p for package in PACKAGES for p in (ROOT / package).rglob("*.py")}
+    graph = {}
+    for name, path in modules.items():
+        # "a.b.c" imported as "from a.b import c" names module a.b.c or attribute c of a.b
+        graph[name] = {m for m in _imports(path) if m in modules and m != name}
+    return graph
+
+
+def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    state: dict[str, int] = {}
+
+    def visit(node: str, path: list[str]) -> list[str] | None:
+        state[node] = 1
+        for nxt in sorted(graph[node]):
+            if state.get(nxt) == 1:
+                return path[path.index(nxt) :] + [node, nxt] if nxt in path else [node, nxt]
+            if nxt not in state:
+                found = visit(nxt, path + [node])
+                if found:
+                    return found
+        state[node] = 2
+        return None
+
+    for node in sorted(graph):
+        if node not in state:
+            found = visit(node, [])
+            if found:
+                return found
+    return None
+
+
+def test_no_import_cycle_anywhere():
+    """Module-level and function-level imports together form no circle."""
+    graph = _graph()
+    assert len(graph) > 60
+    assert _cycle(graph) is None, f"import cycle: {' -> '.join(_cycle(graph))}"
+
+
+def test_the_cycle_check_finds_a_cycle():
+    assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) is not None
+    assert _cycle({"a": {"b"}, "b": {"c"}, "c": set()}) is None
+
+
+def test_core_imports_no_stage():
+    graph = _graph()
+    for name, targets in graph.items():
+        if name.split(".")[0] == "core":
+            outside = {t for t in targets if t.split(".")[0] != "core"}
+            assert not outside, f"{name} imports {outside}"
+
+
+def test_pybullet_only_in_one_module():
+    users = [
+        p.relative_to(ROOT).as_posix()
+        for package in PACKAGES
+        for p in (ROOT / package).rglob("*.py")
+        if re.search(r"^\s*(import pybullet|from pybullet)", p.read_text(), re.MULTILINE)
+    ]
+    assert users == ["packing/bullet.py"]
+
+
+def test_stages_come_from_the_registry_in_dependency_order():
+    names = stage_names()
+    assert names[:3] == ["packing", "geometry", "mesh"]
+    for stage in load_stages():
+        for upstream in stage.upstream:
+            assert names.index(upstream) < names.index(stage.name)
+
+
+def test_every_scenario_table_is_in_some_stage_key():
+    """A key no stage declares would not invalidate the stage cache when changed."""
+    from core.schema import Scenario, scenario_to_dict
+
+    declared = {section for stage in load_stages() for section in stage.sections}
+    assert set(scenario_to_dict(Scenario())) - {"name"} <= declared
+
+
+def test_unknown_stage_lists_the_registered_ones(tmp_path):
+    result = run_cli("run", "--to", "press", "--out", str(tmp_path / "x"))
+    assert result.returncode == 2
+    assert f"valid stages: {', '.join(stage_names())}" in result.stderr
+
+
+@pytest.mark.slow
+def test_reference_run_is_byte_identical_to_the_recorded_one(tmp_path):
+    """The reference stack (seed 0) through packing, geometry and a 1 mm voxel mesh in
+    every format: the same bytes as recorded before the stages became registered objects
+    (tests/data/reference_hashes.json; figures, manifest and timings excluded)."""
+    out = tmp_path / "run"
+    result = run_cli(
+        "run", str(ROOT / "tests/data/reference.toml"), "--to", "mesh", "--out", str(out), "--quiet"
+    )
+    assert result.returncode == 0, result.stderr
+    recorded = json.loads((ROOT / "tests/data/reference_hashes.json").read_text())
+    produced = result_hashes(out)
+    assert sorted(produced) == sorted(recorded)
+    changed = [name for name in recorded if produced[name] != recorded[name]]
+    assert not changed, f"result files changed: {changed}"
