@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from geometry.contacts import KINDS
+from geometry.describe import DESCRIPTORS
 
 log = logging.getLogger(__name__)
 
@@ -21,37 +22,9 @@ def single_run_figures(folder: Path, description, arrangement) -> list[str]:
 
     folder.mkdir(parents=True, exist_ok=True)
     written = []
-    records = description.records
-    if "contacts" in records:
-        profiles = description.sections["contacts"]["profiles"]
-        mean = {kind: np.array(profiles[f"{kind}_per_chip_by_batch"]["values"]) for kind in KINDS}
-        batches = np.array(profiles["point_per_chip_by_batch"]["index"])
-        figures.plot_contact_types(folder / "contact_types.png", batches, mean)
-        written.append("figures/contact_types.png")
-    if "thickness" in records:
-        grid = records["thickness"].grid
-        figures.plot_neh_map(
-            folder / "neh_map.png",
-            grid.x0 + grid.pixel_mm * np.arange(grid.nx + 1),
-            grid.y0 + grid.pixel_mm * np.arange(grid.ny + 1),
-            records["thickness"].neh,
-            grid.target_size_mm,
-        )
-        written.append("figures/neh_map.png")
-    if "layers" in records:
-        filling = records["layers"]
-        layers = np.arange(len(filling.chips))
-        figures.plot_layer_filling(
-            folder / "layer_filling.png", layers, filling.chips, filling.full_layer
-        )
-        figures.plot_profile(
-            folder / "porosity_profile.png",
-            filling.layer_mm * (layers + 0.5),
-            1.0 - filling.solid_fraction,
-            "porosity over the target (per layer)",
-            "Porosity through the thickness",
-        )
-        written += ["figures/layer_filling.png", "figures/porosity_profile.png"]
+    for name, record in description.records.items():
+        drawn = DESCRIPTORS.get(name).figures(record, description.sections[name], folder)
+        written += [f"figures/{file}" for file in drawn]
     a = arrangement
     mesh = stack_polydata(a.shapes, a.shape_index, a.positions, a.quaternions, a.batch)
     try:

@@ -9,6 +9,12 @@ import numpy as np
 
 from packing.stack import BatchResult, Stack
 
+
+def fmt(value: float, digits: int = 6) -> str:
+    """A number for a CSV cell: ``digits`` significant digits; empty when not finite."""
+    return f"{value:.{digits}g}" if np.isfinite(value) else ""
+
+
 POSE_COLUMNS = (
     "chip",
     "batch",

@@ -60,3 +60,16 @@ def write_pvd(path: Path, entries: list[tuple[float, str]]) -> None:
     ]
     lines += ["  </Collection>", "</VTKFile>", ""]
     Path(path).write_text("\n".join(lines))
+
+
+def write_voxel_image(path: Path, image) -> None:
+    """The voxel image as VTK ImageData (.vti): cell array ``chip`` (1 + chip index, 0 void)."""
+    import pyvista
+
+    grid = pyvista.ImageData(
+        dimensions=np.array(image.labels.shape) + 1,
+        spacing=(image.voxel_mm,) * 3,
+        origin=image.origin_mm,
+    )
+    grid.cell_data["chip"] = np.ascontiguousarray(image.labels).ravel(order="F")
+    grid.save(str(path))

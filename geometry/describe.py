@@ -9,9 +9,10 @@ each with its unit and a one-line definition.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -19,6 +20,8 @@ import numpy as np
 from core.errors import InputError
 from core.registry import Registry
 from core.schema import GeometrySpec
+from export.tables import fmt
+from export.vtk import write_voxel_image
 from geometry.arrangement import Arrangement
 from geometry.contacts import GROUND, KINDS, PLACES, ContactTable, contact_counts, find_contacts
 from geometry.layers import LayerFilling, layer_filling, slab_fractions
@@ -84,19 +87,44 @@ class _Context:
         return ray_maps(self.final, self.spec.pixel_mm)
 
 
+Table = tuple[list[str], Iterable[list]]  # CSV header and rows
+
+
+def _no_tables(record: Any) -> dict[str, Table]:
+    return {}
+
+
+def _no_files(record: Any, folder: Path) -> list[str]:
+    return []
+
+
+def _no_figures(record: Any, section: dict[str, Any], folder: Path) -> list[str]:
+    return []
+
+
 @dataclass(frozen=True)
 class Descriptor:
+    """A registered descriptor: how to compute it and what it writes.
+
+    compute(ctx) -> (record of arrays, JSON section); tables(record) -> {CSV name:
+    (header, rows)}; files(record, folder) -> other files written (names);
+    figures(record, section, folder) -> figures drawn into ``folder`` (names).
+    """
+
     name: str
     doc: str
     compute: Callable[[_Context], tuple[Any, dict[str, Any]]]
+    tables: Callable[[Any], dict[str, Table]] = _no_tables
+    files: Callable[[Any, Path], list[str]] = _no_files
+    figures: Callable[[Any, dict[str, Any], Path], list[str]] = _no_figures
 
 
 DESCRIPTORS: Registry[Descriptor] = Registry("descriptor")
 
 
-def _register(name: str, doc: str):
+def _register(name: str, doc: str, **outputs: Callable):
     def wrap(function):
-        DESCRIPTORS.register(name, Descriptor(name, doc, function))
+        DESCRIPTORS.register(name, Descriptor(name, doc, function, **outputs))
         return function
 
     return wrap
@@ -111,7 +139,52 @@ class ContactHistory:
     batches: tuple[int, ...]
 
 
-@_register("contacts", "contact types per chip (point, line, surface) and partner place, by NBD")
+def _contact_tables(history: ContactHistory) -> dict[str, Table]:
+    rows = []
+    for batch, table in zip(history.batches, history.tables, strict=True):
+        n = max(table.n_chips, 1)
+        rows.append(
+            [batch, table.n_chips]
+            + [fmt(np.sum(table.kind == k) / n) for k in range(len(KINDS))]
+            + [fmt(len(table) / n)]
+        )
+    by_batch = ["batch", "chips"] + [f"{k}_per_chip" for k in KINDS] + ["total_per_chip"]
+    final = history.tables[-1]
+    places = (*PLACES, "")
+    header = ["chip_a", "chip_b", "kind", "extent_1_mm", "extent_2_mm", "extent_3_mm"]
+    header += ["x_mm", "y_mm", "z_mm", "area_mm2", "b_seen_from_a", "a_seen_from_b"]
+    pairs = (
+        [
+            int(final.chip_a[k]),
+            int(final.chip_b[k]),
+            KINDS[final.kind[k]],
+            *(fmt(v) for v in final.extents_mm[k]),
+            *(fmt(v) for v in final.centre_mm[k]),
+            fmt(final.area_mm2[k]),
+            places[final.place_a[k]],
+            places[final.place_b[k]] if final.place_b[k] >= 0 else "",
+        ]
+        for k in range(len(final))
+    )
+    return {"contacts_by_batch.csv": (by_batch, rows), "contacts.csv": (header, pairs)}
+
+
+def _contact_figures(history: ContactHistory, section: dict[str, Any], folder: Path) -> list[str]:
+    from export import figures  # matplotlib only when drawing
+
+    profiles = section["profiles"]
+    mean = {kind: np.array(profiles[f"{kind}_per_chip_by_batch"]["values"]) for kind in KINDS}
+    batches = np.array(profiles["point_per_chip_by_batch"]["index"])
+    figures.plot_contact_types(folder / "contact_types.png", batches, mean)
+    return ["contact_types.png"]
+
+
+@_register(
+    "contacts",
+    "contact types per chip (point, line, surface) and partner place, by NBD",
+    tables=_contact_tables,
+    figures=_contact_figures,
+)
 def _contacts(ctx: _Context):
     spec = ctx.spec
     tables = tuple(
@@ -165,7 +238,43 @@ def _contacts(ctx: _Context):
 
 
 # -- local stack thickness -----------------------------------------------------------------
-@_register("thickness", "local stack thickness: chips crossed by vertical rays (NEH map)")
+def _thickness_tables(maps: RayMaps) -> dict[str, Table]:
+    grid = maps.grid
+    rows = (
+        [
+            fmt(grid.x[i]),
+            fmt(grid.y[j]),
+            int(grid.on_target[i, j]),
+            int(maps.neh[i, j]),
+            fmt(maps.top_mm[i, j]),
+            fmt(maps.solid_mm[i, j]),
+        ]
+        for i in range(grid.nx)
+        for j in range(grid.ny)
+    )
+    return {"neh_map.csv": (["x_mm", "y_mm", "on_target", "neh", "top_mm", "solid_mm"], rows)}
+
+
+def _thickness_figures(maps: RayMaps, section: dict[str, Any], folder: Path) -> list[str]:
+    from export import figures  # matplotlib only when drawing
+
+    grid = maps.grid
+    figures.plot_neh_map(
+        folder / "neh_map.png",
+        grid.x0 + grid.pixel_mm * np.arange(grid.nx + 1),
+        grid.y0 + grid.pixel_mm * np.arange(grid.ny + 1),
+        maps.neh,
+        grid.target_size_mm,
+    )
+    return ["neh_map.png"]
+
+
+@_register(
+    "thickness",
+    "local stack thickness: chips crossed by vertical rays (NEH map)",
+    tables=_thickness_tables,
+    figures=_thickness_figures,
+)
 def _thickness(ctx: _Context):
     maps = ctx.rays
     on = maps.grid.on_target
@@ -203,7 +312,50 @@ def _thickness(ctx: _Context):
 
 
 # -- layer filling -------------------------------------------------------------------------
-@_register("layers", "layer filling by centre of mass, solid and covered fractions per layer")
+def _layer_tables(f: LayerFilling) -> dict[str, Table]:
+    h = f.layer_mm
+    header = ["layer", "z_low_mm", "z_high_mm", "chips", "chips_over_target", "full_layer"]
+    header += ["solid_fraction", "porosity", "covered_fraction"]
+    rows = (
+        [
+            k,
+            fmt(k * h),
+            fmt((k + 1) * h),
+            int(f.chips[k]),
+            int(f.chips_over_target[k]),
+            fmt(f.full_layer),
+            fmt(f.solid_fraction[k]),
+            fmt(1 - f.solid_fraction[k]),
+            fmt(f.covered_fraction[k]),
+        ]
+        for k in range(len(f.chips))
+    )
+    return {"layers.csv": (header, rows)}
+
+
+def _layer_figures(filling: LayerFilling, section: dict[str, Any], folder: Path) -> list[str]:
+    from export import figures  # matplotlib only when drawing
+
+    layers = np.arange(len(filling.chips))
+    figures.plot_layer_filling(
+        folder / "layer_filling.png", layers, filling.chips, filling.full_layer
+    )
+    figures.plot_profile(
+        folder / "porosity_profile.png",
+        filling.layer_mm * (layers + 0.5),
+        1.0 - filling.solid_fraction,
+        "porosity over the target (per layer)",
+        "Porosity through the thickness",
+    )
+    return ["layer_filling.png", "porosity_profile.png"]
+
+
+@_register(
+    "layers",
+    "layer filling by centre of mass, solid and covered fractions per layer",
+    tables=_layer_tables,
+    figures=_layer_figures,
+)
 def _layers(ctx: _Context):
     filling: LayerFilling = layer_filling(ctx.final, ctx.union, ctx.spec.layer_mm)
     index = list(range(len(filling.chips)))
@@ -252,7 +404,19 @@ def _layers(ctx: _Context):
 
 
 # -- overlaps ------------------------------------------------------------------------------
-@_register("overlaps", "interpenetration volumes and projected overlap areas between chips")
+def _overlap_tables(o: Overlaps) -> dict[str, Table]:
+    rows = (
+        [int(i), int(j), fmt(a), fmt(v)]
+        for (i, j), a, v in zip(o.pairs, o.projected_mm2, o.penetration_mm3, strict=True)
+    )
+    return {"overlaps.csv": (["chip_a", "chip_b", "projected_mm2", "penetration_mm3"], rows)}
+
+
+@_register(
+    "overlaps",
+    "interpenetration volumes and projected overlap areas between chips",
+    tables=_overlap_tables,
+)
 def _overlaps(ctx: _Context):
     result: Overlaps = find_overlaps(ctx.final)
     a = ctx.final
@@ -398,7 +562,16 @@ def _stack(ctx: _Context):
 
 
 # -- voxel image ---------------------------------------------------------------------------
-@_register("voxels", "voxel image of chip ids and its porosity profile against the exact one")
+def _voxel_files(image: VoxelImage, folder: Path) -> list[str]:
+    write_voxel_image(folder / "voxels.vti", image)
+    return ["voxels.vti"]
+
+
+@_register(
+    "voxels",
+    "voxel image of chip ids and its porosity profile against the exact one",
+    files=_voxel_files,
+)
 def _voxels(ctx: _Context):
     image: VoxelImage = voxelize(ctx.final, ctx.spec.voxel_mm)
     profile_voxels = voxel_solid_profile(image)
