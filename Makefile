@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: run test lint bench clean
+.PHONY: run test lint bench docs clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -26,6 +26,10 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_packing.py
 	$(BIN)/python benchmarks/bench_geometry.py
 	$(BIN)/python benchmarks/bench_meshing.py
+
+# The reference tables in docs/ that the code generates (a test checks they are current).
+docs: $(STAMP)
+	$(BIN)/python -m pipeline.reference
 
 clean:
 	rm -rf $(VENV) runs

@@ -27,6 +27,7 @@ __all__ = [
     "OutputSpec",
     "GeometrySpec",
     "MeshSpec",
+    "SolveSpec",
     "DropSpec",
     "ContainerSpec",
     "Scenario",
@@ -316,8 +317,10 @@ class MeshSpec:
     kind: str = _key(
         "voxel",
         "",
-        "`voxel` (hexahedra, always succeeds), `conformal` (gmsh tetrahedra) or `both`",
-        _one_of("voxel", "conformal", "both"),
+        "`voxel` (hexahedra, always succeeds), `conformal` (gmsh tetrahedra), `both`, or "
+        "`contact` (every chip meshed on its own, contact pairs and rigid platens: the "
+        "model the solve stage runs)",
+        _one_of("voxel", "conformal", "both", "contact"),
     )
     voxel_mm: float = _key(0.5, "mm", "voxel of the hexahedral mesh", _between(0.05, 100.0))
     size_mm: float = _key(
@@ -336,6 +339,64 @@ class MeshSpec:
     formats: tuple[str, ...] = _key(
         ("msh", "vtu", "inp", "xdmf"), "", "files to write (the CLI's --formats overrides)"
     )
+    element_mm: float = _key(
+        0.0,
+        "mm",
+        "contact model: in-plane element size (0: a tenth of the chip's shortest side, at "
+        "most 2 mm)",
+        _between(0.0, 100.0),
+    )
+    through_thickness: int = _key(
+        2, "", "contact model: elements through a chip's thickness", _between(1, 16)
+    )
+    element: str = _key(
+        "C3D8I",
+        "",
+        "contact model: CalculiX element (`C3D8I` incompatible modes for bending with few "
+        "elements, `C3D8`, or `C3D20R`)",
+        _one_of("C3D8I", "C3D8", "C3D20R"),
+    )
+    contact_gap_mm: float = _key(
+        0.3,
+        "mm",
+        "contact model: chips closer than this get a contact pair",
+        _between(1e-4, 10.0),
+    )
+
+
+@dataclass(frozen=True)
+class SolveSpec:
+    """The compaction the solve stage runs on the contact model (see docs/solve.md)."""
+
+    press_fraction: float = _key(
+        0.05,
+        "",
+        "the top platen moves down this fraction of the stack's height",
+        _between(1e-4, 0.5),
+    )
+    friction: float = _key(
+        0.3, "", "Coulomb friction between chips and on the platens", _between(0, 2)
+    )
+    contact_stiffness_mpa_mm: float = _key(
+        1e4,
+        "MPa/mm",
+        "penalty stiffness of the linear pressure-overclosure contact law",
+        _between(1.0, 1e8),
+    )
+    spring_n_mm: float = _key(
+        1e-3,
+        "N/mm",
+        "weak springs to ground, 3 per corner of each chip's mid-plane, that make a chip "
+        "held only by contact non-singular (their force is reported)",
+        _between(0.0, 1e3),
+    )
+    increments: int = _key(
+        20, "", "the press is applied in at least this many increments", _between(1, 10000)
+    )
+    time_limit_s: float = _key(
+        7200.0, "s", "stop the solver after this wall time", _between(1.0, 1e6)
+    )
+    threads: int = _key(0, "", "solver threads (0: one per core)", _between(0, 256))
 
 
 @dataclass(frozen=True)
@@ -364,6 +425,7 @@ class Scenario:
     output: OutputSpec = field(default_factory=OutputSpec)
     geometry: GeometrySpec = field(default_factory=GeometrySpec)
     mesh: MeshSpec = field(default_factory=MeshSpec)
+    solve: SolveSpec = field(default_factory=SolveSpec)
     drop: DropSpec = field(default_factory=DropSpec)
     container: ContainerSpec = field(default_factory=ContainerSpec)
 
@@ -384,6 +446,7 @@ _SECTIONS: dict[str, type] = {
     "output": OutputSpec,
     "geometry": GeometrySpec,
     "mesh": MeshSpec,
+    "solve": SolveSpec,
     "drop": DropSpec,
     "container": ContainerSpec,
 }

@@ -117,6 +117,10 @@ class Stage:
     def check(self, scenario: Scenario) -> None:
         """Refuse scenario values this stage cannot work with (``InputError``)."""
 
+    def check_run(self, scenario: Scenario) -> None:
+        """Refuse, before any work, a run of this stage that cannot succeed (a solver
+        that is missing, a model the stage cannot take); only when the stage runs."""
+
     def check_options(self, options: StageOptions) -> None:
         """Refuse options (flags) this stage cannot work with, before any work."""
 

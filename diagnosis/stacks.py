@@ -25,9 +25,17 @@ from scipy.stats import chi2
 
 from core.errors import InputError
 from core.schema import Scenario
+from diagnosis.ranking import adjust_tests
 from diagnosis.spec import Experiment, QuantityData
-from diagnosis.statistics import holm, interval
-from diagnosis.verdicts import applicable_effects, effect_verdict, how_far
+from diagnosis.stack_effects import (
+    BOOTSTRAP,
+    StackEffectRanking,
+    how_far_best,
+    mean_square,
+    stack_folds,
+    strength_grid,
+)
+from diagnosis.verdicts import applicable_effects, effect_verdict
 from packing.deposition import deposit
 from packing.effects import EFFECTS, contact_model
 from packing.presets import PRESETS
@@ -60,7 +68,6 @@ for _k in range(MAX_LAYERS):
         "(target area over chip area)",
         ("stack",),
     )
-BOOTSTRAP = 400
 
 
 def simulate_quantities(scenario: Scenario, strengths: dict[str, float], seed: int) -> dict:
@@ -96,40 +103,29 @@ def simulate_quantities(scenario: Scenario, strengths: dict[str, float], seed: i
     return out
 
 
-class _StackDiagnosis:
-    def __init__(self, experiment, data, run_many, seed, progress):
+class StackRuns:
+    """Depositions of every setting (condition, effect, strength), each run as many times
+    as its condition repeats, in batches through ``run_many``; and their means and sds."""
+
+    def __init__(self, experiment: Experiment, run_many, seed: int, progress):
         self.x = experiment
-        self.data = data
-        self.run_many = run_many or (lambda f, calls: [f(**c) for c in calls])
+        self.run_many = run_many
         self.seed = seed
-        self.progress = progress or (lambda message: None)
-        self.runs: dict[tuple, list[dict]] = {}
-        self.rng = np.random.default_rng([seed, 17])
+        self.progress = progress
+        self.results: dict[tuple, list[dict]] = {}
         first = experiment.conditions[0].scenario
         preset = PRESETS.get(first.physics.preset, key="physics.preset")
         self.contact = contact_model(preset, first.physics)
-        for _name, values in data.items():
-            for quantity in values:
-                if experiment.kind not in QUANTITIES[quantity][2]:
-                    raise InputError(
-                        f"{experiment.observations.name}: quantity {quantity!r} is not defined "
-                        f"for {experiment.kind} scenarios"
-                    )
 
-    def _grid(self, effect: str) -> list[float]:
-        lo, hi = EFFECTS.get(effect).prior
-        points = max(3, min(self.x.settings.grid_points, 5))
-        values = set(np.round(np.linspace(lo, hi, points), 12).tolist())
-        values.add(round(EFFECTS.get(effect).neutral(self.contact), 12))
-        return sorted(values)
-
-    def _key(self, condition: str, effect: str | None, strength: float):
+    def key(self, condition: str, effect: str | None, strength: float) -> tuple:
+        # An effect at its neutral strength is the baseline: one setting, run once.
         if effect is not None and abs(strength - EFFECTS.get(effect).neutral(self.contact)) < 1e-12:
             effect, strength = None, 0.0
         return (condition, effect, round(strength, 12))
 
-    def _ensure(self, keys: list[tuple]) -> None:
-        keys = [k for k in dict.fromkeys(keys) if k not in self.runs]
+    def ensure(self, keys: list[tuple]) -> None:
+        """Run, in one batch, the settings of ``keys`` not run yet."""
+        keys = [k for k in dict.fromkeys(keys) if k not in self.results]
         calls, owners = [], []
         for key in keys:
             condition = self.x.condition(key[0])
@@ -138,6 +134,7 @@ class _StackDiagnosis:
                     dict(
                         scenario=condition.scenario,
                         strengths={key[1]: key[2]} if key[1] else {},
+                        # Common random numbers: repeat r of every setting shares a seed.
                         seed=int(self.seed) * 1000 + r,
                     )
                 )
@@ -146,17 +143,32 @@ class _StackDiagnosis:
             return
         self.progress(f"simulating {len(calls)} depositions")
         for key, result in zip(owners, self.run_many(simulate_quantities, calls), strict=True):
-            self.runs.setdefault(key, []).append(result)
+            self.results.setdefault(key, []).append(result)
 
-    def _moments(self, key: tuple, quantity: str) -> tuple[float, float, int]:
-        values = np.array([r[quantity] for r in self.runs[key]], dtype=float)
+    def moments(self, key: tuple, quantity: str) -> tuple[float, float, int]:
+        """Mean, sd and number of the repeats of a setting."""
+        values = np.array([r[quantity] for r in self.results[key]], dtype=float)
         sd = float(values.std(ddof=1)) if len(values) > 1 else 0.0
         return float(values.mean()), sd, len(values)
 
-    def _z(self, condition: str, key: tuple, draw: int | None = None) -> dict[str, float]:
+
+class StackScores:
+    """Measured quantities against the runs, standardised: for the measurements
+    themselves (draw None) or for one of ``BOOTSTRAP`` parametric resamples, which draw
+    both the measurement and the simulated mean from their standard errors."""
+
+    def __init__(self, data: dict, runs: StackRuns, conditions: list[str], rng):
+        self.data = data
+        self.runs = runs
+        self._noise = {c: {q: rng.normal(size=BOOTSTRAP) for q in data[c]} for c in conditions}
+        self._sim_noise = {
+            (k, q): rng.normal(size=BOOTSTRAP) for k in runs.results for q in data[k[0]]
+        }
+
+    def z(self, condition: str, key: tuple, draw: int | None = None) -> dict[str, float]:
         out = {}
         for quantity, q in self.data[condition].items():
-            mean, sd, r = self._moments(key, quantity)
+            mean, sd, r = self.runs.moments(key, quantity)
             se_obs = q.sd / math.sqrt(q.n) if math.isfinite(q.sd) else 0.0
             scale = math.sqrt(se_obs**2 + sd**2 / r)
             # A floor for quantities every repeat reproduces exactly (an empty layer).
@@ -168,25 +180,62 @@ class _StackDiagnosis:
             out[quantity] = (value - mean) / scale
         return out
 
-    def _gap(self, condition: str, key: tuple, draw: int | None = None) -> float:
-        z = np.array(list(self._z(condition, key, draw).values()))
-        return float(np.mean(z**2))
+    def gap(self, condition: str, key: tuple, draw: int | None = None) -> float:
+        return mean_square(self.z(condition, key, draw))
+
+
+class _StackDiagnosis:
+    """One stack or container diagnosis: the settings run, the three questions in order
+    (the resample draws come from one random stream), and the report."""
+
+    def __init__(self, experiment, data, run_many, seed, progress):
+        self.x = experiment
+        self.data = data
+        self.seed = seed
+        self.rng = np.random.default_rng([seed, 17])
+        self.runs = StackRuns(
+            experiment,
+            run_many or (lambda f, calls: [f(**c) for c in calls]),
+            seed,
+            progress or (lambda message: None),
+        )
+        for _name, values in data.items():
+            for quantity in values:
+                if experiment.kind not in QUANTITIES[quantity][2]:
+                    raise InputError(
+                        f"{experiment.observations.name}: quantity {quantity!r} is not defined "
+                        f"for {experiment.kind} scenarios"
+                    )
 
     def run(self) -> dict:
         names = [c.name for c in self.x.conditions]
         effects, skipped = applicable_effects(self.x)
-        keys = [self._key(c, None, 0.0) for c in names]
-        keys += [self._key(c, e, s) for e in effects for s in self._grid(e) for c in names]
-        self._ensure(keys)
-        self._noise = {c: {q: self.rng.normal(size=BOOTSTRAP) for q in self.data[c]} for c in names}
-        self._sim_noise = {
-            (k, q): self.rng.normal(size=BOOTSTRAP) for k in self.runs for q in self.data[k[0]]
-        }
-        where = self._where(names)
-        which = self._which(names, effects)
+        points = self.x.settings.grid_points
+        keys = [self.runs.key(c, None, 0.0) for c in names]
+        keys += [
+            self.runs.key(c, e, s)
+            for e in effects
+            for s in strength_grid(e, points, self.runs.contact)
+            for c in names
+        ]
+        self.runs.ensure(keys)
+        scores = StackScores(self.data, self.runs, names, self.rng)
+        where = self._where(names, scores)
+        folds = stack_folds(names)
+        which = StackEffectRanking(self.runs, scores, folds, names, points).run(
+            effects, self.x.kind
+        )
         which["not_applicable"] = skipped
-        how_far = self._how_far(names, which)
-        verdict = self._verdict(where, which)
+        how_far = how_far_best(which, folds, self.runs, scores)
+        return dict(
+            **self._description(names),
+            where=where,
+            which=which,
+            how_far=how_far,
+            verdict=self._verdict(where, which),
+        )
+
+    def _description(self, names: list[str]) -> dict:
         return dict(
             experiment=self.x.name,
             kind=self.x.kind,
@@ -199,42 +248,17 @@ class _StackDiagnosis:
                 for q in sorted({q for c in names for q in self.data[c]})
             },
             seed=self.seed,
-            where=where,
-            which=which,
-            how_far=how_far,
-            verdict=verdict,
         )
 
-    def _where(self, names: list[str]) -> dict:
+    def _where(self, names: list[str], scores: StackScores) -> dict:
+        """The "where" section: every quantity against the baseline's mean, and a
+        chi-square test per condition."""
         rows, tests = [], []
         for c in names:
-            key = self._key(c, None, 0.0)
-            z = self._z(c, key)
-            for quantity, q in self.data[c].items():
-                mean, sd, r = self._moments(key, quantity)
-                scale = (q.value - mean) / z[quantity] if z[quantity] else math.nan
-                rows.append(
-                    dict(
-                        condition=c,
-                        observable=quantity,
-                        experiment=q.value,
-                        simulation=mean,
-                        simulation_sd=sd,
-                        repeats=r,
-                        difference=q.value - mean,
-                        ci95=[
-                            q.value - mean - 1.96 * abs(scale),
-                            q.value - mean + 1.96 * abs(scale),
-                        ]
-                        if math.isfinite(scale)
-                        else [math.nan, math.nan],
-                        noise_floor=1.96 * abs(scale) if math.isfinite(scale) else 0.0,
-                        z=z[quantity],
-                        beyond_noise=abs(z[quantity]) > 1.96,
-                    )
-                )
-            k = len(z)
-            g = float(np.mean(np.array(list(z.values())) ** 2))
+            key = self.runs.key(c, None, 0.0)
+            z = scores.z(c, key)
+            rows += [self._quantity_row(c, quantity, key, z[quantity]) for quantity in self.data[c]]
+            g, k = mean_square(z), len(z)
             tests.append(
                 dict(
                     condition=c,
@@ -244,161 +268,30 @@ class _StackDiagnosis:
                     test=f"chi-square, {k} degrees of freedom",
                 )
             )
-        for t, p in zip(tests, holm([t["p_value"] for t in tests]), strict=True):
-            t["p_holm"] = p
-            t["significant"] = p < self.x.settings.alpha
-        total = sum(max(t["gap"] - 1.0, 0.0) for t in tests)
-        for t in tests:
-            t["share_of_gap"] = max(t["gap"] - 1.0, 0.0) / total if total > 0 else 0.0
+        adjust_tests(tests, self.x.settings.alpha)
         return dict(observables=rows, tests=tests, regions=[])
 
-    def _folds(self, names):
-        if len(names) > 1:
-            return [
-                dict(name=f"hold out {h}", calibration=[c for c in names if c != h], held_out=[h])
-                for h in names
-            ]
-        return [
-            dict(
-                name="in-sample (one condition: nothing to hold out)",
-                calibration=names,
-                held_out=names,
-            )
-        ]
-
-    def _which(self, names, effects) -> dict:
-        folds = self._folds(names)
-        draws = [None, *range(BOOTSTRAP)]
-
-        def excess(conditions, key_of, draw):
-            return sum(self._gap(c, key_of(c), draw) - 1.0 for c in conditions)
-
-        base = np.array(
-            [
-                sum(excess(f["held_out"], lambda c: self._key(c, None, 0.0), d) for f in folds)
-                for d in draws
-            ]
-        )
-        results, reductions, closed = {}, {}, {}
-        for effect in effects:
-            grid = self._grid(effect)
-            held = np.zeros(len(draws))
-            per_fold = []
-            for fold in folds:
-                # Fitted once on the calibration data and held; the held-out data resampled.
-                cal = [
-                    excess(fold["calibration"], lambda c, s=s, e=effect: self._key(c, e, s), None)
-                    for s in grid
-                ]
-                fitted_here = grid[int(np.argmin(cal))]
-                for j, d in enumerate(draws):
-                    s = fitted_here
-                    held[j] += excess(
-                        fold["held_out"], lambda c, s=s, e=effect: self._key(c, e, s), d
-                    )
-                    if d is None:
-                        per_fold.append(dict(fold=fold["name"], strength=s))
-                        fold.setdefault("chosen", {})[effect] = s
-            with np.errstate(divide="ignore", invalid="ignore"):
-                reduction = np.where(base > 0, 1 - held / base, np.nan)
-            reductions[effect] = reduction
-            closed[effect] = base - held
-            fitted = []
-            for d in draws:
-                cal = [excess(names, lambda c, s=s, e=effect: self._key(c, e, s), d) for s in grid]
-                fitted.append(grid[int(np.argmin(cal))])
-            e = EFFECTS.get(effect)
-            results[effect] = dict(
-                effect=effect,
-                parameter=e.parameter,
-                unit=e.unit,
-                prior=list(e.prior),
-                strength=fitted[0],
-                strength_ci95=list(interval(fitted[1:])),
-                held_out_reduction=float(reduction[0]),
-                held_out_reduction_ci95=list(interval(reduction[1:])),
-                gap_closed=float(closed[effect][0]),
-                gap_closed_ci95=list(interval(closed[effect][1:])),
-                folds=per_fold,
-            )
-        ranking = sorted(effects, key=lambda e: -closed[e][0])
-        best = ranking[0] if ranking else None
-        for effect in ranking:
-            lo, hi = interval(closed[best][1:] - closed[effect][1:])
-            results[effect]["difference_to_best_ci95"] = [lo, hi]
-            results[effect]["indistinguishable_from_best"] = bool(effect == best or not lo > 0)
-        tied = [e for e in ranking if results[e]["indistinguishable_from_best"]]
-        telling = {}
-        for e in tied:
-            if e == best:
-                continue
-            top = dict(z=0.0)
-            for fold in folds:
-                for c in fold["held_out"]:
-                    for q in self.data[c]:
-                        a, sa, ra = self._moments(self._key(c, best, fold["chosen"][best]), q)
-                        b, sb, rb = self._moments(self._key(c, e, fold["chosen"][e]), q)
-                        z = abs(a - b) / max(math.sqrt(sa**2 / ra + sb**2 / rb), 1e-12)
-                        if z > top["z"]:
-                            top = dict(
-                                z=z, observable=q, condition=c, best_predicts=a, other_predicts=b
-                            )
-            telling[e] = top
+    def _quantity_row(self, condition: str, quantity: str, key: tuple, z: float) -> dict:
+        q = self.data[condition][quantity]
+        mean, sd, r = self.runs.moments(key, quantity)
+        difference = q.value - mean
+        # The scale z was standardised with; a z of 0 does not tell it.
+        scale = difference / z if z else math.nan
+        margin = 1.96 * abs(scale)
+        known = math.isfinite(scale)
         return dict(
-            baseline_refit=dict(
-                parameter=f"none: the baseline has no fitted parameter for {self.x.kind} scenarios",
-                held_out=[],
-                held_out_excess=float(base[0]),
-                held_out_excess_ci95=list(interval(base[1:])),
-            ),
-            ranking=[results[e] for e in ranking],
-            best=best,
-            indistinguishable=tied,
-            telling_apart=telling,
-            folds=[f["name"] for f in folds],
+            condition=condition,
+            observable=quantity,
+            experiment=q.value,
+            simulation=mean,
+            simulation_sd=sd,
+            repeats=r,
+            difference=difference,
+            ci95=[difference - margin, difference + margin] if known else [math.nan, math.nan],
+            noise_floor=margin if known else 0.0,
+            z=z,
+            beyond_noise=abs(z) > 1.96,
         )
-
-    def _how_far(self, names, which) -> dict:
-        best = which["best"]
-        if best is None:
-            return {}
-        rows, totals = [], []
-        for fold in self._folds(names):
-            s = next(
-                f["strength"] for f in which["ranking"][0]["folds"] if f["fold"] == fold["name"]
-            )
-            for c in fold["held_out"]:
-                before = self._z(c, self._key(c, None, 0.0))
-                after = self._z(c, self._key(c, best, s))
-                for q in self.data[c]:
-                    rows.append(
-                        dict(
-                            fold=fold["name"],
-                            condition=c,
-                            observable=q,
-                            experiment=self.data[c][q].value,
-                            before=self._moments(self._key(c, None, 0.0), q)[0],
-                            after=self._moments(self._key(c, best, s), q)[0],
-                            z_before=before[q],
-                            z_after=after[q],
-                        )
-                    )
-                g0 = float(np.mean(np.array(list(before.values())) ** 2))
-                g1 = float(np.mean(np.array(list(after.values())) ** 2))
-                k = len(before)
-                totals.append(
-                    dict(
-                        fold=fold["name"],
-                        condition=c,
-                        strength=s,
-                        gap_before=g0,
-                        gap_after=g1,
-                        null_mean=1.0,
-                        p_before=float(chi2.sf(g0 * k, k)),
-                        p_after=float(chi2.sf(g1 * k, k)),
-                    )
-                )
-        return how_far(best, which["ranking"][0], rows, totals)
 
     def _verdict(self, where, which) -> dict:
         significant = [t["condition"] for t in where["tests"] if t["significant"]]

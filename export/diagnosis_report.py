@@ -27,17 +27,45 @@ def _fmt(value, digits: int = 3) -> str:
 
 def report_markdown(result: dict) -> str:
     """The report as Markdown."""
-    lines = [f"# Sim-to-real diagnosis: {result['experiment']}", ""]
-    lines += [f"**Verdict ({result['verdict']['kind']}).** {result['verdict']['text']}", ""]
-    lines += [
+    lines = _summary(result)
+    lines += _where_section(result["where"], drop=result["kind"] == "drop")
+    lines += _which_section(
+        result["which"], no_gap=result["verdict"]["kind"] == "no significant gap"
+    )
+    lines += _how_far_section(result.get("how_far") or {})
+    return "\n".join(lines) + "\n"
+
+
+def _summary(result: dict) -> list[str]:
+    return [
+        f"# Sim-to-real diagnosis: {result['experiment']}",
+        "",
+        f"**Verdict ({result['verdict']['kind']}).** {result['verdict']['text']}",
+        "",
         f"Kind `{result['kind']}`, seed {result['seed']}, "
         f"{_fmt(result.get('wall_time_s', float('nan')))} s.",
         "",
     ]
-    where = result["where"]
-    lines += [
+
+
+def _interval(pair, show=_fmt) -> str:
+    return f"[{show(pair[0])}, {show(pair[1])}]"
+
+
+# -- 1. where --------------------------------------------------------------------------
+def _where_section(where: dict, drop: bool) -> list[str]:
+    return [
         "## 1. Where the gap lies",
         "",
+        *_tests_table(where["tests"], drop),
+        *_observables_table(where["observables"]),
+        *_regions(where.get("regions")),
+    ]
+
+
+def _tests_table(tests: list[dict], drop: bool) -> list[str]:
+    # Only drops have scatters, hence the energy test's column.
+    lines = [
         "Overall test per condition: the gap statistic G (mean squared standardised "
         "discrepancy; about its null mean when there is no gap) against its null "
         "distribution (simulation against an independent simulation); for drops also a "
@@ -45,20 +73,24 @@ def report_markdown(result: dict) -> str:
         "p. Holm-adjusted across conditions.",
         "",
         "| condition | G | null mean | p | p (Holm) | significant | share of the gap |"
-        + (" energy test p |" if result["kind"] == "drop" else ""),
-        "|---|---|---|---|---|---|---|" + ("---|" if result["kind"] == "drop" else ""),
+        + (" energy test p |" if drop else ""),
+        "|---|---|---|---|---|---|---|" + ("---|" if drop else ""),
     ]
-    for t in where["tests"]:
+    for t in tests:
         row = (
             f"| {t['condition']} | {_fmt(t['gap'])} "
             f"| {_fmt(t['null_mean'])} | {_fmt(t['p_value'])} "
             f"| {_fmt(t['p_holm'])} | {'yes' if t['significant'] else 'no'} "
             f"| {percent(t['share_of_gap'])} |"
         )
-        if result["kind"] == "drop":
+        if drop:
             row += f" {_fmt(t['energy_p_value'])} |"
         lines.append(row)
-    lines += [
+    return lines
+
+
+def _observables_table(rows: list[dict]) -> list[str]:
+    lines = [
         "",
         "Every observable: experiment minus simulation, its bootstrap 95 % interval and "
         "the noise floor (95 % of |simulation - independent simulation| at the experiment's "
@@ -68,52 +100,70 @@ def report_markdown(result: dict) -> str:
         "noise floor | z |",
         "|---|---|---|---|---|---|---|---|",
     ]
-    for r in where["observables"]:
+    for r in rows:
         star = " *" if r["beyond_noise"] else ""
         lines.append(
             f"| {r['condition']} | {r['observable']}{star} | {_fmt(r['experiment'])} | "
-            f"{_fmt(r['simulation'])} | {_fmt(r['difference'])} | [{_fmt(r['ci95'][0])}, "
-            f"{_fmt(r['ci95'][1])}] | {_fmt(r['noise_floor'])} | {_fmt(r['z'], 2)} |"
+            f"{_fmt(r['simulation'])} | {_fmt(r['difference'])} | {_interval(r['ci95'])} | "
+            f"{_fmt(r['noise_floor'])} | {_fmt(r['z'], 2)} |"
         )
-    notable = [r for r in where.get("regions", []) if r["notable"]]
-    if where.get("regions"):
-        lines += [
-            "",
-            "Regions of the scatter (rings by the simulation's distance quantiles, 45-degree "
-            "sectors) whose share of drops differs beyond a Bonferroni-corrected 5 % level:",
-            "",
-        ]
-        if notable:
-            lines += [
-                "| condition | region | experiment share | simulation share | z |",
-                "|---|---|---|---|---|",
-            ]
-            lines += [
-                f"| {r['condition']} | {r['region']} {r['where']} "
-                f"| {percent(r['experiment_share'])} | "
-                ""
-                f"{percent(r['simulation_share'])} | {_fmt(r['z'], 2)} |"
-                for r in notable
-            ]
-        else:
-            lines.append("none.")
-    which = result["which"]
-    refit = which["baseline_refit"]
-    lines += ["", "## 2. Which effect", ""]
-    if result["verdict"]["kind"] == "no significant gap":
+    return lines
+
+
+def _regions(regions: list[dict] | None) -> list[str]:
+    if not regions:
+        return []
+    lines = [
+        "",
+        "Regions of the scatter (rings by the simulation's distance quantiles, 45-degree "
+        "sectors) whose share of drops differs beyond a Bonferroni-corrected 5 % level:",
+        "",
+    ]
+    notable = [r for r in regions if r["notable"]]
+    if not notable:
+        return lines + ["none."]
+    return lines + [
+        "| condition | region | experiment share | simulation share | z |",
+        "|---|---|---|---|---|",
+        *(
+            f"| {r['condition']} | {r['region']} {r['where']} "
+            f"| {percent(r['experiment_share'])} | "
+            f"{percent(r['simulation_share'])} | {_fmt(r['z'], 2)} |"
+            for r in notable
+        ),
+    ]
+
+
+# -- 2. which --------------------------------------------------------------------------
+def _which_section(which: dict, no_gap: bool) -> list[str]:
+    lines = ["", "## 2. Which effect", ""]
+    if no_gap:
         lines += ["There is no significant gap to explain: what follows is for reference only.", ""]
-    lines.append(f"Baseline refit first: {refit['parameter']}.")
-    if "all_conditions_deg" in refit:
+    lines += _baseline_refit(which["baseline_refit"])
+    lines += _ranking_table(which)
+    for name, why in which.get("not_applicable", {}).items():
+        lines.append(f"\n{name}: not applicable ({why}).")
+    return lines + _telling_apart(which)
+
+
+def _baseline_refit(refit: dict) -> list[str]:
+    lines = [f"Baseline refit first: {refit['parameter']}."]
+    if "all_conditions_deg" in refit:  # only drops have a fitted baseline parameter
         lines.append(f"Refitted on all conditions: {refit['all_conditions_deg']:g} deg; per fold:")
         lines += [
             f"- {h['fold']}: {h['refit_tilt_deg']:g} deg, held-out G {_fmt(h['gap'])} "
             f"(null mean {_fmt(h['null_mean'])}, p {_fmt(h['p_value'])})"
             for h in refit["held_out"]
         ]
-    lines += [
+    return lines + [
         "",
         f"Held-out excess gap of the refitted baseline: {_fmt(refit['held_out_excess'])} "
-        f"[{_fmt(refit['held_out_excess_ci95'][0])}, {_fmt(refit['held_out_excess_ci95'][1])}].",
+        f"{_interval(refit['held_out_excess_ci95'])}.",
+    ]
+
+
+def _ranking_table(which: dict) -> list[str]:
+    lines = [
         "",
         "Effects fitted on calibration conditions, scored on held-out ones "
         f"({', '.join(which.get('folds', [])) or 'leave one condition out'}); ranked by the "
@@ -126,64 +176,64 @@ def report_markdown(result: dict) -> str:
     for k, e in enumerate(which["ranking"], 1):
         lines.append(
             f"| {k} | {e['effect']} | {_fmt(e['strength'])} {e['unit']} "
-            f"| [{_fmt(e['strength_ci95'][0])}, "
-            f"{_fmt(e['strength_ci95'][1])}] | {percent(e['held_out_reduction'])} | "
-            f"[{percent(e['held_out_reduction_ci95'][0])}, "
-            f"{percent(e['held_out_reduction_ci95'][1])}] | "
+            f"| {_interval(e['strength_ci95'])} | {percent(e['held_out_reduction'])} | "
+            f"{_interval(e['held_out_reduction_ci95'], percent)} | "
             f"{'yes' if e['indistinguishable_from_best'] else 'no'} |"
         )
-    for name, why in which.get("not_applicable", {}).items():
-        lines.append(f"\n{name}: not applicable ({why}).")
-    if which["telling_apart"]:
-        lines += ["", "What would tell the indistinguishable effects apart from the best:", ""]
-        for name, t in which["telling_apart"].items():
-            if t.get("z", 0) > 0:
-                extra = (
-                    f"; about {t['drops_needed_per_condition']} drops per condition would separate "
-                    "them"
-                    if "drops_needed_per_condition" in t
-                    else ""
-                )
-                lines.append(
-                    f"- {name}: {t['observable']} in {t['condition']} ({which['best']} predicts "
-                    f"{_fmt(t['best_predicts'])}, {name} {_fmt(t['other_predicts'])}, "
-                    f"{_fmt(t['z'], 2)} standard errors apart{extra})."
-                )
-            else:
-                lines.append(f"- {name}: no measured observable separates them.")
-    how = result.get("how_far") or {}
-    if how:
-        lines += [
-            "",
-            "## 3. How far the best effect closes the gap",
-            "",
-            f"{how['effect']} at {_fmt(how['strength'])} [{_fmt(how['strength_ci95'][0])}, "
-            f"{_fmt(how['strength_ci95'][1])}]: held-out reduction {percent(how['reduction'])} "
-            f"[{percent(how['reduction_ci95'][0])}, {percent(how['reduction_ci95'][1])}].",
-            "",
-            "| held-out condition | strength | G before | G after | null mean | p before | p "
-            "after |",
-            "|---|---|---|---|---|---|---|",
-        ]
-        lines += [
+    return lines
+
+
+def _telling_apart(which: dict) -> list[str]:
+    if not which["telling_apart"]:
+        return []
+    lines = ["", "What would tell the indistinguishable effects apart from the best:", ""]
+    for name, t in which["telling_apart"].items():
+        if t.get("z", 0) <= 0:
+            lines.append(f"- {name}: no measured observable separates them.")
+            continue
+        extra = (
+            f"; about {t['drops_needed_per_condition']} drops per condition would separate them"
+            if "drops_needed_per_condition" in t
+            else ""
+        )
+        lines.append(
+            f"- {name}: {t['observable']} in {t['condition']} ({which['best']} predicts "
+            f"{_fmt(t['best_predicts'])}, {name} {_fmt(t['other_predicts'])}, "
+            f"{_fmt(t['z'], 2)} standard errors apart{extra})."
+        )
+    return lines
+
+
+# -- 3. how far ------------------------------------------------------------------------
+def _how_far_section(how: dict) -> list[str]:
+    if not how:
+        return []
+    return [
+        "",
+        "## 3. How far the best effect closes the gap",
+        "",
+        f"{how['effect']} at {_fmt(how['strength'])} {_interval(how['strength_ci95'])}: "
+        f"held-out reduction {percent(how['reduction'])} "
+        f"{_interval(how['reduction_ci95'], percent)}.",
+        "",
+        "| held-out condition | strength | G before | G after | null mean | p before | p after |",
+        "|---|---|---|---|---|---|---|",
+        *(
             f"| {c['condition']} | {_fmt(c['strength'])} "
             f"| {_fmt(c['gap_before'])} | {_fmt(c['gap_after'])} | "
             f"{_fmt(c['null_mean'])} | {_fmt(c['p_before'])} | {_fmt(c['p_after'])} |"
             for c in how["conditions"]
-        ]
-        lines += [
-            "",
-            "| held-out condition | observable | experiment | before | after | z before | z after "
-            "|",
-            "|---|---|---|---|---|---|---|",
-        ]
-        lines += [
+        ),
+        "",
+        "| held-out condition | observable | experiment | before | after | z before | z after |",
+        "|---|---|---|---|---|---|---|",
+        *(
             f"| {r['condition']} | {r['observable']} "
             f"| {_fmt(r['experiment'])} | {_fmt(r['before'])} | "
             f"{_fmt(r['after'])} | {_fmt(r['z_before'], 2)} | {_fmt(r['z_after'], 2)} |"
             for r in how["observables"]
-        ]
-    return "\n".join(lines) + "\n"
+        ),
+    ]
 
 
 def _canvas(width: float, height: float) -> Figure:

@@ -743,3 +743,18 @@ def plot_drops(path: object, xy: np.ndarray, statistics: Mapping, yaw_deg: float
     ax.legend(loc="upper right", fontsize=7)
     _save(figure, path)
     return path
+
+
+def plot_force_displacement(path: str | os.PathLike, press_mm, force_n) -> None:
+    """The platen force against the press of a compaction, from (0, 0)."""
+    path = _path(path)
+    press, force = _vector(press_mm, "press_mm"), _vector(force_n, "force_n")
+    if len(press) != len(force) or not len(press):
+        raise InputError("press_mm, force_n: need the same, non-zero number of values")
+    figure, ax = _new_figure((6.0, 4.5))
+    ax.plot(np.concatenate([[0.0], press]), np.concatenate([[0.0], force]), "o-", linewidth=2)
+    ax.set_xlabel("press of the top platen (mm)")
+    ax.set_ylabel("platen force (N)")
+    ax.set_title("Compaction of the stack")
+    ax.grid(alpha=0.3)
+    _save(figure, path)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import weakref
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -115,17 +114,14 @@ class Arrangement:
         return (np.abs(self.positions[:, :2]) <= self.target_size_mm / 2).all(axis=1)
 
 
-_HISTORIES: dict[int, list[Arrangement]] = {}  # by id of a live stack (stacks are unhashable)
-
-
 def stack_history(stack) -> list[Arrangement]:
-    """:func:`arrangements_from_stack`, built once per stack object (every stage of a run
-    that reads the stack shares it; forgotten when the stack is)."""
-    key = id(stack)
-    if key not in _HISTORIES:
-        _HISTORIES[key] = arrangements_from_stack(stack)
-        weakref.finalize(stack, _HISTORIES.pop, key, None)
-    return _HISTORIES[key]
+    """:func:`arrangements_from_stack`, built once per stack object and kept on it (every
+    stage of a run that reads the stack shares it; it goes when the stack goes)."""
+    history = stack.__dict__.get("_history")
+    if history is None:
+        history = arrangements_from_stack(stack)
+        object.__setattr__(stack, "_history", history)  # a cache, not a field
+    return history
 
 
 def arrangements_from_stack(stack) -> list[Arrangement]:

@@ -7,6 +7,7 @@ tests) and as a manifold3d solid (booleans, volumes, slices).
 
 from __future__ import annotations
 
+import atexit
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -74,6 +75,11 @@ def shape_pieces(shape: ChipShape, inflate_mm: float = 0.0) -> tuple[ConvexPiece
 def _local_solid(shape: ChipShape, inflate_mm: float) -> m3.Manifold:
     solids = [m3.Manifold.hull_points(p.vertices) for p in shape_pieces(shape, inflate_mm)]
     return solids[0] if len(solids) == 1 else m3.Manifold.batch_boolean(solids, m3.OpType.Add)
+
+
+# Cached solids must go before the interpreter tears manifold3d down, or nanobind reports
+# them as leaked (a page of stderr after a one-line error).
+atexit.register(_local_solid.cache_clear)
 
 
 def transform_matrix(rotation: np.ndarray, position: np.ndarray) -> np.ndarray:

@@ -120,76 +120,18 @@ def conformal_mesh(
         raise InputError(f"size_mm: must be positive, got {size_mm!r}")
     start = time.perf_counter()
     n = arrangement.n_chips
-    rank = arrangement.bottom_up_rank()
-    cut_by: dict[int, list[int]] = {}
+    cut_by: dict[int, list[int]] = {}  # upper chip: the lower chips it overlaps
     for lower, upper in overlapping_pairs(arrangement):
         cut_by.setdefault(upper, []).append(lower)
     with GmshSession(threads) as gmsh:
-        occ = gmsh.model.occ
-        tags = [_add_chip(occ, arrangement, chip) for chip in range(n)]
-        for upper in sorted(cut_by, key=lambda c: rank[c]):
-            tools = [(3, tags[lower]) for lower in cut_by[upper]]
-            out, _ = occ.cut([(3, tags[upper])], tools, removeObject=True, removeTool=False)
-            if len(out) != 1:
-                raise MeshingError(
-                    f"chips {[upper, *cut_by[upper]]}: resolving their overlap splits chip "
-                    f"{upper} into {len(out)} pieces; use the voxel mesh (mesh.kind = 'voxel')"
-                )
-            tags[upper] = out[0][1]
-        objects = [(3, t) for t in tags]
-        top = float(arrangement.bounds[:, 1, 2].max())
-        if pore_space == "box":
-            lo = arrangement.bounds[:, 0, :2].min(axis=0)
-            hi = arrangement.bounds[:, 1, :2].max(axis=0)
-            objects.append((3, occ.addBox(lo[0], lo[1], 0.0, *(hi - lo), top)))
-        if len(objects) > 1:
-            _, mapping = occ.fragment(objects[:1], objects[1:])
-        else:  # one chip: nothing to fragment
-            mapping = [objects]
-        occ.synchronize()
-        owner: dict[int, int] = {}
-        for k, entities in enumerate(mapping[:n]):
-            for _, volume in entities:
-                if volume in owner:  # an overlap the cuts missed: the lower chip keeps it
-                    if rank[k] < rank[owner[volume]]:
-                        owner[volume] = k
-                else:
-                    owner[volume] = k
-        pores = []
-        if pore_space == "box":
-            pores = [v for _, v in mapping[n] if v not in owner]
-        model = gmsh.model
-        for chip in range(n):
-            volumes = [v for v, k in owner.items() if k == chip]
-            if not volumes:
-                raise MeshingError(
-                    f"chip {chip}: lost when the stack was fragmented (it nearly coincides "
-                    "with another chip); use the voxel mesh (mesh.kind = 'voxel')"
-                )
-            model.setPhysicalName(3, model.addPhysicalGroup(3, volumes, chip + 1), f"chip_{chip}")
-        if pores:
-            model.setPhysicalName(3, model.addPhysicalGroup(3, pores, n + 1), "pore")
-        _surface_groups(gmsh, n + 2)
-        option = gmsh.option.setNumber
-        option("Mesh.MeshSizeMax", float(size_mm))
-        option("Mesh.MeshSizeMin", float(size_mm) / 20)
-        option("Mesh.Algorithm", 6)
-        option("Mesh.Algorithm3D", 10)
-        option("Mesh.Optimize", 1)
+        owner = _build_geometry(gmsh, arrangement, cut_by, pore_space)
+        _set_mesh_size(gmsh, size_mm)
         geometry_s = time.perf_counter() - start
         _generate(gmsh, arrangement, owner)
         mesh = _extract(gmsh, arrangement, owner, n, layer_mm)
-        bad = mesh.quality < min_quality
-        if bad.any():
-            chips = sorted({int(c) for c in mesh.chip[bad]})
-            shown = ", ".join(map(str, chips[:12])) + (" ..." if len(chips) > 12 else "")
-            raise MeshingError(
-                f"conformal mesh: {int(bad.sum())} elements below quality {min_quality:g} "
-                f"(worst {mesh.quality.min():.2g}) in chips {shown}, where chips nearly touch; "
-                "use the voxel mesh (mesh.kind = 'voxel')"
-            )
+        _check_quality(mesh, min_quality)
         if msh_path is not None:
-            option("Mesh.Binary", 1)
+            gmsh.option.setNumber("Mesh.Binary", 1)
             gmsh.write(str(msh_path))
     info = dict(mesh.info)
     info.update(
@@ -200,6 +142,105 @@ def conformal_mesh(
         mesh_time_s=round(time.perf_counter() - start, 3),
     )
     return VolumeMesh(**{**mesh.__dict__, "info": info})
+
+
+def _build_geometry(
+    gmsh, arrangement: Arrangement, cut_by: dict[int, list[int]], pore_space: str
+) -> dict[int, int]:
+    """The chips as gmsh volumes, overlaps cut away, fragmented so touching volumes share
+    their faces, and tagged as physical groups; returns the chip owning each volume."""
+    occ = gmsh.model.occ
+    n = arrangement.n_chips
+    rank = arrangement.bottom_up_rank()
+    tags = [_add_chip(occ, arrangement, chip) for chip in range(n)]
+    _cut_overlaps(occ, tags, cut_by, rank)
+    mapping = _fragment(occ, arrangement, tags, pore_space)
+    occ.synchronize()
+    owner = _volume_owners(mapping[:n], rank)
+    pores = []
+    if pore_space == "box":
+        pores = [v for _, v in mapping[n] if v not in owner]
+    _volume_groups(gmsh.model, owner, pores, n)
+    _surface_groups(gmsh, n + 2)
+    return owner
+
+
+def _cut_overlaps(occ, tags: list[int], cut_by: dict[int, list[int]], rank) -> None:
+    """Cut each upper chip by the lower chips it overlaps, bottom up (``tags`` updated)."""
+    for upper in sorted(cut_by, key=lambda c: rank[c]):
+        tools = [(3, tags[lower]) for lower in cut_by[upper]]
+        out, _ = occ.cut([(3, tags[upper])], tools, removeObject=True, removeTool=False)
+        if len(out) != 1:
+            raise MeshingError(
+                f"chips {[upper, *cut_by[upper]]}: resolving their overlap splits chip "
+                f"{upper} into {len(out)} pieces; use the voxel mesh (mesh.kind = 'voxel')"
+            )
+        tags[upper] = out[0][1]
+
+
+def _fragment(occ, arrangement: Arrangement, tags: list[int], pore_space: str) -> list:
+    """Fragment the chips (and the pore box, last) together; returns, per object, the
+    volumes it became."""
+    objects = [(3, t) for t in tags]
+    top = float(arrangement.bounds[:, 1, 2].max())
+    if pore_space == "box":
+        lo = arrangement.bounds[:, 0, :2].min(axis=0)
+        hi = arrangement.bounds[:, 1, :2].max(axis=0)
+        objects.append((3, occ.addBox(lo[0], lo[1], 0.0, *(hi - lo), top)))
+    if len(objects) > 1:
+        _, mapping = occ.fragment(objects[:1], objects[1:])
+    else:  # one chip: nothing to fragment
+        mapping = [objects]
+    return mapping
+
+
+def _volume_owners(chip_volumes: list, rank) -> dict[int, int]:
+    """Volume tag -> chip, from the volumes each chip became."""
+    owner: dict[int, int] = {}
+    for k, entities in enumerate(chip_volumes):
+        for _, volume in entities:
+            if volume in owner:  # an overlap the cuts missed: the lower chip keeps it
+                if rank[k] < rank[owner[volume]]:
+                    owner[volume] = k
+            else:
+                owner[volume] = k
+    return owner
+
+
+def _volume_groups(model, owner: dict[int, int], pores: list[int], n: int) -> None:
+    """Physical volumes: ``chip_<k>`` (tag k + 1) for every chip, ``pore`` (n + 1)."""
+    for chip in range(n):
+        volumes = [v for v, k in owner.items() if k == chip]
+        if not volumes:
+            raise MeshingError(
+                f"chip {chip}: lost when the stack was fragmented (it nearly coincides "
+                "with another chip); use the voxel mesh (mesh.kind = 'voxel')"
+            )
+        model.setPhysicalName(3, model.addPhysicalGroup(3, volumes, chip + 1), f"chip_{chip}")
+    if pores:
+        model.setPhysicalName(3, model.addPhysicalGroup(3, pores, n + 1), "pore")
+
+
+def _set_mesh_size(gmsh, size_mm: float) -> None:
+    option = gmsh.option.setNumber
+    option("Mesh.MeshSizeMax", float(size_mm))
+    option("Mesh.MeshSizeMin", float(size_mm) / 20)
+    option("Mesh.Algorithm", 6)
+    option("Mesh.Algorithm3D", 10)
+    option("Mesh.Optimize", 1)
+
+
+def _check_quality(mesh: VolumeMesh, min_quality: float) -> None:
+    """Refuse a mesh with elements below ``min_quality``, naming the chips that hold them."""
+    bad = mesh.quality < min_quality
+    if bad.any():
+        chips = sorted({int(c) for c in mesh.chip[bad]})
+        shown = ", ".join(map(str, chips[:12])) + (" ..." if len(chips) > 12 else "")
+        raise MeshingError(
+            f"conformal mesh: {int(bad.sum())} elements below quality {min_quality:g} "
+            f"(worst {mesh.quality.min():.2g}) in chips {shown}, where chips nearly touch; "
+            "use the voxel mesh (mesh.kind = 'voxel')"
+        )
 
 
 def _generate(gmsh, arrangement: Arrangement, owner: dict[int, int]) -> None:

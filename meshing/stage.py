@@ -16,19 +16,26 @@ import numpy as np
 from core.errors import InputError, printable
 from core.schema import Scenario
 from core.stages import Stage, StageInputs, StageOptions, StageOutput
+from export.calculix import press_mm, write_contact_deck
 from export.mesh_files import MESH_FORMATS, write_mesh
 from geometry.arrangement import Arrangement, stack_history
 from geometry.contacts import KINDS, find_contacts
 from meshing.checks import assert_valid, check_mesh
 from meshing.conformal import MeshingError, conformal_mesh
-from meshing.mesh import VolumeMesh
+from meshing.contact_model import ContactModel, contact_model
+from meshing.mesh import VolumeMesh, element_attributes
 from meshing.voxel import voxel_mesh
 
 __all__ = ["MeshStage", "STAGE", "MESH_KINDS", "check_formats"]
 
 log = logging.getLogger(__name__)
 
-MESH_KINDS = {"voxel": ("voxel",), "conformal": ("conformal",), "both": ("voxel", "conformal")}
+MESH_KINDS = {
+    "voxel": ("voxel",),
+    "conformal": ("conformal",),
+    "both": ("voxel", "conformal"),
+    "contact": ("contact",),
+}
 NATIVE_FORMATS = {"conformal": ("msh",)}  # written by the mesher itself, physical groups and all
 
 
@@ -41,6 +48,7 @@ class MeshedStack:
     errors: dict[str, str] = field(default_factory=dict)
     native: dict[str, Path] = field(default_factory=dict)  # files the mesher wrote (scratch)
     scratch: tempfile.TemporaryDirectory | None = None
+    contact: ContactModel | None = None  # the contact model, when asked for
 
 
 class MeshStage(Stage):
@@ -48,7 +56,7 @@ class MeshStage(Stage):
 
     name = "mesh"
     upstream = ("packing",)
-    sections = ("geometry", "mesh")
+    sections = ("geometry", "mesh", "solve")  # the contact model's deck holds the step
     in_ensembles = False
 
     def check(self, scenario: Scenario) -> None:
@@ -60,6 +68,19 @@ class MeshStage(Stage):
     def compute(self, inputs: StageInputs) -> MeshedStack:
         arrangement = stack_history(inputs.result("packing"))[-1]
         spec, g = inputs.scenario.mesh, inputs.scenario.geometry
+        if spec.kind == "contact":
+            if inputs.options.progress is not None:
+                inputs.options.progress(self.name, 0, 1, {"mesh": "contact"})
+            model = contact_model(
+                arrangement,
+                spec.element_mm,
+                spec.through_thickness,
+                spec.contact_gap_mm,
+                g.layer_mm,
+            )
+            return MeshedStack(
+                contact=model, reports={"contact": check_contact_model(model, arrangement)}
+            )
         table = find_contacts(arrangement, g.contact_gap_mm, g.contact_extent_mm)
         chips = table.chip_b >= 0
         surface_pairs = np.column_stack([table.chip_a, table.chip_b])[
@@ -106,6 +127,8 @@ class MeshStage(Stage):
         )
 
     def write(self, result: MeshedStack, folder: Path, inputs: StageInputs) -> StageOutput:
+        if result.contact is not None:
+            return StageOutput({"contact": _write_contact(folder, result, inputs)})
         try:
             summary = {kind: {"error": error} for kind, error in result.errors.items()}
             for kind, mesh in result.meshes.items():
@@ -115,16 +138,24 @@ class MeshStage(Stage):
                 result.scratch.cleanup()
         return StageOutput(summary)
 
-    def load(self, folder: Path, scenario: Scenario) -> dict[str, Any]:
+    def load(self, folder: Path, scenario: Scenario) -> MeshFiles:
         """The mesh files written, by kind (downstream stages read the files)."""
-        return {
+        files = {
             kind: sorted(p.name for p in folder.glob(f"stack_{kind}.*"))
             for kind in MESH_KINDS[scenario.mesh.kind]
         }
+        return MeshFiles(folder, files)
 
     def report(self, summary: Mapping[str, Any], folder: Path) -> list[str]:
         lines = []
         for kind, m in summary.items():
+            if kind == "contact":
+                lines.append(
+                    f"contact model: {m['chips']} chips, {m['elements']:,} {m['element']} "
+                    f"elements, {m['chip_pairs']} chip pairs, {m['floor_chips']} chips on the "
+                    f"conveyor; overlaps cleared by moving chips at most {m['max_move_mm']:.3f} mm"
+                )
+                continue
             if "error" in m:
                 lines.append(f"{kind} mesh: not written (see the warning above)")
                 continue
@@ -137,6 +168,98 @@ class MeshStage(Stage):
 
 
 STAGE = MeshStage()
+
+
+@dataclass(frozen=True)
+class MeshFiles:
+    """Where a mesh stage wrote its files, and their names by mesh kind."""
+
+    folder: Path
+    files: dict[str, list[str]]
+
+
+def check_contact_model(model: ContactModel, arrangement: Arrangement) -> dict[str, Any]:
+    """Every element has positive volume, every chip's meshed volume is its exact volume,
+    every chip has a closed outer surface, and no two chips overlap after clearing."""
+    mesh = contact_volume_mesh(model, arrangement)
+    volumes = mesh.element_volumes()
+    exact = np.array([s.volume_mm3 for s in arrangement.shapes])[arrangement.shape_index]
+    meshed = np.bincount(model.chip, weights=volumes, minlength=model.n_chips)
+    error = np.abs(meshed - exact) / exact
+    faces = np.array([len(f) for f in model.surfaces])
+    report = {
+        "elements": int(model.n_elements),
+        "nodes": int(len(model.points)),
+        "volume_min_mm3": float(volumes.min()),
+        "chip_volume_error_max": float(error.max()),
+        "surface_faces_min": int(faces.min()),
+        "max_move_mm": model.info["max_move_mm"],
+        "chips_moved_apart": model.info["chips_moved_apart"],
+    }
+    problems = []
+    if volumes.min() <= 0:
+        problems.append(f"{int((volumes <= 0).sum())} elements with non-positive volume")
+    if error.max() > 1e-6:
+        problems.append(
+            f"chip {int(error.argmax())} meshed volume off by {100 * error.max():.3g} %"
+        )
+    report["valid"] = not problems
+    report["problems"] = problems
+    return report
+
+
+def contact_volume_mesh(model: ContactModel, arrangement: Arrangement) -> VolumeMesh:
+    """The chips of a contact model as a :class:`VolumeMesh` (for checks and files)."""
+    n = len(model.cells)
+    attributes = element_attributes(arrangement, model.chip, 2.0)
+    return VolumeMesh(
+        points=model.points,
+        cell_type="hexahedron",
+        cells=model.cells[:, _VTK_FROM_CCX],
+        chip=model.chip,
+        quality=np.ones(n),
+        node_sets={},
+        n_chips=model.n_chips,
+        kind="contact",
+        info=dict(model.info),
+        **attributes,
+    )
+
+
+_VTK_FROM_CCX = np.arange(8)  # C3D8 and VTK_HEXAHEDRON share the node order
+
+
+def _write_contact(folder: Path, result: MeshedStack, inputs: StageInputs) -> dict[str, Any]:
+    """The CalculiX deck, a VTU of the chips and the check report; the manifest entry."""
+    model = result.contact
+    spec = inputs.scenario.mesh
+    arrangement = stack_history(inputs.result("packing"))[-1]
+    write_contact_deck(folder / "stack_contact.inp", model, inputs.scenario.solve, spec.element)
+    files = ["stack_contact.inp"]
+    files += [
+        p.name
+        for p in write_mesh(
+            folder, "stack_contact", contact_volume_mesh(model, arrangement), ["vtu"]
+        )
+    ]
+    report = result.reports["contact"]
+    (folder / "stack_contact_checks.json").write_text(json.dumps(report, indent=2) + "\n")
+    files.append("stack_contact_checks.json")
+    if not report["valid"]:
+        raise MeshingError(f"contact model: {'; '.join(report['problems'])}")
+    return {
+        "chips": model.n_chips,
+        "elements": model.n_elements,
+        "element": spec.element,
+        "nodes": len(model.points),
+        "chip_pairs": len(model.pairs),
+        "floor_chips": len(model.floor_chips),
+        "height_mm": round(model.height_mm, 4),
+        "press_mm": round(press_mm(model, inputs.scenario.solve), 4),
+        "max_move_mm": round(model.info["max_move_mm"], 5),
+        "info": model.info,
+        "files": sorted(files),
+    }
 
 
 def check_formats(formats: tuple[str, ...], key: str) -> None:

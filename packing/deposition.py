@@ -134,59 +134,94 @@ def release_poses(
     over a disc above the rim. A pose whose bounding box overlaps that of an already
     placed chip (or one in ``occupied``: positions, quaternions, shapes) is drawn again.
     """
-    d = scenario.deposition
     n = len(shapes)
-    m = 0 if occupied is None else len(occupied[0])
-    placed_pos, placed_rot = np.empty((m + n, 3)), np.empty((m + n, 3, 3))
-    placed_half = np.empty((m + n, 3))
-    if m:
-        rotations = Rotation.from_quat(occupied[1]).as_matrix()
-        placed_pos[:m], placed_half[:m] = _box_of(occupied[2], occupied[0], rotations)
-        placed_rot[:m] = rotations
+    boxes = _PlacedBoxes(n, occupied)
     positions, quaternions = np.empty((n, 3)), np.empty((n, 4))
     for i, shape in enumerate(shapes):
-        others, others_rot, others_half = (
-            placed_pos[: m + i],
-            placed_rot[: m + i],
-            placed_half[: m + i],
-        )
-        reach = shape.circumradius_mm + (
-            np.linalg.norm(others_half, axis=1) if m + i else np.empty(0)
-        )
-        for _ in range(_MAX_PLACEMENT_TRIES):
-            position = _release_point(scenario, shape, rng)
-            rotation = _random_rotations(scenario, 1, rng)
-            matrix = rotation.as_matrix()[0]
-            box_centre, box_half = _box_of([shape], position[None], matrix[None])
-            near = np.flatnonzero(np.linalg.norm(others - box_centre, axis=1) < reach)
-            if near.size == 0:
-                break
-            depth = box_penetration_depth(
-                np.repeat(box_centre, near.size, 0),
-                np.repeat(matrix[None], near.size, 0),
-                np.repeat(box_half, near.size, 0),
-                others[near],
-                others_rot[near],
-                others_half[near],
-            )
-            if depth.max() == 0:
-                break
-        else:
-            raise InputError(
-                f"deposition: cannot release {n} chips without overlap ("
-                + (
-                    "over the container; lower deposition.batch_size or widen "
-                    "container.release_gap_mm)"
-                    if scenario.kind == "container"
-                    else f"in a {d.release_side_mm:g} mm square between "
-                    f"{d.release_height_mm[0]:g} and {d.release_height_mm[1]:g} mm; "
-                    "widen release_height_mm or lower batch_size)"
-                )
-            )
+        pose = _free_pose(scenario, shape, rng, boxes)
+        if pose is None:
+            raise _no_room(scenario, n)
+        position, rotation, box = pose
         positions[i], quaternions[i] = position, rotation.as_quat()[0]
-        placed_pos[m + i], placed_half[m + i] = box_centre[0], box_half[0]
-        placed_rot[m + i] = matrix
+        boxes.add(*box)
     return positions, quaternions
+
+
+class _PlacedBoxes:
+    """Oriented bounding boxes of the chips placed so far: those ``occupied`` (positions,
+    quaternions, shapes) first, then up to ``n_new`` more as they are added."""
+
+    def __init__(
+        self, n_new: int, occupied: tuple[np.ndarray, np.ndarray, list[ChipShape]] | None
+    ) -> None:
+        m = 0 if occupied is None else len(occupied[0])
+        self.centres, self.rotations = np.empty((m + n_new, 3)), np.empty((m + n_new, 3, 3))
+        self.halves = np.empty((m + n_new, 3))
+        if m:
+            rotations = Rotation.from_quat(occupied[1]).as_matrix()
+            self.centres[:m], self.halves[:m] = _box_of(occupied[2], occupied[0], rotations)
+            self.rotations[:m] = rotations
+        self.count = m
+
+    def add(self, centre: np.ndarray, half: np.ndarray, rotation: np.ndarray) -> None:
+        self.centres[self.count], self.halves[self.count] = centre, half
+        self.rotations[self.count] = rotation
+        self.count += 1
+
+    def reach(self, shape: ChipShape) -> np.ndarray:
+        """Centre distances (one per placed box) beyond which ``shape`` cannot overlap."""
+        return shape.circumradius_mm + (
+            np.linalg.norm(self.halves[: self.count], axis=1) if self.count else np.empty(0)
+        )
+
+    def overlap(
+        self, centre: np.ndarray, half: np.ndarray, rotation: np.ndarray, reach: np.ndarray
+    ) -> bool:
+        """Whether the box (``centre``, ``half`` (1, 3), ``rotation`` (3, 3)) overlaps a
+        placed one; ``reach`` from :meth:`reach`."""
+        others = self.centres[: self.count]
+        near = np.flatnonzero(np.linalg.norm(others - centre, axis=1) < reach)
+        if near.size == 0:
+            return False
+        depth = box_penetration_depth(
+            np.repeat(centre, near.size, 0),
+            np.repeat(rotation[None], near.size, 0),
+            np.repeat(half, near.size, 0),
+            others[near],
+            self.rotations[: self.count][near],
+            self.halves[: self.count][near],
+        )
+        return depth.max() != 0  # boxes that only touch do not overlap
+
+
+def _free_pose(
+    scenario: Scenario, shape: ChipShape, rng: np.random.Generator, boxes: _PlacedBoxes
+) -> tuple[np.ndarray, Rotation, tuple[np.ndarray, np.ndarray, np.ndarray]] | None:
+    """A release pose of ``shape`` clear of ``boxes``: position, rotation and its box
+    (centre, half sizes, rotation matrix); None if every try overlapped."""
+    reach = boxes.reach(shape)
+    for _ in range(_MAX_PLACEMENT_TRIES):
+        position = _release_point(scenario, shape, rng)
+        rotation = _random_rotations(scenario, 1, rng)
+        matrix = rotation.as_matrix()[0]
+        box_centre, box_half = _box_of([shape], position[None], matrix[None])
+        if not boxes.overlap(box_centre, box_half, matrix, reach):
+            return position, rotation, (box_centre[0], box_half[0], matrix)
+    return None
+
+
+def _no_room(scenario: Scenario, n: int) -> InputError:
+    d = scenario.deposition
+    return InputError(
+        f"deposition: cannot release {n} chips without overlap ("
+        + (
+            "over the container; lower deposition.batch_size or widen container.release_gap_mm)"
+            if scenario.kind == "container"
+            else f"in a {d.release_side_mm:g} mm square between "
+            f"{d.release_height_mm[0]:g} and {d.release_height_mm[1]:g} mm; "
+            "widen release_height_mm or lower batch_size)"
+        )
+    )
 
 
 def _release_point(scenario: Scenario, shape: ChipShape, rng: np.random.Generator):
@@ -418,7 +453,6 @@ def deposit(
     if strengths:
         scenario = dataclasses.replace(scenario, physics=setup.physics)
     d = scenario.deposition
-    container = scenario.kind == "container"
     n_batches = -(-d.chips // d.batch_size)
     state = _initial_state(scenario) if resume is None else resume
     if state.batches_done > n_batches or len(state.chip_batch) > d.chips:
@@ -432,6 +466,12 @@ def deposit(
         state = round_trip(state)
         if on_batch is not None:
             on_batch(state)
+    return _stack_of(scenario, state)
+
+
+def _stack_of(scenario: Scenario, state: DepositionState) -> Stack:
+    """The stack a finished deposition leaves, with a warning if a container is not full."""
+    container = scenario.kind == "container"
     warnings = list(state.warnings)
     if container and not state.full:
         message = (
@@ -449,7 +489,9 @@ def deposit(
         shape_index=np.array([index[id(shape)] for shape in shapes_of], dtype=int),
         batch=np.asarray(state.chip_batch),
         batches=state.results,
-        target_size_mm=(2 * scenario.container.radius_mm if container else d.target_size_mm),
+        target_size_mm=(
+            2 * scenario.container.radius_mm if container else scenario.deposition.target_size_mm
+        ),
         warnings=tuple(warnings),
     )
 
@@ -469,6 +511,66 @@ def _initial_state(scenario: Scenario) -> DepositionState:
     )
 
 
+@dataclasses.dataclass
+class _WorkingState:
+    """A :class:`DepositionState` unpacked into the forms a batch works on (a live random
+    generator; lists; shapes keyed by identity), and packed again after the batch."""
+
+    rng: np.random.Generator
+    shapes_of: list[ChipShape]  # per chip
+    batch_of: list[int]  # per chip
+    cache: dict[tuple[int, float], ChipShape]  # draw_shapes' cache
+    reshaped: dict[int, tuple[ChipShape, ChipShape]]  # id(drawn): (drawn, with shape effects)
+    warnings: list[str]
+    floor_reference_mass_g: float | None
+
+    @classmethod
+    def unpack(cls, state: DepositionState) -> _WorkingState:
+        rng = np.random.Generator(np.random.PCG64())
+        rng.bit_generator.state = state.rng_state
+        pool = state.pool
+        return cls(
+            rng=rng,
+            shapes_of=[pool[i] for i in state.chip_shape],
+            batch_of=state.chip_batch.tolist(),
+            cache={(k, size): pool[i] for k, size, i in state.cache},
+            reshaped={id(pool[a]): (pool[a], pool[b]) for a, b in state.reshaped},
+            warnings=list(state.warnings),
+            floor_reference_mass_g=state.floor_reference_mass_g,
+        )
+
+    def pack(
+        self,
+        batch: int,
+        time_s: float,
+        poses: tuple[np.ndarray, np.ndarray],
+        results: tuple[BatchResult, ...],
+        full: bool,
+    ) -> DepositionState:
+        # Every shape a chip, the cache or the reshaping refers to, once, in a fixed order.
+        pool: dict[int, ChipShape] = {}
+        pairs = (x for pair in self.reshaped.values() for x in pair)
+        for shape in [*self.shapes_of, *self.cache.values(), *pairs]:
+            pool.setdefault(id(shape), shape)
+        where = {key: k for k, key in enumerate(pool)}
+        return DepositionState(
+            batches_done=batch,
+            time_s=time_s,
+            rng_state=self.rng.bit_generator.state,
+            pool=tuple(pool.values()),
+            chip_shape=np.array([where[id(shape)] for shape in self.shapes_of], dtype=np.int64),
+            chip_batch=np.array(self.batch_of, dtype=np.int64),
+            positions=poses[0],
+            quaternions=poses[1],
+            results=results,
+            warnings=tuple(self.warnings),
+            cache=tuple((k, size, where[id(shape)]) for (k, size), shape in self.cache.items()),
+            reshaped=tuple((where[a], where[id(b)]) for a, (_, b) in self.reshaped.items()),
+            floor_reference_mass_g=self.floor_reference_mass_g,
+            full=bool(full),
+        )
+
+
 def _deposit_batch(
     scenario: Scenario,
     preset,
@@ -482,88 +584,28 @@ def _deposit_batch(
     state after it."""
     wall_start = time.perf_counter()
     batch = state.batches_done + 1
-    d, s = scenario.deposition, scenario.settling
     container = scenario.kind == "container"
-    rng = np.random.Generator(np.random.PCG64())
-    rng.bit_generator.state = state.rng_state
-    shapes_of = [state.pool[i] for i in state.chip_shape]
-    cache = {(k, size): state.pool[i] for k, size, i in state.cache}
-    reshaped = {id(state.pool[a]): (state.pool[a], state.pool[b]) for a, b in state.reshaped}
-    batch_of = state.chip_batch.tolist()
-    warnings = list(state.warnings)
-    per_step = list(setup.per_step)
-    floor = setup.contact
-    reference_mass = state.floor_reference_mass_g
+    work = _WorkingState.unpack(state)
     results = state.results
     with ChipWorld(preset, scenario.physics) as world:
         world.time_s = state.time_s
-        loads = None
-        if per_step:
-
-            def loads(awake: list[int]) -> None:
-                apply_effect_loads(world, awake, per_step)
-
-        if container:
-            c = scenario.container
-            world.add_container_wall(c.radius_mm, c.height_mm, c.wall_segments)
-        for shape, p, q in zip(shapes_of, state.positions, state.quaternions, strict=True):
-            world.freeze(world.add_chip(shape, p, q))
-        if reference_mass is not None:
-            world.set_floor_compliance(
-                floor.floor_compliance_mm_n, floor.floor_damping_ratio, reference_mass
-            )
-        count = min(d.batch_size, d.chips - len(batch_of))
-        shapes = draw_shapes(scenario, count, rng, cache)
-        if strengths:
-            for shape in shapes:
-                if id(shape) not in reshaped:
-                    reshaped[id(shape)] = (shape, shaped(shape, strengths))
-            shapes = [reshaped[id(shape)][1] for shape in shapes]
-        occupied = (*world.poses(), shapes_of) if world.n_chips else None
-        positions, quaternions = release_poses(scenario, shapes, rng, occupied)
-        new = [
-            world.add_chip(shape, p, q)
-            for shape, p, q in zip(shapes, positions, quaternions, strict=True)
-        ]
-        batch_of += [batch] * count
-        shapes_of += shapes
-        if reference_mass is None:
-            reference_mass = world.mass_g(new[0])
-            world.set_floor_compliance(
-                floor.floor_compliance_mm_n, floor.floor_damping_ratio, reference_mass
-            )
-        settled, steps, wakes, start_time = settle(world, new, scenario, loads, warnings)
-        for name, value in strengths.items():
-            effect = EFFECTS.get(name)
-            for _ in range(getattr(effect, "taps", 1)):
-                everyone = list(range(world.n_chips))
-                if not effect.after_batch(world, everyone, value, rng):
-                    break
-                settled, more, _, _ = settle(world, everyone, scenario, loads, warnings)
-                steps += more
-        if not settled:
-            message = (
-                f"batch {batch} did not settle within {s.max_time_s:g} s of simulated "
-                "time; the chips still moving were frozen where they were"
-            )
-            log.warning(message)
-            warnings.append(message)
-        final_positions, final_quaternions = world.poses()
+        _rebuild_world(world, scenario, state, work, setup.contact)
+        new = _release_batch(world, scenario, strengths, work, batch)
+        if work.floor_reference_mass_g is None:
+            work.floor_reference_mass_g = world.mass_g(new[0])
+            _soften_floor(world, setup.contact, work.floor_reference_mass_g)
+        settled, steps, wakes, start_time = _settle_batch(
+            world, scenario, setup, strengths, work, new, batch
+        )
+        poses = world.poses()
         full = container and reaches_rim(
-            final_positions, scenario.container.radius_mm, scenario.container.height_mm
+            poses[0], scenario.container.radius_mm, scenario.container.height_mm
         )
         result = None
         if not container or batch == n_batches or full:
+            wall = time.perf_counter() - wall_start
             result = _batch_result(
-                world,
-                scenario,
-                shapes_of,
-                batch,
-                start_time,
-                steps,
-                wakes,
-                settled,
-                time.perf_counter() - wall_start,
+                world, scenario, work.shapes_of, batch, start_time, steps, wakes, settled, wall
             )
             results = (*results, result)
             log.info(
@@ -576,26 +618,109 @@ def _deposit_batch(
         time_s = world.time_s
     if progress is not None:
         progress(batch, result)
-    pool: dict[int, ChipShape] = {}
-    for shape in [*shapes_of, *cache.values(), *(x for pair in reshaped.values() for x in pair)]:
-        pool.setdefault(id(shape), shape)
-    where = {key: k for k, key in enumerate(pool)}
-    return DepositionState(
-        batches_done=batch,
-        time_s=time_s,
-        rng_state=rng.bit_generator.state,
-        pool=tuple(pool.values()),
-        chip_shape=np.array([where[id(shape)] for shape in shapes_of], dtype=np.int64),
-        chip_batch=np.array(batch_of, dtype=np.int64),
-        positions=final_positions,
-        quaternions=final_quaternions,
-        results=results,
-        warnings=tuple(warnings),
-        cache=tuple((k, size, where[id(shape)]) for (k, size), shape in cache.items()),
-        reshaped=tuple((where[a], where[id(b)]) for a, (_, b) in reshaped.items()),
-        floor_reference_mass_g=reference_mass,
-        full=bool(full),
+    return work.pack(batch, time_s, poses, results, full)
+
+
+def _rebuild_world(
+    world: ChipWorld, scenario: Scenario, state: DepositionState, work: _WorkingState, contact
+) -> None:
+    """The world as the previous batch left it: the container wall, the pile (frozen) and,
+    once known, the compliant floor."""
+    if scenario.kind == "container":
+        c = scenario.container
+        world.add_container_wall(c.radius_mm, c.height_mm, c.wall_segments)
+    for shape, p, q in zip(work.shapes_of, state.positions, state.quaternions, strict=True):
+        world.freeze(world.add_chip(shape, p, q))
+    if work.floor_reference_mass_g is not None:
+        _soften_floor(world, contact, work.floor_reference_mass_g)
+
+
+def _soften_floor(world: ChipWorld, contact, reference_mass_g: float) -> None:
+    world.set_floor_compliance(
+        contact.floor_compliance_mm_n, contact.floor_damping_ratio, reference_mass_g
     )
+
+
+def _release_batch(
+    world: ChipWorld,
+    scenario: Scenario,
+    strengths: dict[str, float],
+    work: _WorkingState,
+    batch: int,
+) -> list[int]:
+    """Draw the next batch's chips and release them clear of the pile; returns their
+    chip indices."""
+    d = scenario.deposition
+    count = min(d.batch_size, d.chips - len(work.batch_of))
+    shapes = draw_shapes(scenario, count, work.rng, work.cache)
+    if strengths:
+        shapes = _with_shape_effects(shapes, strengths, work.reshaped)
+    occupied = (*world.poses(), work.shapes_of) if world.n_chips else None
+    positions, quaternions = release_poses(scenario, shapes, work.rng, occupied)
+    new = [
+        world.add_chip(shape, p, q)
+        for shape, p, q in zip(shapes, positions, quaternions, strict=True)
+    ]
+    work.batch_of += [batch] * count
+    work.shapes_of += shapes
+    return new
+
+
+def _with_shape_effects(
+    shapes: list[ChipShape],
+    strengths: dict[str, float],
+    reshaped: dict[int, tuple[ChipShape, ChipShape]],
+) -> list[ChipShape]:
+    """The shapes with the shape effects applied; ``reshaped`` remembers each drawn shape's
+    result, so a shape shared by many chips is reshaped once and stays shared."""
+    for shape in shapes:
+        if id(shape) not in reshaped:
+            reshaped[id(shape)] = (shape, shaped(shape, strengths))
+    return [reshaped[id(shape)][1] for shape in shapes]
+
+
+def _settle_batch(
+    world: ChipWorld,
+    scenario: Scenario,
+    setup,
+    strengths: dict[str, float],
+    work: _WorkingState,
+    new: list[int],
+    batch: int,
+) -> tuple[bool, int, int, float]:
+    """Settle the new chips, then let each after-batch effect (vibration taps) shake the
+    pile and settle it again. Returns (settled, steps, wakes, start time) as
+    :func:`settle`, steps summed over every settling."""
+    loads = _per_step_loads(world, setup)
+    settled, steps, wakes, start_time = settle(world, new, scenario, loads, work.warnings)
+    for name, value in strengths.items():
+        effect = EFFECTS.get(name)
+        for _ in range(getattr(effect, "taps", 1)):
+            everyone = list(range(world.n_chips))
+            if not effect.after_batch(world, everyone, value, work.rng):
+                break
+            settled, more, _, _ = settle(world, everyone, scenario, loads, work.warnings)
+            steps += more
+    if not settled:
+        message = (
+            f"batch {batch} did not settle within {scenario.settling.max_time_s:g} s of "
+            "simulated time; the chips still moving were frozen where they were"
+        )
+        log.warning(message)
+        work.warnings.append(message)
+    return settled, steps, wakes, start_time
+
+
+def _per_step_loads(world: ChipWorld, setup) -> Callable[[list[int]], None] | None:
+    """The loads the per-step effects apply before every step, or None without any."""
+    per_step = list(setup.per_step)
+    if not per_step:
+        return None
+
+    def loads(awake: list[int]) -> None:
+        apply_effect_loads(world, awake, per_step)
+
+    return loads
 
 
 def apply_effect_loads(

@@ -13,6 +13,7 @@ import os
 import sys
 
 from core.errors import ChipstackError
+from core.stages import stage_names
 
 __all__ = ["main"]
 
@@ -28,6 +29,12 @@ class _Parser(argparse.ArgumentParser):
 def _parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="pipeline", description="Chip-stack pipeline for composites recycling")
     commands = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    for add in (_add_run, _add_describe, _add_compare, _add_validate, _add_diagnose, _add_synth):
+        add(commands)
+    return parser
+
+
+def _add_run(commands) -> None:
     run = commands.add_parser("run", help="deposit a stack (and later describe and mesh it)")
     run.add_argument(
         "scenario",
@@ -36,7 +43,7 @@ def _parser() -> argparse.ArgumentParser:
         help="scenario TOML file or built-in name (default: paper-squares)",
     )
     run.add_argument(
-        "--to", default="packing", help="last stage: packing, geometry or mesh (default: packing)"
+        "--to", default="packing", help=f"last stage: {', '.join(stage_names())} (default: packing)"
     )
     run.add_argument("--out", default=None, help="run directory (default: runs/<name>-seed<N>)")
     run.add_argument("--seed", type=int, default=None, help="seed of every random draw")
@@ -63,8 +70,11 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--formats",
         default=None,
-        help="comma-separated mesh files to write with --to mesh: msh, vtu, inp, xdmf",
+        help="comma-separated mesh files to write with --to mesh (see docs/meshing.md)",
     )
+
+
+def _add_describe(commands) -> None:
     describe = commands.add_parser("describe", help="the geometry stage on an existing run")
     describe.add_argument("run_dir", help="run directory holding a packing result")
     describe.add_argument("--descriptors", default=None, help="comma-separated (default: all)")
@@ -72,6 +82,9 @@ def _parser() -> argparse.ArgumentParser:
     describe.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     describe.add_argument("--quiet", action="store_true", help="no summary")
     describe.add_argument("-v", "--verbose", action="store_true", help="log progress details")
+
+
+def _add_compare(commands) -> None:
     compare = commands.add_parser(
         "compare", help="do two ensembles differ, descriptor by descriptor"
     )
@@ -81,6 +94,9 @@ def _parser() -> argparse.ArgumentParser:
     compare.add_argument("--overwrite", action="store_true", help="replace an earlier comparison")
     compare.add_argument("--quiet", action="store_true", help="no table on stdout")
     compare.add_argument("-v", "--verbose", action="store_true", help="log progress details")
+
+
+def _add_validate(commands) -> None:
     validate = commands.add_parser(
         "validate", help="rerun the paper's validation cases and print ours beside the paper's"
     )
@@ -94,6 +110,9 @@ def _parser() -> argparse.ArgumentParser:
     validate.add_argument("--workers", type=int, default=None, help="local Dask workers")
     validate.add_argument("--scheduler", default=None, help="address of a Dask scheduler")
     validate.add_argument("-v", "--verbose", action="store_true", help="log progress details")
+
+
+def _add_diagnose(commands) -> None:
     diagnose = commands.add_parser(
         "diagnose", help="where a simulation departs from experiments, and which effect causes it"
     )
@@ -109,6 +128,9 @@ def _parser() -> argparse.ArgumentParser:
     diagnose.add_argument("--overwrite", action="store_true", help="replace an earlier diagnosis")
     diagnose.add_argument("--quiet", action="store_true", help="no verdict on stdout")
     diagnose.add_argument("-v", "--verbose", action="store_true", help="log progress details")
+
+
+def _add_synth(commands) -> None:
     synth = commands.add_parser(
         "synth", help="pseudo-experimental observations from the simulation with chosen effects"
     )
@@ -134,7 +156,6 @@ def _parser() -> argparse.ArgumentParser:
     synth.add_argument("--workers", type=int, default=None, help="local Dask workers")
     synth.add_argument("--overwrite", action="store_true", help="replace an existing file")
     synth.add_argument("-v", "--verbose", action="store_true", help="log progress details")
-    return parser
 
 
 def _names(text: str | None) -> list[str] | None:
@@ -286,18 +307,19 @@ def _ensemble(args: argparse.Namespace, scenario, out: str, descriptors) -> None
     finally:
         for bar in bars:
             bar.close()
-    if args.quiet:
-        return
+    if not args.quiet:
+        _print_ensemble(path, manifest, args.repeats)
+
+
+def _print_ensemble(path, manifest: dict, repeats: int) -> None:
     resumed = len(manifest["resumed_runs"])
     if resumed:
         print(f"resumed: {resumed} runs were already written")
     failed = len(manifest["failed_runs"])
     if failed:
-        print(f"{failed} of {args.repeats} runs failed (see the warnings and the manifest)")
+        print(f"{failed} of {repeats} runs failed (see the warnings and the manifest)")
     seconds = manifest["wall_time_s"]["total"]
-    print(
-        f"{args.repeats - failed} of {args.repeats} repeats in {seconds:.1f} s; written to {path}"
-    )
+    print(f"{repeats - failed} of {repeats} repeats in {seconds:.1f} s; written to {path}")
     if "geometry" in manifest["stages_completed"]:
         import json
         from pathlib import Path

@@ -84,41 +84,16 @@ def run_ensemble(
                 f"{seeds[first]}: {failures[first]})"
             )
         last = stages[-1]
-        summary = None
-        if last.repeat_statistics:
-            if len(good) < 2:
-                raise InputError(
-                    f"--repeats: only {len(good)} of {repeats} runs succeeded; no statistics "
-                    f"(failures: {'; '.join(f'repeat {k}: {m}' for k, m in failures.items())})"
-                )
-            folders = [folder.file(f"{names[k]}/{last.name}") for k in good]
-            summary = last.summarize_repeats(folders, [seeds[k] for k in good])
-        warnings = []
-        for k in good:
-            manifest = json.loads(folder.file(f"{names[k]}/manifest.json").read_text())
-            warnings += [f"repeat {k} (seed {seeds[k]}): {w}" for w in manifest.get("warnings", [])]
+        summary = _repeat_statistics(last, folder, names, seeds, good, failures)
         manifest = {
-            "tool": "chipstack",
-            "kind": "ensemble",
-            "command": command or [],
-            "versions": code_versions(),
-            "scenario": scenario.name,
-            "seed": scenario.seed,
-            "repeats": repeats,
-            "seeds": seeds,
-            "seed_rule": SEED_RULE,
-            "runs": [names[k] for k in good],
-            "resumed_runs": sorted(done),
-            "failed_runs": [
-                {"repeat": k, "seed": seeds[k], "error": failures[k]} for k in sorted(failures)
-            ],
+            **_ensemble_manifest(scenario, command, seeds, names, good, done, failures),
             "workers": n_workers,
             "scheduler": scheduler or "local",
             "stages_completed": [s.name for s in stages],
             "started_utc": started.isoformat(timespec="seconds"),
             "finished_utc": datetime.now(UTC).isoformat(timespec="seconds"),
             "wall_time_s": {"total": round(time.perf_counter() - wall, 3)},
-            "warnings": warnings,
+            "warnings": _repeat_warnings(folder, names, seeds, good),
         }
 
         def finish(path: Callable[[str], Path]) -> None:
@@ -128,6 +103,47 @@ def run_ensemble(
 
         folder.complete(finish)
     return Path(out), manifest
+
+
+def _repeat_statistics(last, folder, names, seeds, good, failures) -> Any:
+    """The last stage's statistics over the good repeats (None if it has none)."""
+    if not last.repeat_statistics:
+        return None
+    if len(good) < 2:
+        raise InputError(
+            f"--repeats: only {len(good)} of {len(names)} runs succeeded; no statistics "
+            f"(failures: {'; '.join(f'repeat {k}: {m}' for k, m in failures.items())})"
+        )
+    folders = [folder.file(f"{names[k]}/{last.name}") for k in good]
+    return last.summarize_repeats(folders, [seeds[k] for k in good])
+
+
+def _repeat_warnings(folder, names, seeds, good) -> list[str]:
+    warnings = []
+    for k in good:
+        manifest = json.loads(folder.file(f"{names[k]}/manifest.json").read_text())
+        warnings += [f"repeat {k} (seed {seeds[k]}): {w}" for w in manifest.get("warnings", [])]
+    return warnings
+
+
+def _ensemble_manifest(scenario, command, seeds, names, good, done, failures) -> dict:
+    """The ensemble manifest's provenance and run lists."""
+    return {
+        "tool": "chipstack",
+        "kind": "ensemble",
+        "command": command or [],
+        "versions": code_versions(),
+        "scenario": scenario.name,
+        "seed": scenario.seed,
+        "repeats": len(names),
+        "seeds": seeds,
+        "seed_rule": SEED_RULE,
+        "runs": [names[k] for k in good],
+        "resumed_runs": sorted(done),
+        "failed_runs": [
+            {"repeat": k, "seed": seeds[k], "error": failures[k]} for k in sorted(failures)
+        ],
+    }
 
 
 def _run_repeats(

@@ -51,7 +51,11 @@ def stages_to(to: str, scenario: Scenario | None = None) -> list[Stage]:
             f"--to {printable(to)}: a {scenario.kind} scenario has only the {first} stage "
             f"(its results are in the run's manifest and {first}/ folder)"
         )
-    return chain(to)
+    stages = chain(to)
+    if scenario is not None:
+        for stage in stages:
+            stage.check_run(scenario)
+    return stages
 
 
 def stage_inputs(scenario: Scenario, options: StageOptions | None = None) -> dict[str, str]:

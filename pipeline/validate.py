@@ -121,8 +121,19 @@ def validate(
     progress: Callable[[int, int], None] | None = None,
 ) -> list[dict[str, Any]]:
     """Run the validation cases into ``out``; returns the table rows (also written)."""
-    from pipeline.execution import Executor
+    _check_arguments(out, cases, repeats, drops)
+    folder = Path(out)
+    tasks = _tasks(cases, repeats, drops, seed)
+    folder.mkdir(parents=True, exist_ok=True)
+    results, errors = _run(tasks, workers, scheduler, progress)
+    rows = _rows(results, folder, seed)
+    report = {"seed": seed, "repeats": repeats, "drops": drops, "rows": rows, "errors": errors}
+    (folder / "validation.json").write_text(json.dumps(report, indent=2) + "\n")
+    (folder / "validation.md").write_text(table_markdown(rows) + "\n")
+    return rows
 
+
+def _check_arguments(out: str | Path, cases: Sequence[str], repeats: int, drops: int) -> None:
     for case in cases:
         if case not in CASES:
             raise InputError(
@@ -135,25 +146,40 @@ def validate(
     folder = Path(out)
     if folder.exists() and not folder.is_dir():
         raise InputError(f"{printable(out)}: exists and is not a directory")
+
+
+def _tasks(
+    cases: Sequence[str], repeats: int, drops: int, seed: int
+) -> list[tuple[str, Callable, Any]]:
+    """(result key, task function, scenario) of every repeat of every case."""
+
+    def repeated(key: str, function: Callable, base) -> list[tuple[str, Callable, Any]]:
+        return [(key, function, base.with_seed(derive_seed(seed, k))) for k in range(repeats)]
+
     tasks: list[tuple[str, Callable, Any]] = []
     if "drop" in cases:
         base = load_scenario("single-chip-drop")
         base = dataclasses.replace(base, drop=dataclasses.replace(base.drop, drops=drops))
-        tasks += [
-            ("drop", _drop_task, base.with_seed(derive_seed(seed, k))) for k in range(repeats)
-        ]
+        tasks += repeated("drop", _drop_task, base)
     if "mat" in cases:
-        base = load_scenario("fibre-mat")
-        tasks += [("mat", _mat_task, base.with_seed(derive_seed(seed, k))) for k in range(repeats)]
+        tasks += repeated("mat", _mat_task, load_scenario("fibre-mat"))
     if "container" in cases:
         for name in ("container-ar25", "container-ar10"):
-            base = load_scenario(name)
-            tasks += [
-                (name, _container_task, base.with_seed(derive_seed(seed, k)))
-                for k in range(repeats)
-            ]
+            tasks += repeated(name, _container_task, load_scenario(name))
     if "mixed" in cases:
         tasks.append(("mixed", _mixed_task, load_scenario("mixed-shapes").with_seed(seed)))
+    return tasks
+
+
+def _run(
+    tasks: list[tuple[str, Callable, Any]],
+    workers: int | None,
+    scheduler: str | None,
+    progress: Callable[[int, int], None] | None,
+) -> tuple[dict[str, list], list[str]]:
+    """Run the tasks on the execution layer: results by key, and one line per failure."""
+    from pipeline.execution import Executor
+
     results: dict[str, list] = {}
     errors: list[str] = []
 
@@ -168,7 +194,6 @@ def validate(
         if progress:
             progress(1, len(tasks))
 
-    folder.mkdir(parents=True, exist_ok=True)
     with Executor(workers=workers, scheduler=scheduler) as executor:
         executor.run(
             _call,
@@ -176,11 +201,7 @@ def validate(
             on_result,
             on_error,
         )
-    rows = _rows(results, folder, seed)
-    report = {"seed": seed, "repeats": repeats, "drops": drops, "rows": rows, "errors": errors}
-    (folder / "validation.json").write_text(json.dumps(report, indent=2) + "\n")
-    (folder / "validation.md").write_text(table_markdown(rows) + "\n")
-    return rows
+    return results, errors
 
 
 def _row(case, quantity, ours, paper=None, measured=None, definition="") -> dict[str, Any]:
@@ -206,128 +227,130 @@ def _row(case, quantity, ours, paper=None, measured=None, definition="") -> dict
 def _rows(results: dict[str, list], folder: Path, seed: int) -> list[dict[str, Any]]:
     rows: list[dict[str, Any]] = []
     if "drop" in results:
-        runs = results["drop"]
-        from export.figures import plot_drops
-        from packing.scatter import drop_statistics
-
-        first = runs[0]
-        plot_drops(folder / "fig15_drops.png", np.array(first["xy"]), first)
-        pooled = drop_statistics(np.vstack([np.array(r["xy"]) for r in runs]))
-        n = first["drops"]
-        rows.append(
-            _row(
-                "drop",
-                "sd of distance to (0,0) (mm)",
-                _mean_sd([r["distance_sd_mm"] for r in runs]),
-                "Fig. 15",
-                definition=f"{n} drops per experiment, {len(runs)} experiments",
-            )
-        )
-        rows.append(
-            _row(
-                "drop",
-                "95 % disc radius (mm)",
-                _mean_sd([r["disc95_mm"] for r in runs]),
-                "Fig. 15",
-                definition="smallest disc centred on (0,0) holding 95 %",
-            )
-        )
-        rows.append(
-            _row(
-                "drop",
-                "4-fold anisotropy (resultant of 4 theta)",
-                _mean_sd([r["anisotropy"] for r in runs]),
-                "X along corners",
-                definition=f"significant (Rayleigh p < 0.05) in "
-                f"{sum(r['anisotropy_p'] < 0.05 for r in runs)} of {len(runs)}; pooled "
-                f"over {pooled['drops']} drops p = {pooled['anisotropy_p']:.2g}",
-            )
-        )
-        rows.append(
-            _row(
-                "drop",
-                "4-fold axis from corner directions (deg)",
-                _mean_sd([r["corner_offset_deg"] for r in runs]),
-                0.0,
-                definition=f"pooled axis {pooled['axis_deg']:.1f} deg, corners at 45 "
-                f"deg (offset {pooled['corner_offset_deg']:.1f} deg)",
-            )
-        )
+        rows += _drop_rows(results["drop"], folder)
     if "mat" in results:
-        runs = results["mat"]
-        _mat_figure(folder / "fig16_mat.png", runs[0])
-        rows.append(
-            _row(
-                "mat",
-                "volume fraction (%)",
-                _mean_sd([100 * r["volume_fraction_all"] for r in runs]),
-                6.68,
-                "Mahé's model 6.61",
-                definition="all fibre volume / (target area x height of the top)",
-            )
-        )
-        rows.append(
-            _row(
-                "mat",
-                "volume fraction over the target (%)",
-                _mean_sd([100 * r["volume_fraction_inside"] for r in runs]),
-                6.68,
-                definition="fibres with centre over the target, same box",
-            )
-        )
-        rows.append(
-            _row(
-                "mat",
-                "fibre-fibre contacts",
-                _mean_sd([r["contacts_fibre_fibre"] for r in runs]),
-                2169,
-                "Mahé's model 2212 ± 42",
-                definition="touching pairs (gap < 0.05 mm), floor excluded",
-            )
-        )
-        rows.append(
-            _row(
-                "mat",
-                "fibres over the target",
-                _mean_sd([r["inside_target"] for r in runs]),
-                definition="of 1,000 poured",
-            )
-        )
+        rows += _mat_rows(results["mat"], folder)
     for name, label in (
         ("container-ar25", "container AR 25"),
         ("container-ar10", "container AR 10"),
     ):
         if name in results:
-            runs = results[name]
-            full = sum(r["full"] for r in runs)
-            paper, _ = PAPER[(label, "volume fraction (%)")]
-            rows.append(
-                _row(
-                    label,
-                    "volume fraction (%)",
-                    _mean_sd([100 * r["volume_fraction"] for r in runs]),
-                    paper,
-                    MEASURED[label],
-                    definition=f"rods with centre inside / cylinder; {full} of {len(runs)} filled",
-                )
-            )
+            rows.append(_container_row(results[name], label))
     if "mixed" in results:
-        from pipeline.run import write_run
-        from pipeline.rundir import RunDirectory
-
-        run = RunDirectory(folder / "mixed", overwrite=True)
-        with run:
-            manifest = write_run(run.path, "", results["mixed"][0], "mesh", ["validate"], True)
-        mesh = manifest["mesh"]["voxel"]
-        rows.append(
-            _row(
-                "mixed (Fig. 18)",
-                "chips; voxel hexahedra",
-                (float(manifest["packing"]["chips"]), 0.0),
-                definition=f"{mesh['elements']:,} hexahedra; picture in mixed/",
-            )
-        )
+        rows.append(_mixed_row(results["mixed"][0], folder))
     return rows
+
+
+def _drop_rows(runs: list[dict], folder: Path) -> list[dict[str, Any]]:
+    """Fig. 15: the scatter of the single-chip drops, per experiment and pooled."""
+    from export.figures import plot_drops
+    from packing.scatter import drop_statistics
+
+    first = runs[0]
+    plot_drops(folder / "fig15_drops.png", np.array(first["xy"]), first)
+    pooled = drop_statistics(np.vstack([np.array(r["xy"]) for r in runs]))
+    significant = sum(r["anisotropy_p"] < 0.05 for r in runs)
+    return [
+        _row(
+            "drop",
+            "sd of distance to (0,0) (mm)",
+            _mean_sd([r["distance_sd_mm"] for r in runs]),
+            "Fig. 15",
+            definition=f"{first['drops']} drops per experiment, {len(runs)} experiments",
+        ),
+        _row(
+            "drop",
+            "95 % disc radius (mm)",
+            _mean_sd([r["disc95_mm"] for r in runs]),
+            "Fig. 15",
+            definition="smallest disc centred on (0,0) holding 95 %",
+        ),
+        _row(
+            "drop",
+            "4-fold anisotropy (resultant of 4 theta)",
+            _mean_sd([r["anisotropy"] for r in runs]),
+            "X along corners",
+            definition=f"significant (Rayleigh p < 0.05) in {significant} of {len(runs)}; "
+            f"pooled over {pooled['drops']} drops p = {pooled['anisotropy_p']:.2g}",
+        ),
+        _row(
+            "drop",
+            "4-fold axis from corner directions (deg)",
+            _mean_sd([r["corner_offset_deg"] for r in runs]),
+            0.0,
+            definition=f"pooled axis {pooled['axis_deg']:.1f} deg, corners at 45 "
+            f"deg (offset {pooled['corner_offset_deg']:.1f} deg)",
+        ),
+    ]
+
+
+def _mat_rows(runs: list[dict], folder: Path) -> list[dict[str, Any]]:
+    """Fig. 16: the fibre mat's volume fraction and contacts against the paper's."""
+    _mat_figure(folder / "fig16_mat.png", runs[0])
+    fraction_paper, fraction_model = PAPER[("mat", "volume fraction (%)")]
+    contacts_paper, contacts_model = PAPER[("mat", "fibre-fibre contacts")]
+    return [
+        _row(
+            "mat",
+            "volume fraction (%)",
+            _mean_sd([100 * r["volume_fraction_all"] for r in runs]),
+            fraction_paper,
+            fraction_model,
+            definition="all fibre volume / (target area x height of the top)",
+        ),
+        _row(
+            "mat",
+            "volume fraction over the target (%)",
+            _mean_sd([100 * r["volume_fraction_inside"] for r in runs]),
+            fraction_paper,
+            definition="fibres with centre over the target, same box",
+        ),
+        _row(
+            "mat",
+            "fibre-fibre contacts",
+            _mean_sd([r["contacts_fibre_fibre"] for r in runs]),
+            contacts_paper,
+            contacts_model,
+            definition="touching pairs (gap < 0.05 mm), floor excluded",
+        ),
+        _row(
+            "mat",
+            "fibres over the target",
+            _mean_sd([r["inside_target"] for r in runs]),
+            definition="of 1,000 poured",
+        ),
+    ]
+
+
+def _container_row(runs: list[dict], label: str) -> dict[str, Any]:
+    """Fig. 17: a container's volume fraction against the paper's and Freeman's."""
+    full = sum(r["full"] for r in runs)
+    paper, _ = PAPER[(label, "volume fraction (%)")]
+    return _row(
+        label,
+        "volume fraction (%)",
+        _mean_sd([100 * r["volume_fraction"] for r in runs]),
+        paper,
+        MEASURED[label],
+        definition=f"rods with centre inside / cylinder; {full} of {len(runs)} filled",
+    )
+
+
+def _mixed_row(result, folder: Path) -> dict[str, Any]:
+    """Fig. 18: the mixed stack written as a run (described, meshed and rendered)."""
+    from pipeline.run import write_run
+    from pipeline.rundir import RunDirectory
+
+    run = RunDirectory(folder / "mixed", overwrite=True)
+    with run:
+        manifest = write_run(run.path, "", result, "mesh", ["validate"], True)
+    mesh = manifest["mesh"]["voxel"]
+    return _row(
+        "mixed (Fig. 18)",
+        "chips; voxel hexahedra",
+        (float(manifest["packing"]["chips"]), 0.0),
+        definition=f"{mesh['elements']:,} hexahedra; picture in mixed/",
+    )
 
 
 def _mat_figure(path: Path, run: dict) -> None:

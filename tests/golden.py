@@ -1,8 +1,9 @@
 """Hashes of a run's result files, for the byte-identity check of refactors.
 
 Everything a run computes is hashed; what records when or how fast it ran (the
-manifest, wall times in ``descriptors.json`` and the mesh checks) and the PNG figures
-(pictures of the results, rendered by a library whose version moves) are not.
+manifest, wall times in ``descriptors.json`` and the mesh checks), the resolved
+``scenario.toml`` (the input, which gains a line with every new scenario key) and the PNG
+figures (pictures of the results, rendered by a library whose version moves) are not.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ import hashlib
 import json
 from pathlib import Path
 
+SKIPPED = ("manifest.json", "scenario.toml")
 TIMING_KEYS = ("wall_time_s", "mesh_time_s", "time_s")
 
 
@@ -31,7 +33,7 @@ def result_hashes(run: Path) -> dict[str, str]:
     hashes = {}
     for path in sorted(Path(run).rglob("*")):
         name = path.relative_to(run).as_posix()
-        if not path.is_file() or path.suffix == ".png" or name == "manifest.json":
+        if not path.is_file() or path.suffix == ".png" or name in SKIPPED:
             continue
         data = path.read_bytes()
         if path.suffix == ".json":

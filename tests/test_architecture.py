@@ -4,8 +4,8 @@ results byte-identical to those recorded before the stages became registered obj
 from __future__ import annotations
 
 import ast
-import re
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -128,6 +128,29 @@ def test_unknown_stage_lists_the_registered_ones(tmp_path):
     result = run_cli("run", "--to", "press", "--out", str(tmp_path / "x"))
     assert result.returncode == 2
     assert f"valid stages: {', '.join(stage_names())}" in result.stderr
+
+
+def test_docs_hold_the_tables_the_code_generates():
+    """Scenario keys, stages, shapes, descriptors, formats, effects and presets in docs/
+    are the code's own (refresh them with ``python -m pipeline.reference``)."""
+    from core.schema import key_table_markdown
+    from pipeline.reference import GENERATED, stale_blocks
+
+    assert stale_blocks() == []
+    pages = "".join(p.read_text() for p in (ROOT / "docs").glob("*.md"))
+    for name in GENERATED:
+        assert f"<!-- BEGIN generated:{name} -->" in pages, f"no docs page holds {name}"
+    assert key_table_markdown() in (ROOT / "docs" / "scenarios.md").read_text()
+
+
+def test_the_docs_check_reports_a_stale_table(tmp_path):
+    from pipeline.reference import refresh, stale_blocks
+
+    page = tmp_path / "page.md"
+    page.write_text("x\n<!-- BEGIN generated:shapes -->\n| old |\n<!-- END generated:shapes -->\n")
+    assert stale_blocks(tmp_path) == ["page.md: shapes"]
+    assert refresh(tmp_path) == ["page.md"]
+    assert stale_blocks(tmp_path) == []
 
 
 @pytest.mark.slow

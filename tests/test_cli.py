@@ -3,7 +3,6 @@
 import csv
 import json
 import xml.etree.ElementTree as ET
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -195,10 +194,3 @@ def test_builtin_scenarios_are_the_papers():
         s.chip.length_mm * s.chip.width_mm * s.chip.thickness_mm for s in (squares, rectangles)
     ]
     assert volume[0] == volume[1]
-
-
-def test_readme_documents_every_scenario_key_with_unit_and_default():
-    from core.schema import key_table_markdown
-
-    readme = (Path(__file__).parents[1] / "docs" / "scenarios.md").read_text()
-    assert key_table_markdown() in readme, "docs/scenarios.md's key table differs from the code"

@@ -1,0 +1,123 @@
+"""Reference tables generated from the code's own schema and registries, and the docs
+pages that hold them (between ``<!-- BEGIN generated:NAME -->`` and ``<!-- END
+generated:NAME -->`` markers). ``python -m pipeline.reference`` refreshes the pages; a
+test checks they are up to date, so the documentation cannot drift from the code."""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable
+from pathlib import Path
+
+from core.schema import key_table_markdown
+from core.stages import load_stages
+from export.mesh_files import MESH_FORMATS
+from geometry.describe import DESCRIPTORS
+from packing.effects import EFFECTS
+from packing.presets import PRESETS
+from packing.shapes import SHAPES
+
+__all__ = ["GENERATED", "refresh", "stale_blocks"]
+
+DOCS = Path(__file__).resolve().parent.parent / "docs"
+_BLOCK = re.compile(
+    r"(<!-- BEGIN generated:(?P<name>[a-z_]+) -->\n)"
+    r"(?P<body>.*?)"
+    r"(\n<!-- END generated:(?P=name) -->)",
+    re.DOTALL,
+)
+
+
+def _first_line(text: str | None) -> str:
+    return " ".join((text or "").strip().split("\n\n")[0].split())
+
+
+def _table(header: tuple[str, str], rows: list[tuple[str, str]]) -> str:
+    lines = [f"| {header[0]} | {header[1]} |", "|---|---|"]
+    return "\n".join(lines + [f"| `{name}` | {text} |" for name, text in rows])
+
+
+def stages_markdown() -> str:
+    """The registered stages, upstream first."""
+    rows = []
+    for stage in load_stages():
+        upstream = ", ".join(stage.upstream) or "-"
+        doc = _first_line(type(stage).__doc__)
+        rows.append(
+            (stage.name, f"{doc} (after: {upstream}; reads `[{'], ['.join(stage.sections)}]`)")
+        )
+    return _table(("stage", "what it does"), rows)
+
+
+def shapes_markdown() -> str:
+    rows = [(n, _first_line(SHAPES.get(n).build.__doc__)) for n in SHAPES.in_order()]
+    return _table(("shape", "what it is"), rows)
+
+
+def descriptors_markdown() -> str:
+    rows = [(n, DESCRIPTORS.get(n).doc) for n in DESCRIPTORS.in_order()]
+    return _table(("descriptor", "what it measures"), rows)
+
+
+def mesh_formats_markdown() -> str:
+    rows = [(n, _first_line(MESH_FORMATS.get(n).__doc__)) for n in MESH_FORMATS.in_order()]
+    return _table(("format", "what is written"), rows)
+
+
+def effects_markdown() -> str:
+    rows = []
+    for name in EFFECTS.in_order():
+        effect = EFFECTS.get(name)
+        unit = f" ({effect.unit})" if effect.unit else ""
+        rows.append((name, f"strength: {effect.parameter}{unit}"))
+    return _table(("effect", "its strength"), rows)
+
+
+def presets_markdown() -> str:
+    rows = [(n, PRESETS.get(n).description) for n in PRESETS.in_order()]
+    return _table(("preset", "what it is"), rows)
+
+
+GENERATED: dict[str, Callable[[], str]] = {
+    "scenario_keys": key_table_markdown,
+    "stages": stages_markdown,
+    "shapes": shapes_markdown,
+    "descriptors": descriptors_markdown,
+    "mesh_formats": mesh_formats_markdown,
+    "effects": effects_markdown,
+    "presets": presets_markdown,
+}
+
+
+def _blocks(text: str) -> list[re.Match]:
+    return list(_BLOCK.finditer(text))
+
+
+def stale_blocks(folder: Path = DOCS) -> list[str]:
+    """``page: block`` for every generated block that differs from the code's."""
+    stale = []
+    for page in sorted(folder.glob("*.md")):
+        for match in _blocks(page.read_text()):
+            if match["body"] != GENERATED[match["name"]]():
+                stale.append(f"{page.name}: {match['name']}")
+    return stale
+
+
+def refresh(folder: Path = DOCS) -> list[str]:
+    """Rewrite every generated block from the code; returns the pages changed."""
+    changed = []
+    for page in sorted(folder.glob("*.md")):
+        text = page.read_text()
+        new = _BLOCK.sub(lambda m: m[1] + GENERATED[m["name"]]() + m[4], text)
+        if new != text:
+            page.write_text(new)
+            changed.append(page.name)
+    return changed
+
+
+if __name__ == "__main__":
+    import logging
+
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    for name in refresh():
+        logging.getLogger(__name__).info("refreshed docs/%s", name)
