@@ -1,0 +1,181 @@
+"""The contact model and the solve stage: geometry of the model, overlap clearing, and
+CalculiX compactions with known answers (one chip, a flat layup), end to end."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+
+import meshio
+import numpy as np
+import pytest
+import pyvista
+from conftest import run_cli
+
+from core.schema import ChipSpec, SolveSpec
+from export.calculix import write_contact_deck
+from geometry.arrangement import Arrangement
+from meshing.calculix import read_node_prints, run_ccx
+from meshing.contact_model import chip_block, clear_overlaps, contact_model, separation
+from packing.shapes import make_shape
+
+needs_ccx = pytest.mark.skipif(
+    shutil.which("ccx") is None and not os.environ.get("CHIPSTACK_REQUIRE_CCX"),
+    reason="CalculiX (ccx) is not installed; .ci/run installs it and CI runs these tests",
+)
+
+E3, AREA, THICKNESS = 8000.0, 400.0, 2.0  # MPa, mm2, mm: the chip across its thickness
+
+
+def flat_stack(heights: list[float]) -> Arrangement:
+    """20 x 20 x 2 mm chips lying flat, centred on (0, 0), centres at ``heights``."""
+    shape = make_shape(ChipSpec())
+    n = len(heights)
+    positions = np.column_stack([np.zeros(n), np.zeros(n), heights])
+    quaternions = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
+    return Arrangement((shape,), np.zeros(n, int), positions, quaternions, np.ones(n, int), 150.0)
+
+
+def test_a_chip_block_has_its_outer_faces_and_positive_volumes():
+    points, cells, surface, anchors = chip_block(np.array([10.0, 10.0, 1.0]), (4, 3, 2))
+    assert len(points) == 5 * 4 * 3 and len(cells) == 24
+    # faces on the outside: 2 x (4 x 3) top and bottom, 2 x (4 x 2) + 2 x (3 x 2) sides
+    assert len(surface) == 24 + 16 + 12
+    corners = points[cells]
+    a, b, d, e = corners[:, 0], corners[:, 1], corners[:, 3], corners[:, 4]
+    volumes = np.einsum("ij,ij->i", np.cross(b - a, d - a), e - a)
+    assert volumes == pytest.approx(np.full(24, 5.0 * (20 / 3) * 1.0))
+    assert np.allclose(points[anchors][:, 2], 0.0)  # the mid-plane corners
+
+
+def test_separation_finds_the_overlap_and_which_box_is_on_top():
+    a = flat_stack([1.0, 2.96])
+    corners = [np.array([[x, y, z] for x in (-10, 10) for y in (-10, 10) for z in (-1, 1)], float)]
+    lower = corners[0] + a.positions[0]
+    upper = corners[0] + a.positions[1]
+    axes = np.eye(3)
+    depth, direction, first_on_top = separation(upper, lower, axes, axes)
+    assert depth == pytest.approx(0.04) and np.allclose(direction, [0, 0, 1]) and first_on_top
+    assert separation(upper + [0, 0, 0.1], lower, axes, axes)[0] == 0.0
+
+
+def test_clearing_leaves_no_overlap_and_moves_chips_only_as_far_as_needed():
+    a = flat_stack([0.99, 2.95, 4.9])  # into the floor by 0.01, then 0.04 and 0.05 deep
+    shifts = clear_overlaps(a, clearance_mm=1e-3)
+    z = a.positions[:, 2] + shifts[:, 2]
+    assert z[0] - 1 >= 1e-3 - 1e-12 and np.diff(z).min() >= 2 + 1e-3 - 1e-12
+    assert np.abs(shifts[:, :2]).max() == 0.0
+    # each rises by its own overlap plus the clearance, and by what the chip below rose
+    assert shifts[:, 2] == pytest.approx([0.011, 0.052, 0.103], abs=1e-9)
+
+
+def test_the_contact_model_has_pairs_platens_and_refuses_a_coarse_element():
+    model = contact_model(flat_stack([1.0, 3.0]), element_mm=2.0, through_thickness=2)
+    assert model.n_chips == 2 and model.n_elements == 2 * 10 * 10 * 2
+    assert model.pairs.tolist() == [[0, 1]] and model.floor_chips.tolist() == [0]
+    assert model.bottom.z_mm <= model.points[: model.cells.max() + 1, 2].min() + 1e-9
+    assert model.height_mm == pytest.approx(4.0, abs=0.01)
+    from core.errors import InputError
+
+    with pytest.raises(InputError, match="mesh.element_mm"):
+        contact_model(flat_stack([1.0]), element_mm=15.0)
+
+
+def _compress(tmp_path, heights, press_fraction):
+    model = contact_model(flat_stack(heights), element_mm=2.0, through_thickness=2)
+    solve = SolveSpec(
+        press_fraction=press_fraction, friction=0.0, contact_stiffness_mpa_mm=1e6, increments=2
+    )
+    write_contact_deck(tmp_path / "job.inp", model, solve, "C3D8I")
+    run_ccx(tmp_path, "job", threads=1)
+    prints = read_node_prints(tmp_path / "job.dat")
+    return model, -prints["REF_TOP"]["forces"][-1, 2], -prints["REF_TOP"]["displacements"][-1, 2]
+
+
+@needs_ccx
+@pytest.mark.parametrize("chips", [1, 3])
+def test_a_flat_layup_pressed_between_platens_gives_the_elastic_force(tmp_path, chips):
+    """Chips stacked face on face, frictionless platens: uniaxial stress through the
+    thickness, F = E3 A press / (n t), in series with the penalty springs of the n + 1
+    interfaces (1e6 MPa/mm: 0.5 % of the compliance)."""
+    heights = [1.0 + 2.0 * k for k in range(chips)]
+    model, force, press = _compress(tmp_path, heights, 0.01)
+    assert press == pytest.approx(0.01 * model.height_mm, rel=1e-6)
+    chip_compliance = chips * THICKNESS / (E3 * AREA)
+    gaps = model.height_mm - chips * THICKNESS  # the clearances left by the clearing
+    predicted = (press - gaps) / (chip_compliance + (chips + 1) / (1e6 * AREA))
+    assert force == pytest.approx(predicted, rel=0.01)
+    assert force == pytest.approx(E3 * AREA * (press - gaps) / (chips * THICKNESS), rel=0.05)
+
+
+ONE_CHIP = """
+name = "one"
+[deposition]
+chips = 1
+batch_size = 1
+target_size_mm = 40.0
+release_height_mm = [30.0, 40.0]
+[mesh]
+kind = "contact"
+[solve]
+press_fraction = 0.01
+friction = 0.0
+contact_stiffness_mpa_mm = 1e6
+increments = 4
+"""
+
+
+@needs_ccx
+def test_solve_end_to_end_writes_results_paraview_reads(tmp_path):
+    scenario = tmp_path / "one.toml"
+    scenario.write_text(ONE_CHIP)
+    out = tmp_path / "run"
+    result = run_cli("run", str(scenario), "--to", "solve", "--out", str(out))
+    assert result.returncode == 0, result.stderr
+    assert "compaction:" in result.stdout and "contact pressure on 1 chips" in result.stdout
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["stages_completed"] == ["packing", "geometry", "mesh", "solve"]
+    rows = list(csv.DictReader(open(out / "solve" / "force_displacement.csv")))
+    forces = [float(r["platen_force_n"]) for r in rows]
+    assert len(forces) == 4 and all(np.diff(forces) > 0)
+    assert float(rows[-1]["conveyor_force_n"]) == pytest.approx(forces[-1], rel=1e-6)
+    solved = pyvista.read(out / "solve" / "compaction.vtu")
+    assert {"U", "S", "CONTACT"} <= set(solved.point_data.keys())
+    top = solved.points[:, 2] > solved.points[:, 2].max() - 1e-3
+    press = float(rows[-1]["press_mm"])
+    # the .frd read back: the chip's top face moved down by the press, less the
+    # penalty's share of the compliance
+    assert -solved.point_data["U"][top, 2].mean() == pytest.approx(press, rel=0.02)
+    deck = meshio.read(out / "mesh" / "stack_contact.vtu")
+    assert len(deck.cells[0].data) == 200
+    pressure = np.asarray(meshio.read(out / "solve" / "compaction.vtu").point_data["CONTACT"])[:, 3]
+    assert pressure.max() == pytest.approx(forces[-1] / AREA, rel=0.05)
+
+
+def test_solve_refuses_a_model_it_cannot_run(tmp_path):
+    scenario = tmp_path / "one.toml"
+    scenario.write_text(ONE_CHIP.replace('kind = "contact"', 'kind = "voxel"'))
+    result = run_cli("run", str(scenario), "--to", "solve", "--out", str(tmp_path / "run"))
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines() == [
+        "pipeline: error: --to solve: needs the contact model (mesh.kind = 'contact'; it is "
+        "'voxel')"
+    ]
+    assert not (tmp_path / "run").exists()
+
+
+def test_solve_without_calculix_is_one_line(tmp_path):
+    scenario = tmp_path / "one.toml"
+    scenario.write_text(ONE_CHIP)
+    env_path = os.environ["PATH"]
+    try:
+        os.environ["PATH"] = str(tmp_path)  # no ccx here; python is called by full path
+        result = run_cli("run", str(scenario), "--to", "solve", "--out", str(tmp_path / "run"))
+    finally:
+        os.environ["PATH"] = env_path
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "CalculiX (ccx) is not on the PATH" in lines[0]
+    assert not (tmp_path / "run").exists()
