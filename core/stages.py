@@ -113,6 +113,8 @@ class Stage:
     checkpointed: ClassVar[bool] = False
     in_ensembles: ClassVar[bool] = True
     repeat_statistics: ClassVar[bool] = False  # summarize_repeats gives an ensemble summary
+    progress_label: ClassVar[str] = ""  # what its progress bar says (default: its name)
+    progress_unit: ClassVar[str] = "step"
 
     def check(self, scenario: Scenario) -> None:
         """Refuse scenario values this stage cannot work with (``InputError``)."""

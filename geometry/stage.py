@@ -21,6 +21,7 @@ class GeometryStage(Stage):
     """Every registered descriptor (or the ones asked for) of the stack after each batch."""
 
     name = "geometry"
+    progress_label = "describing"
     upstream = ("packing",)
     sections = ("geometry",)
     repeat_statistics = True

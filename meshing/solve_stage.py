@@ -42,6 +42,8 @@ class SolveStage(Stage):
     """CalculiX on the contact model: the press of ``[solve]``, forces and fields."""
 
     name = "solve"
+    progress_label = "solving (% of the press)"
+    progress_unit = "%"
     upstream = ("mesh",)
     sections = ("solve",)
     in_ensembles = False

@@ -55,6 +55,7 @@ class MeshStage(Stage):
     """Voxel hexahedra and/or conformal tetrahedra of the final stack, with checks."""
 
     name = "mesh"
+    progress_label = "meshing"
     upstream = ("packing",)
     sections = ("geometry", "mesh", "solve")  # the contact model's deck holds the step
     in_ensembles = False

@@ -41,6 +41,8 @@ class PackingStage(Stage):
     """Batch deposition (``stack``, ``container``) or single-chip drops (``drop``)."""
 
     name = "packing"
+    progress_label = "depositing"
+    progress_unit = "batch"
     sections = (
         "kind",
         "seed",

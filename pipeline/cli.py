@@ -13,7 +13,7 @@ import os
 import sys
 
 from core.errors import ChipstackError
-from core.stages import stage_names
+from core.stages import check_stage_name, stage_names
 
 __all__ = ["main"]
 
@@ -43,7 +43,9 @@ def _add_run(commands) -> None:
         help="scenario TOML file or built-in name (default: paper-squares)",
     )
     run.add_argument(
-        "--to", default="packing", help=f"last stage: {', '.join(stage_names())} (default: packing)"
+        "--to",
+        default=None,
+        help=f"last stage: {', '.join(stage_names())} (default: {stage_names()[0]})",
     )
     run.add_argument("--out", default=None, help="run directory (default: runs/<name>-seed<N>)")
     run.add_argument("--seed", type=int, default=None, help="seed of every random draw")
@@ -178,7 +180,7 @@ def _run(args: argparse.Namespace) -> None:
         scenario = scenario.with_seed(args.seed)
     out = args.out or f"runs/{scenario.name}-seed{scenario.seed}"
     descriptors = _names(args.descriptors)
-    if descriptors is not None and args.to == "packing":
+    if descriptors is not None and args.to in (None, stage_names()[0]):
         raise ChipstackError("--descriptors: only with --to geometry or a later stage")
     if args.formats is not None:
         import dataclasses
@@ -216,8 +218,6 @@ class _StageBars:
     """One progress bar per stage, drawn at its first report (so that early errors
     stay one line) and closed when the next stage starts."""
 
-    VERBS = {"packing": "depositing", "geometry": "describing", "mesh": "meshing"}
-
     def __init__(self, quiet: bool) -> None:
         self.quiet = quiet
         self.bar = None
@@ -229,10 +229,11 @@ class _StageBars:
         if stage != self.stage:
             self.close()
             self.stage = stage
+            registered = check_stage_name(stage)
             self.bar = tqdm(
                 total=total,
-                desc=self.VERBS.get(stage, stage),
-                unit="batch" if stage == "packing" else "step",
+                desc=registered.progress_label or stage,
+                unit=registered.progress_unit,
                 disable=self.quiet,
                 file=sys.stderr,
             )

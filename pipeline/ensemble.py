@@ -33,7 +33,7 @@ def run_ensemble(
     scenario: Scenario,
     out: str | Path,
     repeats: int,
-    to: str = "geometry",
+    to: str | None = "geometry",
     overwrite: bool = False,
     progress: Callable[[int, int], None] | None = None,
     command: list[str] | None = None,
@@ -51,6 +51,7 @@ def run_ensemble(
     reported with its seed; the others complete.
     """
     stages = stages_to(to, scenario)
+    to = stages[-1].name
     if not 2 <= repeats <= MAX_REPEATS:
         raise InputError(f"--repeats: must be between 2 and {MAX_REPEATS}, got {repeats}")
     if not stages[-1].in_ensembles:

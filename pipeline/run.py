@@ -42,8 +42,10 @@ def derive_seed(seed: int, index: int) -> int:
     return int(np.random.SeedSequence([seed, index]).generate_state(1, dtype=np.uint32)[0])
 
 
-def stages_to(to: str, scenario: Scenario | None = None) -> list[Stage]:
-    """The stages a run ``--to to`` runs, refusing a stage the scenario's kind lacks."""
+def stages_to(to: str | None, scenario: Scenario | None = None) -> list[Stage]:
+    """The stages a run ``--to to`` runs (None: the first stage only), refusing a stage
+    the scenario's kind lacks."""
+    to = to or load_stages()[0].name
     target = check_stage_name(to)
     if scenario is not None and scenario.kind not in target.kinds:
         first = load_stages()[0].name
@@ -83,7 +85,7 @@ def _sha256(data: Any) -> str:
 def run_pipeline(
     scenario: Scenario,
     out: str | Path,
-    to: str = "packing",
+    to: str | None = None,
     overwrite: bool = False,
     progress: Callable[..., None] | None = None,
     command: list[str] | None = None,
@@ -202,7 +204,7 @@ class RepeatResult:
     results: dict[str, Any]
     times: dict[str, float]
     started_utc: str
-    to: str = "packing"
+    to: str | None = None
     descriptors: tuple[str, ...] | None = field(default=None)
 
     @property
@@ -212,7 +214,7 @@ class RepeatResult:
 
 def compute_run(
     scenario: Scenario,
-    to: str,
+    to: str | None,
     descriptors: Sequence[str] | None,
     progress: Callable[..., None] | None = None,
 ) -> RepeatResult:
