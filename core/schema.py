@@ -387,7 +387,8 @@ class SolveSpec:
         1e-3,
         "N/mm",
         "weak springs to ground, 3 per corner of each chip's mid-plane, that make a chip "
-        "held only by contact non-singular (their force is reported)",
+        "held only by contact non-singular (their force is at most 12 x this x the press "
+        "per chip)",
         _between(0.0, 1e3),
     )
     increments: int = _key(

@@ -79,8 +79,11 @@ class MeshStage(Stage):
                 spec.contact_gap_mm,
                 g.layer_mm,
             )
+            mesh = contact_volume_mesh(model, arrangement)
             return MeshedStack(
-                contact=model, reports={"contact": check_contact_model(model, arrangement)}
+                meshes={"contact": mesh},
+                reports={"contact": check_contact_model(model, mesh, arrangement)},
+                contact=model,
             )
         table = find_contacts(arrangement, g.contact_gap_mm, g.contact_extent_mm)
         chips = table.chip_b >= 0
@@ -179,10 +182,11 @@ class MeshFiles:
     files: dict[str, list[str]]
 
 
-def check_contact_model(model: ContactModel, arrangement: Arrangement) -> dict[str, Any]:
-    """Every element has positive volume, every chip's meshed volume is its exact volume,
-    every chip has a closed outer surface, and no two chips overlap after clearing."""
-    mesh = contact_volume_mesh(model, arrangement)
+def check_contact_model(
+    model: ContactModel, mesh: VolumeMesh, arrangement: Arrangement
+) -> dict[str, Any]:
+    """Every element (``mesh``: the model's chips) has positive volume, every chip's
+    meshed volume is its exact volume, and every chip has an outer surface."""
     volumes = mesh.element_volumes()
     exact = np.array([s.volume_mm3 for s in arrangement.shapes])[arrangement.shape_index]
     meshed = np.bincount(model.chip, weights=volumes, minlength=model.n_chips)
@@ -216,7 +220,7 @@ def contact_volume_mesh(model: ContactModel, arrangement: Arrangement) -> Volume
     return VolumeMesh(
         points=model.points,
         cell_type="hexahedron",
-        cells=model.cells[:, _VTK_FROM_CCX],
+        cells=model.cells,  # C3D8 and VTK_HEXAHEDRON share the node order
         chip=model.chip,
         quality=np.ones(n),
         node_sets={},
@@ -227,22 +231,14 @@ def contact_volume_mesh(model: ContactModel, arrangement: Arrangement) -> Volume
     )
 
 
-_VTK_FROM_CCX = np.arange(8)  # C3D8 and VTK_HEXAHEDRON share the node order
-
-
 def _write_contact(folder: Path, result: MeshedStack, inputs: StageInputs) -> dict[str, Any]:
     """The CalculiX deck, a VTU of the chips and the check report; the manifest entry."""
     model = result.contact
     spec = inputs.scenario.mesh
-    arrangement = stack_history(inputs.result("packing"))[-1]
     write_contact_deck(folder / "stack_contact.inp", model, inputs.scenario.solve, spec.element)
     files = ["stack_contact.inp"]
-    files += [
-        p.name
-        for p in write_mesh(
-            folder, "stack_contact", contact_volume_mesh(model, arrangement), ["vtu"]
-        )
-    ]
+    chips = result.meshes["contact"]  # built and checked in compute
+    files += [p.name for p in write_mesh(folder, "stack_contact", chips, ["vtu"])]
     report = result.reports["contact"]
     (folder / "stack_contact_checks.json").write_text(json.dumps(report, indent=2) + "\n")
     files.append("stack_contact_checks.json")
