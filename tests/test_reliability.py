@@ -18,6 +18,9 @@ def _dead_pid() -> int:
 
 
 def test_second_run_into_the_same_directory_is_refused(tmp_path, small_scenario):
+    # A first run long enough (96 chips) that it still holds its lock when the second
+    # command, which takes over a second to start, asks for it.
+    small_scenario.write_text(small_scenario.read_text().replace("chips = 24", "chips = 96"))
     out = tmp_path / "run"
     lock = tmp_path / ".run.lock"
     first = subprocess.Popen(
