@@ -17,10 +17,12 @@ $(STAMP): pyproject.toml
 run: $(STAMP)
 	$(BIN)/pipeline run --to mesh --out runs/paper-squares --seed 0
 
+# Tests run on every core (-n auto); a module's tests stay on one worker (--dist loadfile)
+# so that its shared, expensive fixtures (10-repeat ensembles) are computed once.
 test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	$(BIN)/pytest -q
+	$(BIN)/pytest -q -n auto --dist loadfile
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_packing.py

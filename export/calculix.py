@@ -12,7 +12,7 @@ import numpy as np
 
 from core.schema import SolveSpec
 from export.mesh_files import MATERIALS
-from meshing.contact_model import ContactModel, Platen
+from meshing.contact_model import ContactModel, Platen, faces_near_box, faces_within
 
 __all__ = ["write_contact_deck", "COMPACTION_DOC", "SPRING_ELSETS"]
 
@@ -42,8 +42,9 @@ def write_contact_deck(path: Path, model: ContactModel, solve: SolveSpec, elemen
         _elements(f, model, element)
         _springs(f, model, solve.spring_n_mm)
         _materials(f, model)
-        _surfaces(f, model)
-        _contacts(f, model, solve)
+        pairs, surfaces = contact_surfaces(model, solve)
+        _surfaces(f, model, surfaces)
+        _contacts(f, pairs, solve)
         _step(f, model, solve)
     return Path(path)
 
@@ -113,9 +114,38 @@ def _platen_faces(platen: Platen, first_element: int) -> list[list]:
     return [[first_element + k, f"S{platen.face}"] for k in range(len(platen.cells))]
 
 
-def _surfaces(f: TextIO, model: ContactModel) -> None:
-    for chip, faces in enumerate(model.surfaces):
-        f.write(f"*SURFACE, NAME=S_{chip:04d}, TYPE=ELEMENT\n")
+def contact_surfaces(model: ContactModel, solve: SolveSpec) -> list[tuple[str, str, list]]:
+    """The contact pairs of the deck as (slave, master, [(surface name, faces)...]).
+
+    Each side of a pair is only the part of the chip's surface that can reach the other
+    side (within the gap tolerance or the press): CalculiX matches every
+    slave face with every master face of a pair at each increment, and whole chip surfaces
+    made that matching most of the run time. Chips get a pair with the conveyor when they
+    are within reach of it, and with the press plate when it can reach them."""
+    reach = max(model.gap_mm, press_mm(model, solve))
+    pairs, surfaces = [], []
+    for a, b in model.pairs:
+        near_a, near_b = faces_near_box(model, a, b, reach), faces_near_box(model, b, a, reach)
+        if len(near_a) and len(near_b):
+            names = (f"S_{a:04d}_{b:04d}", f"S_{b:04d}_{a:04d}")
+            surfaces += [(names[0], near_a), (names[1], near_b)]
+            pairs.append(names)
+    for platen, low, high in (
+        (model.bottom, -np.inf, model.bottom.z_mm + reach),
+        (model.top, model.top.z_mm - press_mm(model, solve) - reach, np.inf),
+    ):
+        for chip in range(model.n_chips):
+            near = faces_within(model, chip, low, high)
+            if len(near):
+                name = f"S_{chip:04d}_{platen.name}"
+                surfaces.append((name, near))
+                pairs.append((name, f"S_{platen.name}"))
+    return pairs, surfaces
+
+
+def _surfaces(f: TextIO, model: ContactModel, surfaces: list) -> None:
+    for name, faces in surfaces:
+        f.write(f"*SURFACE, NAME={name}, TYPE=ELEMENT\n")
         _lines(f, ([e + 1, f"S{face}"] for e, face in faces))
     first = len(model.cells) + 1
     for platen in (model.bottom, model.top):
@@ -124,7 +154,7 @@ def _surfaces(f: TextIO, model: ContactModel) -> None:
         first += len(platen.cells)
 
 
-def _contacts(f: TextIO, model: ContactModel, solve: SolveSpec) -> None:
+def _contacts(f: TextIO, pairs: list, solve: SolveSpec) -> None:
     """Penalty contact: linear pressure-overclosure, Coulomb friction. The chip is the
     slave against a platen; of two chips, the lower-numbered one."""
     stiffness = solve.contact_stiffness_mpa_mm
@@ -132,9 +162,6 @@ def _contacts(f: TextIO, model: ContactModel, solve: SolveSpec) -> None:
     f.write(f"{stiffness:.9g}, 1e-3\n")
     if solve.friction > 0:
         f.write(f"*FRICTION\n{solve.friction:.9g}, {stiffness:.9g}\n")
-    pairs = [(f"S_{a:04d}", f"S_{b:04d}") for a, b in model.pairs]
-    pairs += [(f"S_{c:04d}", "S_BOTTOM") for c in range(model.n_chips)]
-    pairs += [(f"S_{c:04d}", "S_TOP") for c in range(model.n_chips)]
     for slave, master in pairs:
         f.write("*CONTACT PAIR, INTERACTION=SI, TYPE=SURFACE TO SURFACE\n")
         f.write(f"{slave}, {master}\n")

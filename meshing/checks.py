@@ -10,12 +10,16 @@
   the overlap rule, and of the whole within ``total_tolerance`` (1 %) of the union;
 * no two nodes at the same place;
 * every face shared by at most two elements (one on the boundary, two inside);
+* every chip one piece: its elements connected through shared faces (a chip whose pieces
+  meet only at edges or nodes is a mechanism in a solver, not a chip);
 * chips in surface contact share interface faces.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from geometry.arrangement import Arrangement
 from geometry.contacts import candidate_pairs
@@ -23,7 +27,14 @@ from geometry.solids import chip_solids, union_solid
 from meshing.conformal import MeshingError
 from meshing.mesh import VolumeMesh
 
-__all__ = ["check_mesh", "assert_valid", "exact_chip_volumes", "element_faces"]
+__all__ = [
+    "check_mesh",
+    "assert_valid",
+    "exact_chip_volumes",
+    "element_faces",
+    "chip_pieces",
+    "split_warning",
+]
 
 _TET_FACES = ((0, 2, 1), (0, 1, 3), (1, 2, 3), (0, 3, 2))
 _HEX_FACES = ((0, 3, 2, 1), (4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (2, 3, 7, 6), (3, 0, 4, 7))
@@ -35,6 +46,28 @@ def element_faces(mesh: VolumeMesh) -> tuple[np.ndarray, np.ndarray]:
     faces = np.concatenate([mesh.cells[:, list(f)] for f in local])
     owner = np.tile(np.arange(mesh.n_elements), len(local))
     return np.sort(faces, axis=1), owner
+
+
+def _sorted_faces(mesh: VolumeMesh) -> tuple[np.ndarray, np.ndarray]:
+    """``element_faces`` sorted so that the copies of a face are neighbours."""
+    faces, owner = element_faces(mesh)
+    order = np.lexsort(faces.T[::-1])
+    return faces[order], owner[order]
+
+
+def chip_pieces(mesh: VolumeMesh, sorted_faces=None) -> np.ndarray:
+    """(n_chips,) int: into how many face-connected pieces each chip's elements fall (1 for
+    a sound chip, 0 for a chip with no element; pore elements are not counted)."""
+    faces, owner = sorted_faces if sorted_faces is not None else _sorted_faces(mesh)
+    same = np.flatnonzero(np.all(faces[1:] == faces[:-1], axis=1))
+    a, b = owner[same], owner[same + 1]
+    own_chip = (mesh.chip[a] == mesh.chip[b]) & (mesh.chip[a] >= 0)
+    n = mesh.n_elements
+    graph = coo_matrix((np.ones(int(own_chip.sum())), (a[own_chip], b[own_chip])), shape=(n, n))
+    _, component = connected_components(graph, directed=False)
+    counted = mesh.chip >= 0
+    pairs = np.unique(np.column_stack([mesh.chip[counted], component[counted]]), axis=0)
+    return np.bincount(pairs[:, 0], minlength=mesh.n_chips)
 
 
 def exact_chip_volumes(arrangement: Arrangement) -> np.ndarray:
@@ -69,13 +102,12 @@ def check_mesh(
     total = float(meshed.sum())
     rounded = np.round(mesh.points / 1e-7).astype(np.int64)
     duplicates = len(mesh.points) - len(np.unique(rounded, axis=0))
-    faces, owner = element_faces(mesh)
-    order = np.lexsort(faces.T[::-1])
-    faces, owner = faces[order], owner[order]
+    faces, owner = _sorted_faces(mesh)
     same = np.all(faces[1:] == faces[:-1], axis=1)
     starts = np.flatnonzero(np.concatenate([[True], ~same]))
     counts = np.diff(np.concatenate([starts, [len(faces)]]))
     shared_ok = bool((counts <= 2).all())
+    split = np.flatnonzero(chip_pieces(mesh, (faces, owner)) > 1)
     interfaces = {}
     if surface_pairs is not None and len(surface_pairs):
         pair_faces = starts[counts == 2]
@@ -106,6 +138,8 @@ def check_mesh(
         "total_volume_error": float(abs(total - union) / union),
         "duplicate_nodes": int(duplicates),
         "faces_shared_by_more_than_two": int((counts > 2).sum()),
+        "chips_in_pieces": split.tolist()[:20],
+        "chips_in_pieces_count": int(len(split)),
         "interfaces": interfaces,
     }
     report["valid"] = bool(
@@ -115,13 +149,30 @@ def check_mesh(
         and report["total_volume_error"] <= total_tolerance
         and duplicates == 0
         and shared_ok
+        and len(split) == 0
         and not interfaces.get("missing")
     )
     return report
 
 
+def split_warning(report: dict, kind: str) -> str | None:
+    """The warning for chips in pieces, or None when every chip is one piece."""
+    count = report.get("chips_in_pieces_count", 0)
+    if not count:
+        return None
+    return (
+        f"{kind} mesh not valid for a solver: {count} chips fall apart into pieces joined "
+        f"only at edges or nodes (chips {report['chips_in_pieces']}"
+        f"{', ...' if count > len(report['chips_in_pieces']) else ''}); use a smaller element"
+    )
+
+
 def assert_valid(report: dict) -> None:
-    """Raise :class:`MeshingError` naming the first criterion ``report`` fails."""
+    """Raise :class:`MeshingError` naming the first criterion ``report`` fails.
+
+    Chips in pieces are not raised here: the mesh is still the best picture of the stack
+    (the voxel mesh is the fallback that always exists), so the report says ``"valid":
+    false``, names the chips, and the stage warns (:func:`split_warning`)."""
     checks = [
         (report["min_element_volume_mm3"] > 0, "an element has no positive volume"),
         (

@@ -35,6 +35,8 @@ __all__ = [
     "chip_block",
     "clear_overlaps",
     "separation",
+    "faces_near_box",
+    "faces_within",
     "FACE_NODES",
 ]
 
@@ -296,6 +298,40 @@ def contact_model(
             "max_move_mm": float(moved.max()),
         },
     )
+
+
+def _face_points(model: ContactModel, faces: np.ndarray) -> np.ndarray:
+    """(k, 4, 3) mm, the corner points of surface faces (rows of element, face number)."""
+    local = np.asarray(FACE_NODES)[faces[:, 1] - 1]
+    return model.points[model.cells[faces[:, 0][:, None], local]]
+
+
+def chip_box(model: ContactModel, chip: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The oriented box of a meshed chip: (centre (3,), axes (3, 3) rows, half sizes (3,))."""
+    nodes = model.points[np.unique(model.cells[model.chip == chip])]
+    first = model.fibres[chip][0]
+    normal = model.normals[chip]
+    axes = np.array([first, np.cross(normal, first), normal])
+    centre = nodes.mean(axis=0)
+    local = (nodes - centre) @ axes.T
+    return centre, axes, np.abs(local).max(axis=0)
+
+
+def faces_near_box(model: ContactModel, chip: int, other: int, reach_mm: float) -> np.ndarray:
+    """Rows of ``model.surfaces[chip]`` with a corner within ``reach_mm`` of chip
+    ``other``'s box: the part of a chip's surface that can meet the other chip."""
+    faces = model.surfaces[chip]
+    centre, axes, half = chip_box(model, other)
+    local = np.abs((_face_points(model, faces) - centre) @ axes.T)
+    distance = np.linalg.norm(np.maximum(local - half, 0.0), axis=-1)
+    return faces[(distance <= reach_mm).any(axis=1)]
+
+
+def faces_within(model: ContactModel, chip: int, z_min: float, z_max: float) -> np.ndarray:
+    """Rows of ``model.surfaces[chip]`` with a corner between two heights (mm)."""
+    faces = model.surfaces[chip]
+    z = _face_points(model, faces)[..., 2]
+    return faces[((z >= z_min) & (z <= z_max)).any(axis=1)]
 
 
 def _mesh_chips(arrangement: Arrangement, size: float, through: int):

@@ -20,7 +20,7 @@ from export.calculix import press_mm, write_contact_deck
 from export.mesh_files import MESH_FORMATS, write_mesh
 from geometry.arrangement import Arrangement, stack_history
 from geometry.contacts import KINDS, find_contacts
-from meshing.checks import assert_valid, check_mesh
+from meshing.checks import assert_valid, check_mesh, split_warning
 from meshing.conformal import MeshingError, conformal_mesh
 from meshing.contact_model import ContactModel, contact_model
 from meshing.mesh import VolumeMesh, element_attributes
@@ -113,6 +113,8 @@ class MeshStage(Stage):
                 chip_tolerance=_volume_tolerance(kind, arrangement, spec.voxel_mm),
             )
             assert_valid(checks)
+            if (warning := split_warning(checks, kind)) is not None:
+                log.warning("%s", warning)
             result.meshes[kind], result.reports[kind] = mesh, checks
         if report is not None:
             report(self.name, len(kinds), len(kinds), {})
@@ -122,6 +124,7 @@ class MeshStage(Stage):
     def _mesh(kind: str, arrangement: Arrangement, scenario: Scenario, result: MeshedStack):
         spec, layer_mm = scenario.mesh, scenario.geometry.layer_mm
         if kind == "voxel":
+            _check_voxel_size(spec.voxel_mm, arrangement)
             return voxel_mesh(arrangement, spec.voxel_mm, spec.pore_space, layer_mm)
         msh = None
         if "msh" in spec.formats:
@@ -168,6 +171,8 @@ class MeshStage(Stage):
                 f"{m['quality_min']:.3f}, largest chip volume error "
                 f"{100 * m['chip_volume_error_max']:.2f} %; in {m['info']['mesh_time_s']:.1f} s"
             )
+            if m.get("chips_in_pieces_count"):
+                lines[-1] += f"; NOT VALID: {m['chips_in_pieces_count']} chips in pieces"
         return lines
 
 
@@ -259,6 +264,17 @@ def _write_contact(folder: Path, result: MeshedStack, inputs: StageInputs) -> di
     }
 
 
+def _check_voxel_size(voxel_mm: float, arrangement: Arrangement) -> None:
+    """A voxel as thick as a chip samples it once through its thickness: tilted chips
+    fall apart into pieces joined at edges (half the reference stack at 2 mm)."""
+    thinnest = min(2 * float(min(s.half_extents)) for s in arrangement.shapes)
+    if voxel_mm >= thinnest:
+        raise InputError(
+            f"mesh.voxel_mm: {voxel_mm:g} mm is not below the thinnest chip dimension "
+            f"({thinnest:g} mm); use at most {thinnest / 2:g} mm (2 voxels through a chip)"
+        )
+
+
 def check_formats(formats: tuple[str, ...], key: str) -> None:
     """Refuse an empty list or an unknown mesh format, listing the valid ones."""
     valid = ", ".join(MESH_FORMATS.names())
@@ -306,6 +322,8 @@ def _write_kind(folder: Path, kind: str, mesh: VolumeMesh, result: MeshedStack, 
         "quality_p1": round(report["quality_p1"], 4),
         "chip_volume_error_max": report["chip_volume_error_max"],
         "total_volume_error": report["total_volume_error"],
+        "chips_in_pieces_count": report["chips_in_pieces_count"],
+        "valid": report["valid"],
         "info": mesh.info,
         "files": sorted(files),
     }

@@ -170,6 +170,64 @@ def test_checks_catch_a_broken_mesh(conformal_layup):
     assert check_mesh(dup, a)["duplicate_nodes"] == 1
 
 
+def test_a_chip_in_pieces_joined_at_an_edge_is_not_valid():
+    """A steeply tilted chip voxelised at its own thickness falls apart into pieces that
+    touch only along edges: a mechanism in a solver, so the report must not say valid."""
+    from meshing.checks import chip_pieces, split_warning
+
+    tilted = arrange([((0, 0, 8.0), Rotation.from_euler("y", 60, degrees=True))])
+    sound = voxel_mesh(tilted, voxel_mm=0.5)
+    assert chip_pieces(sound).tolist() == [1]
+    assert check_mesh(sound, tilted)["chips_in_pieces_count"] == 0
+    coarse = voxel_mesh(tilted, voxel_mm=1.9)
+    assert chip_pieces(coarse)[0] > 1
+    report = check_mesh(coarse, tilted, chip_tolerance=1.0, total_tolerance=1.0)
+    assert report["chips_in_pieces"] == [0] and not report["valid"]
+    assert "1 chips fall apart" in split_warning(report, "voxel")
+    # two cubes sharing one edge, labelled one chip: two pieces; a face between them: one
+    points = np.array([[x, y, z] for z in (0, 1) for y in (0, 1, 2) for x in (0, 1, 2)], float)
+
+    def node(x, y, z):
+        return x + 3 * y + 9 * z
+
+    def cube(x, y):
+        return [
+            node(x + dx, y + dy, dz) for dz in (0, 1) for dx, dy in ((0, 0), (1, 0), (1, 1), (0, 1))
+        ]
+
+    def two(cubes):
+        return type(sound)(
+            points=points,
+            cell_type="hexahedron",
+            cells=np.array(cubes),
+            chip=np.zeros(2, int),
+            layer=np.zeros(2, int),
+            batch=np.ones(2, int),
+            fibres=np.zeros((2, 2, 3)),
+            normals=np.zeros((2, 3)),
+            quality=np.ones(2),
+            node_sets={},
+            n_chips=1,
+            kind="voxel",
+        )
+
+    assert chip_pieces(two([cube(0, 0), cube(1, 1)])).tolist() == [2]
+    assert chip_pieces(two([cube(0, 0), cube(1, 0)])).tolist() == [1]
+
+
+def test_a_voxel_as_thick_as_the_chips_is_refused(tmp_path, small_scenario):
+    from conftest import run_cli
+
+    small_scenario.write_text(small_scenario.read_text() + "[mesh]\nvoxel_mm = 2.0\n")
+    out = tmp_path / "run"
+    result = run_cli("run", str(small_scenario), "--to", "mesh", "--out", str(out), "--quiet")
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in result.stderr, result.stderr
+    assert "mesh.voxel_mm: 2 mm is not below the thinnest chip dimension (2 mm)" in lines[0]
+    assert not out.exists()
+
+
 # -- files -----------------------------------------------------------------------------------
 @pytest.mark.parametrize("kind", ["conformal", "voxel"])
 def test_every_format_reads_back(tmp_path, kind, conformal_layup):
