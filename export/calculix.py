@@ -5,6 +5,7 @@ tonne, s)."""
 from __future__ import annotations
 
 from collections.abc import Iterable
+from functools import cache, partial
 from pathlib import Path
 from typing import TextIO
 
@@ -12,7 +13,7 @@ import numpy as np
 
 from core.schema import SolveSpec
 from export.mesh_files import MATERIALS
-from meshing.contact_model import ContactModel, Platen, faces_near_box, faces_within
+from meshing.contact_model import ContactModel, Platen, chip_box, faces_near_box, faces_within
 
 __all__ = ["write_contact_deck", "COMPACTION_DOC", "SPRING_ELSETS"]
 
@@ -124,8 +125,10 @@ def contact_surfaces(model: ContactModel, solve: SolveSpec) -> list[tuple[str, s
     are within reach of it, and with the press plate when it can reach them."""
     reach = max(model.gap_mm, press_mm(model, solve))
     pairs, surfaces = [], []
+    box = cache(partial(chip_box, model))  # a chip is in several pairs
     for a, b in model.pairs:
-        near_a, near_b = faces_near_box(model, a, b, reach), faces_near_box(model, b, a, reach)
+        near_a = faces_near_box(model, a, box(b), reach)
+        near_b = faces_near_box(model, b, box(a), reach)
         if len(near_a) and len(near_b):
             names = (f"S_{a:04d}_{b:04d}", f"S_{b:04d}_{a:04d}")
             surfaces += [(names[0], near_a), (names[1], near_b)]

@@ -317,11 +317,11 @@ def chip_box(model: ContactModel, chip: int) -> tuple[np.ndarray, np.ndarray, np
     return centre, axes, np.abs(local).max(axis=0)
 
 
-def faces_near_box(model: ContactModel, chip: int, other: int, reach_mm: float) -> np.ndarray:
-    """Rows of ``model.surfaces[chip]`` with a corner within ``reach_mm`` of chip
-    ``other``'s box: the part of a chip's surface that can meet the other chip."""
+def faces_near_box(model: ContactModel, chip: int, box: tuple, reach_mm: float) -> np.ndarray:
+    """Rows of ``model.surfaces[chip]`` with a corner within ``reach_mm`` of ``box`` (another
+    chip's :func:`chip_box`): the part of a chip's surface that can meet that chip."""
     faces = model.surfaces[chip]
-    centre, axes, half = chip_box(model, other)
+    centre, axes, half = box
     local = np.abs((_face_points(model, faces) - centre) @ axes.T)
     distance = np.linalg.norm(np.maximum(local - half, 0.0), axis=-1)
     return faces[(distance <= reach_mm).any(axis=1)]

@@ -215,15 +215,22 @@ def test_a_chip_in_pieces_joined_at_an_edge_is_not_valid():
     assert chip_pieces(two([cube(0, 0), cube(1, 0)])).tolist() == [1]
 
 
-def test_a_voxel_as_thick_as_the_chips_is_refused(tmp_path, small_scenario):
+def _refused_mesh_run(tmp_path, scenario, extra: str):
+    """Run ``scenario`` plus ``extra`` to the mesh; it must fail in one line, exit 2.
+    Returns (stderr lines, the output folder)."""
     from conftest import run_cli
 
-    small_scenario.write_text(small_scenario.read_text() + "[mesh]\nvoxel_mm = 2.0\n")
+    scenario.write_text(scenario.read_text() + extra)
     out = tmp_path / "run"
-    result = run_cli("run", str(small_scenario), "--to", "mesh", "--out", str(out), "--quiet")
+    result = run_cli("run", str(scenario), "--to", "mesh", "--out", str(out), "--quiet")
     assert result.returncode == 2
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in result.stderr, result.stderr
+    return lines, out
+
+
+def test_a_voxel_as_thick_as_the_chips_is_refused(tmp_path, small_scenario):
+    lines, out = _refused_mesh_run(tmp_path, small_scenario, "[mesh]\nvoxel_mm = 2.0\n")
     assert "mesh.voxel_mm: 2 mm is not below the thinnest chip dimension (2 mm)" in lines[0]
     assert not out.exists()
 
@@ -381,14 +388,7 @@ def test_unknown_format_lists_the_valid_ones(tmp_path, small_scenario):
 def test_a_stack_that_cannot_be_meshed_conformally_is_one_clear_line(tmp_path, small_scenario):
     """The small physics stack (seed 3) leaves chips a few hundredths of a millimetre apart;
     the conformal mesher fails there and says which chips, and what to use instead."""
-    from conftest import run_cli
-
-    small_scenario.write_text(small_scenario.read_text() + '[mesh]\nkind = "conformal"\n')
-    out = tmp_path / "run"
-    result = run_cli("run", str(small_scenario), "--to", "mesh", "--out", str(out), "--quiet")
-    assert result.returncode == 2
-    lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1 and "Traceback" not in result.stderr, result.stderr
+    lines, out = _refused_mesh_run(tmp_path, small_scenario, '[mesh]\nkind = "conformal"\n')
     assert re.search(r"chips \d+", lines[0]) and "mesh.kind = 'voxel'" in lines[0]
     assert not out.exists() and not list(tmp_path.glob(".run*"))
 
