@@ -31,6 +31,8 @@ chips = 48
 batch_size = 8
 target_size_mm = 70.0
 release_height_mm = [40.0, 100.0]
+[mesh]
+voxel_mm = 1.0
 """
 ARGS = ("--to", "mesh", "--formats", "vtu,inp", "--quiet")
 VOLATILE = {"wall_time_s", "descriptor_time_s", "descriptor_times_s", "mesh_time_s"}
@@ -159,7 +161,7 @@ def test_a_kill_while_updating_a_finished_run_leaves_it_whole(scenario, referenc
     subprocess.run(["cp", "-a", str(reference), str(out)], check=True)
     before = _files(out)
     changed = tmp_path / "coarser.toml"
-    changed.write_text(SCENARIO + "[mesh]\nvoxel_mm = 0.4\n")
+    changed.write_text(SCENARIO.replace("voxel_mm = 1.0", "voxel_mm = 0.4"))
     process = subprocess.Popen(
         [sys.executable, "-m", "pipeline", "run", str(changed), "--out", str(out), *ARGS],
         stdout=subprocess.DEVNULL,
@@ -211,7 +213,7 @@ def test_the_stage_cache_redoes_exactly_the_stages_downstream_of_a_change(
     reused, kept = rerun(SCENARIO.replace('"resumable"', '"renamed"'))
     assert reused == everything and all(kept.values())  # the name is not an input
     assert _manifest(out)["scenario"] == "renamed"
-    reused, kept = rerun(SCENARIO + '[mesh]\npore_space = "box"\n')
+    reused, kept = rerun(SCENARIO.replace("[mesh]\n", '[mesh]\npore_space = "box"\n'))
     assert reused == ["packing", "geometry"] and kept == {
         "packing": True,
         "geometry": True,

@@ -117,7 +117,7 @@ length_mm = 20.0
 thickness_mm = 2.0
 [deposition]
 chips = 600
-batch_size = 5
+batch_size = 10
 [container]
 radius_mm = 20.0
 height_mm = 20.0
