@@ -242,6 +242,22 @@ def test_compare_refuses_single_runs_and_missing_directories(tmp_path, described
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
 
 
+@pytest.fixture(scope="module")
+def two_repeat_ensemble(tmp_path_factory) -> Path:
+    """A 2-repeat ensemble of the small scenario (stack and layers), made once: each
+    damaged-ensemble case compares a copy with a damaged copy."""
+    root = tmp_path_factory.mktemp("ensemble")
+    scenario = root / "small.toml"
+    scenario.write_text(SMALL_SCENARIO)
+    out = root / "ensemble"
+    result = run_cli(
+        "run", str(scenario), "--to", "geometry", "--repeats", "2", "--out", str(out),
+        "--quiet", "--descriptors", "stack,layers",
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    return out
+
+
 @pytest.mark.parametrize(
     "damage, words",
     [
@@ -261,22 +277,11 @@ def test_compare_refuses_single_runs_and_missing_directories(tmp_path, described
         (lambda d: d.update(descriptors={}), ["share no descriptor"]),
     ],
 )
-def test_compare_refuses_damaged_or_mismatched_ensembles(tmp_path, small_scenario, damage, words):
+def test_compare_refuses_damaged_or_mismatched_ensembles(
+    tmp_path, two_repeat_ensemble, damage, words
+):
     a, b = tmp_path / "a", tmp_path / "b"
-    result = run_cli(
-        "run",
-        str(small_scenario),
-        "--to",
-        "geometry",
-        "--repeats",
-        "2",
-        "--out",
-        str(a),
-        "--quiet",
-        "--descriptors",
-        "stack,layers",
-    )
-    assert result.returncode == 0, result.stderr
+    shutil.copytree(two_repeat_ensemble, a)
     shutil.copytree(a, b)
     data = json.loads((b / "ensemble.json").read_text())
     damage(data)
