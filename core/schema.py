@@ -101,6 +101,19 @@ def _one_of(*names: str):
     return check
 
 
+def _region(value: tuple[float, ...]) -> str | None:
+    if value == ():
+        return None
+    if len(value) != 4:
+        return f"must be [x_min, x_max, y_min, y_max] (4 numbers), got {len(value)}"
+    x0, x1, y0, y1 = value
+    if not (x0 < x1 and y0 < y1):
+        return f"needs x_min < x_max and y_min < y_max, got {list(value)}"
+    if max(abs(v) for v in value) > MAX_LENGTH_MM:
+        return f"must lie within {MAX_LENGTH_MM:g} mm of the target's centre"
+    return None
+
+
 LENGTH_UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "um": 1e-3, "in": 25.4}
 
 
@@ -332,6 +345,26 @@ class MeshSpec:
         "`box`: also mesh the pore space in the box over the chips from the conveyor to "
         "the top; `none`: chips only",
         _one_of("none", "box"),
+    )
+    crop: str = _key(
+        "none",
+        "",
+        "voxel mesh: `target` crops it to the deposition target, `region` to `region_mm`; "
+        "`none`: the whole stack",
+        _one_of("none", "target", "region"),
+    )
+    region_mm: tuple[float, ...] = _key(
+        (),
+        "mm",
+        "[x_min, x_max, y_min, y_max] of the crop with crop = 'region'",
+        _region,
+    )
+    periodic: bool = _key(
+        False,
+        "",
+        "voxel mesh cropped with pore_space = 'box': tie each node of the xmax and ymax "
+        "sides to its twin on the opposite side (*EQUATION in the .inp, reference nodes "
+        "REF_X and REF_Y carry the jumps): a representative volume",
     )
     min_quality: float = _key(
         0.1, "", "smallest accepted element quality (SICN) of the conformal mesh", _between(0, 1)

@@ -13,9 +13,10 @@ from pathlib import Path
 import numpy as np
 
 from core.registry import Registry
+from meshing.boundaries import FACET_TAGS, boundary_facets
 from meshing.mesh import PORE, VolumeMesh
 
-__all__ = ["MESH_FORMATS", "write_mesh", "to_meshio", "MATERIALS"]
+__all__ = ["MESH_FORMATS", "write_mesh", "to_meshio", "MATERIALS", "facets", "FACET_TAGS"]
 
 # Linear-elastic placeholders for a first consolidation model (MPa): the chip is PA6 with
 # 60 wt % balanced glass twill (packing paper 2.2: 18 GPa tensile in warp and weft); the
@@ -84,12 +85,21 @@ def write_vtu(path: Path, mesh: VolumeMesh) -> list[Path]:
 
 
 _GMSH_TYPE = {"tetra": 4, "hexahedron": 5}  # gmsh and VTK share these node orders
+_GMSH_FACET = {3: 2, 4: 3}  # triangle, quadrangle
+_MESHIO_FACET = {3: "triangle", 4: "quad"}
+
+
+def facets(mesh: VolumeMesh) -> dict[str, np.ndarray]:
+    """The boundary faces on each side of the domain that has any (see FACET_TAGS)."""
+    found = boundary_facets(mesh.cells, mesh.cell_type, mesh.node_sets)
+    return {side: faces for side, faces in found.items() if len(faces)}
 
 
 @_format("msh")
 def write_msh(path: Path, mesh: VolumeMesh) -> list[Path]:
     """gmsh 4.1 (binary): one discrete volume and physical group per chip (tag k + 1,
-    named chip_K) and one for the pores (tag n + 1, named pore)."""
+    named chip_K) and one for the pores (tag n + 1, named pore); the boundary faces on each
+    side of the domain as a physical surface (tags and names in ``FACET_TAGS``)."""
     from meshing.conformal import GmshSession
 
     path = Path(path)
@@ -116,6 +126,15 @@ def write_msh(path: Path, mesh: VolumeMesh) -> list[Path]:
             first += len(block)
             name = f"chip_{tag - 1}" if tag <= mesh.n_chips else "pore"
             model.setPhysicalName(3, model.addPhysicalGroup(3, [int(tag)], int(tag)), name)
+        for side, faces in facets(mesh).items():  # facet tags, as FEniCS reads them
+            tag = FACET_TAGS[side]
+            model.addDiscreteEntity(2, tag)
+            model.mesh.addElementsByType(
+                tag, _GMSH_FACET[faces.shape[1]], np.arange(first, first + len(faces)),
+                (faces + 1).ravel(),
+            )  # fmt: skip
+            first += len(faces)
+            model.setPhysicalName(2, model.addPhysicalGroup(2, [tag], tag), side)
         gmsh.option.setNumber("Mesh.Binary", 1)
         gmsh.write(str(path))
     return [path]
@@ -123,12 +142,32 @@ def write_msh(path: Path, mesh: VolumeMesh) -> list[Path]:
 
 @_format("xdmf")
 def write_xdmf(path: Path, mesh: VolumeMesh) -> list[Path]:
-    """XDMF with its heavy data in HDF5 (.h5 beside it), as FEniCS reads it."""
+    """XDMF with its heavy data in HDF5 (.h5 beside it), as FEniCS reads it; the facet
+    tags (``facet_tag``, values in ``FACET_TAGS``) in ``<stem>_facets.xdmf`` beside it."""
     import meshio
 
     path = Path(path)
     meshio.write(path, to_meshio(mesh), file_format="xdmf")
-    return [path, path.with_suffix(".h5")]
+    written = [path, path.with_suffix(".h5")]
+    found = facets(mesh)
+    if found:
+        by_size: dict[int, list] = {}
+        for side, faces in found.items():
+            by_size.setdefault(faces.shape[1], []).append((side, faces))
+        cells, tags = [], []
+        for size, groups in sorted(by_size.items()):
+            cells.append((_MESHIO_FACET[size], np.concatenate([f for _, f in groups])))
+            tags.append(
+                np.concatenate([np.full(len(f), FACET_TAGS[side], np.int32) for side, f in groups])
+            )
+        facet_path = path.with_name(f"{path.stem}_facets.xdmf")
+        meshio.write(
+            facet_path,
+            meshio.Mesh(np.asarray(mesh.points, dtype=float), cells, cell_data={"facet_tag": tags}),
+            file_format="xdmf",
+        )
+        written += [facet_path, facet_path.with_suffix(".h5")]
+    return written
 
 
 _INP_ELEMENT = {"tetra": "C3D4", "hexahedron": "C3D8"}
@@ -145,8 +184,9 @@ def _write_ids(f, ids: np.ndarray) -> None:
 def write_inp(path: Path, mesh: VolumeMesh) -> list[Path]:
     """Abaqus / CalculiX input: nodes, elements, an element set and a material orientation
     per chip (local 1 along its first fibre direction, 2 along the second), node sets
-    for the platens (BOTTOM, TOP) and the sides (LATERAL), sections and materials (MPa,
-    mm). Analysis steps are the user's."""
+    for the platens (BOTTOM, TOP) and the sides (XMIN ... YMAX, LATERAL), sections and
+    materials (MPa, mm); for a periodic box, the reference nodes REF_X, REF_Y and the
+    *EQUATION ties of opposite sides. Analysis steps are the user's."""
     path = Path(path)
     with open(path, "w") as f:
         f.write("** chipstack mesh: units mm, N, MPa\n*HEADING\nchip stack\n*NODE, NSET=NALL\n")
@@ -165,6 +205,8 @@ def write_inp(path: Path, mesh: VolumeMesh) -> list[Path]:
         for name, nodes in mesh.node_sets.items():
             f.write(f"*NSET, NSET={name.upper()}\n")
             _write_ids(f, nodes)
+        if mesh.periodic is not None:
+            _write_periodic(f, mesh)
         chip_material = MATERIALS["CHIP"]
         c = chip_material
         f.write("*MATERIAL, NAME=CHIP\n*ELASTIC, TYPE=ENGINEERING CONSTANTS\n")
@@ -187,6 +229,29 @@ def write_inp(path: Path, mesh: VolumeMesh) -> list[Path]:
                 f"*SOLID SECTION, ELSET=CHIP_{chip:04d}, MATERIAL=CHIP, ORIENTATION=OR_{chip:04d}\n"
             )
     return [path]
+
+
+def _write_periodic(f, mesh: VolumeMesh) -> None:
+    """Reference nodes REF_X and REF_Y (their displacement is the jump across the box
+    along x and along y) and one *EQUATION per tied node and direction:
+    u(dependent) - u(twin) - u(REF_X) [- u(REF_Y)] = 0; z is not tied on the top and
+    bottom faces, which the platens press."""
+    pairs = mesh.periodic
+    n = len(mesh.points)
+    corner = mesh.points.max(axis=0)
+    f.write("*NODE, NSET=REF_X\n")
+    f.write(f"{n + 1}, {corner[0] + 1:.9g}, {corner[1]:.9g}, {corner[2]:.9g}\n")
+    f.write("*NODE, NSET=REF_Y\n")
+    f.write(f"{n + 2}, {corner[0]:.9g}, {corner[1] + 1:.9g}, {corner[2]:.9g}\n")
+    f.write("*EQUATION\n")
+    references = np.array([n + 1, n + 2])
+    for dependent, twin, shifts, on_platen in zip(
+        pairs.dependent + 1, pairs.independent + 1, pairs.shifts, pairs.on_platen, strict=True
+    ):
+        for dof in (1, 2) if on_platen else (1, 2, 3):
+            terms = [(dependent, 1.0), (twin, -1.0)] + [(r, -1.0) for r in references[shifts]]
+            f.write(f"{len(terms)}\n")
+            f.write(", ".join(f"{node}, {dof}, {c:g}" for node, c in terms) + "\n")
 
 
 def write_mesh(folder: Path, stem: str, mesh: VolumeMesh, formats: list[str]) -> list[Path]:

@@ -8,6 +8,7 @@ import numpy as np
 
 from geometry.arrangement import Arrangement
 from geometry.orientation import fibre_directions_world
+from meshing.boundaries import PeriodicPairs, side_node_sets
 
 __all__ = ["VolumeMesh", "PORE", "chip_attributes", "element_attributes", "boundary_node_sets"]
 
@@ -25,8 +26,10 @@ class VolumeMesh:
     (zeros for pores; a chip with one direction repeats it). normals: (M, 3) the chip's
     normal (its local z) in the world frame, zeros for pores. quality: (M,) element quality
     (gmsh's SICN; 1 for a cube). node_sets: named node index arrays (``bottom``: on the
-    conveyor, ``top``: on the top platen plane, ``lateral``: on the sides of the domain).
+    conveyor, ``top``: on the top platen plane, ``xmin`` ... ``ymax`` and ``lateral``: on
+    the sides of the domain).
     kind: "conformal" or "voxel". info: how it was made (sizes, tolerances, timings).
+    periodic: for a box with periodic sides, the node pairs they tie.
     """
 
     points: np.ndarray
@@ -42,6 +45,7 @@ class VolumeMesh:
     n_chips: int
     kind: str
     info: dict = field(default_factory=dict)
+    periodic: PeriodicPairs | None = None  # the node pairs periodic sides tie, if asked
 
     def __post_init__(self) -> None:
         for name in ("points", "cells", "chip", "batch", "layer", "fibres", "normals", "quality"):
@@ -105,14 +109,6 @@ def element_attributes(
 
 def boundary_node_sets(points: np.ndarray, tolerance_mm: float = 1e-6) -> dict[str, np.ndarray]:
     """Nodes on the domain's faces: ``bottom`` (lowest plane, the conveyor platen),
-    ``top`` (highest plane, the upper platen) and ``lateral`` (the four sides)."""
-    z = points[:, 2]
-    lateral = np.zeros(len(points), dtype=bool)
-    for axis in (0, 1):
-        lateral |= np.abs(points[:, axis] - points[:, axis].min()) <= tolerance_mm
-        lateral |= np.abs(points[:, axis] - points[:, axis].max()) <= tolerance_mm
-    return {
-        "bottom": np.flatnonzero(z <= z.min() + tolerance_mm),
-        "top": np.flatnonzero(z >= z.max() - tolerance_mm),
-        "lateral": np.flatnonzero(lateral),
-    }
+    ``top`` (highest plane, the upper platen), ``xmin`` ... ``ymax`` and ``lateral`` (the
+    four sides); see :func:`meshing.boundaries.side_node_sets`."""
+    return side_node_sets(points, tolerance_mm)

@@ -61,7 +61,23 @@ class MeshStage(Stage):
     in_ensembles = False
 
     def check(self, scenario: Scenario) -> None:
-        check_formats(scenario.mesh.formats, "mesh.formats")
+        spec = scenario.mesh
+        check_formats(spec.formats, "mesh.formats")
+        if spec.crop == "region" and not spec.region_mm:
+            raise InputError(
+                "mesh.region_mm: give [x_min, x_max, y_min, y_max] with mesh.crop = 'region'"
+            )
+        if spec.region_mm and spec.crop != "region":
+            raise InputError(
+                f"mesh.region_mm: read only with mesh.crop = 'region' (it is {spec.crop!r})"
+            )
+        if spec.crop != "none" and spec.kind != "voxel":
+            raise InputError(f"mesh.crop: the voxel mesh only so far (mesh.kind is {spec.kind!r})")
+        if spec.periodic and (spec.crop == "none" or spec.pore_space != "box"):
+            raise InputError(
+                "mesh.periodic: needs a crop (mesh.crop) and mesh.pore_space = 'box', so "
+                "that opposite sides are full faces whose nodes match"
+            )
 
     def key_extra(self, scenario: Scenario, options: StageOptions) -> dict[str, Any]:
         return {"figures": options.figures}
@@ -87,9 +103,16 @@ class MeshStage(Stage):
             )
         table = find_contacts(arrangement, g.contact_gap_mm, g.contact_extent_mm)
         chips = table.chip_b >= 0
-        surface_pairs = np.column_stack([table.chip_a, table.chip_b])[
-            chips & (table.kind == KINDS.index("surface"))
-        ]
+        checked = chips & (table.kind == KINDS.index("surface"))
+        if (region := crop_region(inputs.scenario)) is not None:
+            # A crop keeps the contacts whose patch lies inside it, two voxels clear of
+            # its sides (a patch the crop cuts to a sliver may keep no whole voxel face).
+            x0, x1, y0, y1 = region
+            margin = 2 * spec.voxel_mm
+            x, y = table.centre_mm[:, 0], table.centre_mm[:, 1]
+            checked &= (x > x0 + margin) & (x < x1 - margin)
+            checked &= (y > y0 + margin) & (y < y1 - margin)
+        surface_pairs = np.column_stack([table.chip_a, table.chip_b])[checked]
         result = MeshedStack(scratch=tempfile.TemporaryDirectory(prefix="chipstack-mesh-"))
         kinds = MESH_KINDS[spec.kind]
         report = inputs.options.progress
@@ -111,6 +134,7 @@ class MeshStage(Stage):
                 surface_pairs,
                 spec.min_quality if kind == "conformal" else 0.99,
                 chip_tolerance=_volume_tolerance(kind, arrangement, spec.voxel_mm),
+                region_mm=mesh.info.get("region_mm"),
             )
             assert_valid(checks)
             if (warning := split_warning(checks, kind)) is not None:
@@ -125,7 +149,10 @@ class MeshStage(Stage):
         spec, layer_mm = scenario.mesh, scenario.geometry.layer_mm
         if kind == "voxel":
             _check_voxel_size(spec.voxel_mm, arrangement)
-            return voxel_mesh(arrangement, spec.voxel_mm, spec.pore_space, layer_mm)
+            region = crop_region(scenario)
+            return voxel_mesh(
+                arrangement, spec.voxel_mm, spec.pore_space, layer_mm, region, spec.periodic
+            )
         msh = None
         if "msh" in spec.formats:
             msh = result.native[kind] = Path(result.scratch.name) / f"stack_{kind}.msh"
@@ -262,6 +289,18 @@ def _write_contact(folder: Path, result: MeshedStack, inputs: StageInputs) -> di
         "info": model.info,
         "files": sorted(files),
     }
+
+
+def crop_region(scenario: Scenario) -> tuple[float, float, float, float] | None:
+    """The crop of ``[mesh]`` as (x_min, x_max, y_min, y_max) mm, or None."""
+    spec = scenario.mesh
+    if spec.crop == "target":
+        half = scenario.deposition.target_size_mm / 2
+        return (-half, half, -half, half)
+    if spec.crop == "region":
+        x0, x1, y0, y1 = spec.region_mm
+        return (x0, x1, y0, y1)
+    return None
 
 
 def _check_voxel_size(voxel_mm: float, arrangement: Arrangement) -> None:

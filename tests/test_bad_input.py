@@ -95,6 +95,25 @@ BAD_SCENARIOS = {
         "mix: the weights sum to 0",
     ),
     "wrong length unit": ('[chip]\nshape = "file"\nfile = "c.obj"\nunits = "furlong"\n', "units"),
+    "crop to a region not given": ('[mesh]\ncrop = "region"\n', "mesh.region_mm: give"),
+    "crop region of three numbers": (
+        '[mesh]\ncrop = "region"\nregion_mm = [0.0, 1.0, 2.0]\n',
+        "mesh.region_mm: must be [x_min, x_max, y_min, y_max]",
+    ),
+    "crop region inside out": (
+        '[mesh]\ncrop = "region"\nregion_mm = [10.0, -10.0, -5.0, 5.0]\n',
+        "mesh.region_mm: needs x_min < x_max",
+    ),
+    "crop region without crop": ("[mesh]\nregion_mm = [-5.0, 5.0, -5.0, 5.0]\n", "mesh.region_mm"),
+    "periodic sides without a crop": (
+        '[mesh]\nperiodic = true\npore_space = "box"\n',
+        "mesh.periodic: needs a crop",
+    ),
+    "periodic sides without the pore space": (
+        '[mesh]\nperiodic = true\ncrop = "target"\n',
+        "mesh.periodic: needs a crop",
+    ),
+    "crop of the conformal mesh": ('[mesh]\nkind = "conformal"\ncrop = "target"\n', "mesh.crop"),
 }
 
 

@@ -13,8 +13,9 @@ import pytest
 import pyvista
 from scipy.spatial.transform import Rotation
 
+from core.errors import InputError
 from core.schema import ChipSpec
-from export.mesh_files import MESH_FORMATS, write_mesh
+from export.mesh_files import FACET_TAGS, MESH_FORMATS, facets, write_mesh
 from geometry.arrangement import Arrangement
 from geometry.contacts import find_contacts
 from meshing import PORE, GmshSession, MeshingError, check_mesh, conformal_mesh, voxel_mesh
@@ -235,6 +236,46 @@ def test_a_voxel_as_thick_as_the_chips_is_refused(tmp_path, small_scenario):
     assert not out.exists()
 
 
+def test_a_crop_that_holds_no_chip_is_refused(tmp_path, small_scenario):
+    extra = '[mesh]\ncrop = "region"\nregion_mm = [500.0, 600.0, 500.0, 600.0]\n'
+    lines, out = _refused_mesh_run(tmp_path, small_scenario, extra)
+    assert "mesh.region_mm: the crop x 500 to 600, y 500 to 600 mm holds no chip" in lines[0]
+    assert not out.exists()
+
+
+def test_a_cropped_box_has_full_sides_tagged_and_tied():
+    """The layup cropped to 40 x 40 mm with its pore space: a full box whose six sides
+    are whole faces (facets counted), checked against the chips' exact solids cut to the
+    crop, with every node of the xmax and ymax sides tied to a twin."""
+    a = layup()
+    region = (-20.0, 20.0, -20.0, 20.0)
+    mesh = voxel_mesh(a, 1.0, "box", region_mm=region, periodic=True)
+    low, high = mesh.points.min(axis=0), mesh.points.max(axis=0)
+    assert np.allclose([low[0], high[0], low[1], high[1]], region)
+    assert mesh.info["region_mm"] == list(region)
+    assert mesh.n_elements == 40 * 40 * 8  # the layup's top is at 8 mm
+    report = check_mesh(mesh, a, surface_pairs(a)[:0], 0.99, chip_tolerance=0.125, region_mm=region)
+    assert report["valid"]
+    cut = exact_chip_volumes(a, region)
+    assert cut[4] == pytest.approx(800.0) and cut[0] == pytest.approx(200.0)  # 10 x 10 x 2
+    aligned = np.arange(a.n_chips) != 16  # the chip turned 45 degrees aliases
+    assert np.allclose(mesh.chip_volumes()[aligned], cut[aligned])
+    found = facets(mesh)
+    assert {s: len(f) for s, f in found.items()} == {
+        "bottom": 1600, "top": 1600, "xmin": 320, "xmax": 320, "ymin": 320, "ymax": 320
+    }  # fmt: skip
+    assert list(FACET_TAGS) == ["bottom", "top", "xmin", "xmax", "ymin", "ymax"]
+    pairs = mesh.periodic
+    p = mesh.points
+    shift = np.where(pairs.shifts, 40.0, 0.0)
+    assert np.allclose(p[pairs.dependent, :2] - shift, p[pairs.independent, :2])
+    assert np.allclose(p[pairs.dependent, 2], p[pairs.independent, 2])
+    assert len(pairs.dependent) == 41 * 9 + 40 * 9  # xmax side, then ymax without its edge
+    assert pairs.on_platen.sum() == 2 * (41 + 40)
+    with pytest.raises(InputError, match="needs a crop"):
+        voxel_mesh(a, 1.0, "none", region_mm=region, periodic=True)
+
+
 # -- files -----------------------------------------------------------------------------------
 @pytest.mark.parametrize("kind", ["conformal", "voxel"])
 def test_every_format_reads_back(tmp_path, kind, conformal_layup):
@@ -254,15 +295,31 @@ def test_every_format_reads_back(tmp_path, kind, conformal_layup):
     assert np.allclose(vtu.cell_data["fibre_1"], mesh.fibres[:, 0])
     for name in ("stack.vtu", "stack.msh", "stack.xdmf", "stack.inp"):
         back = meshio.read(tmp_path / name)
-        assert sum(len(c.data) for c in back.cells) == mesh.n_elements, name
+        volumes = [c for c in back.cells if c.type == mesh.cell_type]
+        assert sum(len(c.data) for c in volumes) == mesh.n_elements, name
         assert np.allclose(back.points, mesh.points), name
     with GmshSession() as gmsh:  # gmsh itself opens the file, one volume per chip
         gmsh.open(str(tmp_path / "stack.msh"))
         groups = gmsh.model.getPhysicalGroups(3)
         names = {gmsh.model.getPhysicalName(3, tag) for _, tag in groups}
+        sides = {
+            gmsh.model.getPhysicalName(2, tag): tag for _, tag in gmsh.model.getPhysicalGroups(2)
+        }
     assert names == {f"chip_{k}" for k in range(17)}
-    physical = meshio.read(tmp_path / "stack.msh").cell_data["gmsh:physical"]
+    back = meshio.read(tmp_path / "stack.msh")
+    physical = [
+        tags
+        for cells, tags in zip(back.cells, back.cell_data["gmsh:physical"], strict=True)
+        if cells.type == mesh.cell_type
+    ]
     assert sorted(np.unique(np.concatenate(physical))) == list(range(1, 18))
+    # The boundary faces of each side as facet tags, in the .msh and beside the .xdmf.
+    expected = {side: len(f) for side, f in facets(mesh).items()}
+    assert sides == {side: FACET_TAGS[side] for side in expected}
+    tagged = meshio.read(tmp_path / "stack_facets.xdmf")
+    values = np.concatenate(tagged.cell_data["facet_tag"])
+    assert {s: int((values == FACET_TAGS[s]).sum()) for s in expected} == expected
+    assert expected["bottom"] > 0 and expected["top"] > 0
     text = (tmp_path / "stack.inp").read_text()
     assert len(re.findall(r"\*ELSET, ELSET=CHIP_\d{4}", text)) == 17
     assert len(re.findall(r"\*ORIENTATION, NAME=OR_\d{4}", text)) == 17
@@ -312,6 +369,12 @@ def _compress(tmp_path, mesh, name: str) -> float:
         f"TOP, 1, 2, 0.0\nTOP, 3, 3, {-0.01 * height}\n"
         "*NODE PRINT, NSET=TOP, TOTALS=ONLY\nRF\n*END STEP\n"
     )
+    return _run_ccx_total_force(folder)
+
+
+def _run_ccx_total_force(folder) -> float:
+    """Run ``job.inp`` in ``folder``; the z force of its last TOTALS print, pressing down
+    counted positive."""
     result = subprocess.run(
         ["ccx", "-i", "job"],
         cwd=folder,
@@ -341,6 +404,61 @@ def test_calculix_compresses_both_meshes_to_the_same_force(tmp_path):
         assert np.isfinite(force) and force > 0
     ratio = forces["conformal"] / forces["voxel"]
     assert 0.8 <= ratio <= 1.2, forces
+
+
+def _periodic_layer_force(tmp_path, name: str, periodic: bool, jumps_fixed: bool) -> float:
+    """A layer of 3 x 3 flat chips edge to edge, cropped to 40 x 40 mm (a homogeneous
+    orthotropic slab 2 mm thick), pressed 0.02 mm between frictionless platens. Returns the
+    platen force (N)."""
+    a = arrange([((-20 + 20 * i, -20 + 20 * j, 1.0), 0.0) for i in range(3) for j in range(3)])
+    mesh = voxel_mesh(a, 1.0, "box", region_mm=(-20.0, 20.0, -20.0, 20.0), periodic=periodic)
+    folder = tmp_path / name
+    folder.mkdir()
+    write_mesh(folder, "stack", mesh, ["inp"])
+    p = mesh.points
+    corner = np.lexsort((p[:, 2], p[:, 1], p[:, 0]))[0] + 1
+    boundary = f"BOTTOM, 3, 3, 0.\nTOP, 3, 3, -0.02\n{corner}, 1, 2, 0.\n"
+    if periodic and jumps_fixed:
+        boundary += "REF_X, 1, 3, 0.\nREF_Y, 1, 3, 0.\n"
+    elif not periodic:  # the periodic ties stop a rotation about z; here a second node does
+        other = np.flatnonzero(
+            (p[:, 2] == 0) & np.isclose(p[:, 0], 20.0) & np.isclose(p[:, 1], -20.0)
+        )[0]
+        boundary += f"{other + 1}, 2, 2, 0.\n"
+    (folder / "job.inp").write_text(
+        "*INCLUDE, INPUT=stack.inp\n*STEP\n*STATIC\n*BOUNDARY\n" + boundary
+        + "*NODE PRINT, NSET=TOP, TOTALS=ONLY\nRF\n*END STEP\n"
+    )  # fmt: skip
+    return _run_ccx_total_force(folder)
+
+
+@pytest.mark.skipif(
+    shutil.which("ccx") is None and not os.environ.get("CHIPSTACK_REQUIRE_CCX"),
+    reason="CalculiX (ccx) is not installed; .ci/run installs it and CI runs this test",
+)
+def test_periodic_sides_give_the_elastic_answers(tmp_path):
+    """Periodic sides with no jump confine the slab laterally: the force is C33 x strain x
+    area (uniaxial strain); with the jumps free, or with free sides and no ties, it is
+    E3 x strain x area (uniaxial stress). Both are exact for a homogeneous box."""
+    from export.mesh_files import MATERIALS
+
+    c = MATERIALS["CHIP"]
+    compliance = np.array(
+        [
+            [1 / c["E1"], -c["nu12"] / c["E1"], -c["nu13"] / c["E1"]],
+            [-c["nu12"] / c["E1"], 1 / c["E2"], -c["nu23"] / c["E2"]],
+            [-c["nu13"] / c["E1"], -c["nu23"] / c["E2"], 1 / c["E3"]],
+        ]
+    )
+    c33 = np.linalg.inv(compliance)[2, 2]
+    strain_times_area = 0.02 / 2.0 * 40.0 * 40.0
+    confined = _periodic_layer_force(tmp_path, "confined", periodic=True, jumps_fixed=True)
+    assert confined == pytest.approx(c33 * strain_times_area, rel=1e-4)
+    free = _periodic_layer_force(tmp_path, "free", periodic=True, jumps_fixed=False)
+    assert free == pytest.approx(c["E3"] * strain_times_area, rel=1e-4)
+    untied = _periodic_layer_force(tmp_path, "untied", periodic=False, jumps_fixed=False)
+    assert untied == pytest.approx(c["E3"] * strain_times_area, rel=1e-4)
+    assert confined > 1.1 * free  # the ties are what confines it
 
 
 # -- the command line ------------------------------------------------------------------------
