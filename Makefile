@@ -12,10 +12,16 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install --quiet -e '.[test]'
 	touch $(STAMP)
 
-# The paper scenario through every stage: deposition, descriptors, voxel mesh. Run again,
-# the stage cache reuses what is unchanged (a killed run resumes where it stopped).
+# The paper scenario through every stage: deposition, descriptors, voxel mesh; then a
+# cropped volume of the same stack pressed in CalculiX (when ccx is on the PATH). Run
+# again, the stage cache reuses what is unchanged (a killed run resumes where it stopped).
 run: $(STAMP)
 	$(BIN)/pipeline run --to mesh --out runs/paper-squares --seed 0
+	@if command -v ccx >/dev/null; then \
+		$(BIN)/pipeline run paper-volume --to solve --out runs/paper-volume --seed 0; \
+	else \
+		echo "make run: CalculiX (ccx) is not on the PATH, so the solve stage is skipped (Debian: apt-get install calculix-ccx)"; \
+	fi
 
 # Tests run on every core (-n auto); a module's tests stay on one worker (--dist loadfile)
 # so that its shared, expensive fixtures (10-repeat ensembles) are computed once.

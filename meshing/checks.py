@@ -144,6 +144,7 @@ def check_mesh(
     report = {
         "elements": int(mesh.n_elements),
         "nodes": int(len(mesh.points)),
+        "bounds_mm": [mesh.points.min(axis=0).tolist(), mesh.points.max(axis=0).tolist()],
         "min_element_volume_mm3": float(volumes.min()),
         "quality_min": float(quality.min()),
         "quality_p1": float(np.percentile(quality, 1)),

@@ -1,9 +1,11 @@
-"""The solve stage: CalculiX runs the contact model's compaction, the results come back
-as VTU for ParaView, the platen force against the press as CSV and a figure."""
+"""The solve stage: CalculiX runs the compaction of the contact model, or of a cropped voxel
+volume between whole-face platens; the results come back as VTU for ParaView, the platen
+force against the press as CSV and a figure."""
 
 from __future__ import annotations
 
 import csv
+import json
 import logging
 import shutil
 import tempfile
@@ -17,6 +19,7 @@ import numpy as np
 from core.errors import InputError
 from core.schema import Scenario
 from core.stages import Stage, StageInputs, StageOutput
+from export.calculix import write_volume_compaction
 from meshing.calculix import SolverError, ccx_path, frd_to_vtu, read_node_prints, run_ccx
 
 __all__ = ["SolveStage", "STAGE", "Compaction"]
@@ -39,7 +42,8 @@ class Compaction:
 
 
 class SolveStage(Stage):
-    """CalculiX on the contact model: the press of ``[solve]``, forces and fields."""
+    """CalculiX on the contact model or a cropped voxel volume: the press of ``[solve]``,
+    forces and fields."""
 
     name = "solve"
     progress_label = "solving (% of the press)"
@@ -49,18 +53,35 @@ class SolveStage(Stage):
     in_ensembles = False
 
     def check_run(self, scenario: Scenario) -> None:
-        if scenario.mesh.kind != "contact":
+        spec = scenario.mesh
+        volume = spec.kind == "voxel" and spec.crop != "none" and spec.pore_space == "box"
+        if spec.kind != "contact" and not volume:
             raise InputError(
-                f"--to solve: needs the contact model (mesh.kind = 'contact'; it is "
-                f"{scenario.mesh.kind!r})"
+                "--to solve: needs the contact model (mesh.kind = 'contact') or a cropped "
+                "voxel volume (mesh.kind = 'voxel', mesh.crop, mesh.pore_space = 'box'); "
+                f"mesh.kind is {spec.kind!r}"
+            )
+        if volume and "inp" not in spec.formats:
+            raise InputError(
+                "--to solve: the voxel volume is solved from its .inp; add inp to mesh.formats"
             )
         ccx_path()
 
     def compute(self, inputs: StageInputs) -> Compaction:
         mesh = inputs.result("mesh")
         scratch = Path(tempfile.mkdtemp(prefix="chipstack-solve-"))
-        shutil.copy(mesh.folder / "stack_contact.inp", scratch / f"{JOB}.inp")
         solve = inputs.scenario.solve
+        if inputs.scenario.mesh.kind == "contact":
+            shutil.copy(mesh.folder / "stack_contact.inp", scratch / f"{JOB}.inp")
+            press = None
+        else:
+            shutil.copy(mesh.folder / "stack_voxel.inp", scratch / "stack_voxel.inp")
+            checks = json.loads((mesh.folder / "stack_voxel_checks.json").read_text())
+            low, high = checks["bounds_mm"]
+            press = write_volume_compaction(
+                scratch / f"{JOB}.inp", "stack_voxel.inp", high[2] - low[2], solve,
+                inputs.scenario.mesh.periodic,
+            )  # fmt: skip
         report = inputs.options.progress
 
         def progress(step_time: float) -> None:
@@ -72,10 +93,15 @@ class SolveStage(Stage):
         except SolverError as exc:
             raise SolverError(f"{exc}; the deck and its log are kept in {scratch}") from None
         prints = read_node_prints(scratch / f"{JOB}.dat")
-        top, bottom = prints["REF_TOP"], prints["REF_BOTTOM"]
+        if press is None:  # the contact model: its platens' reference nodes
+            top, bottom = prints["REF_TOP"], prints["REF_BOTTOM"]
+            moved = -top["displacements"][:, 2]
+        else:  # a volume: the faces' forces summed; the press ramps with the step time
+            top, bottom = prints["TOP"], prints["BOTTOM"]
+            moved = press * top["time"]
         return Compaction(
             scratch=scratch,
-            press_mm=-top["displacements"][:, 2],
+            press_mm=moved,
             force_n=-top["forces"][:, 2],
             bottom_force_n=bottom["forces"][:, 2],
             wall_time_s=run.wall_time_s,
@@ -94,18 +120,23 @@ class SolveStage(Stage):
             "solver_wall_time_s": round(result.wall_time_s, 2),
             "files": sorted(files),
         }
-        summary.update(_contact_summary(folder / f"{JOB}.vtu", inputs))
+        if inputs.scenario.mesh.kind == "contact":
+            summary.update(_contact_summary(folder / f"{JOB}.vtu", inputs))
         return StageOutput(summary)
 
     def load(self, folder: Path, scenario: Scenario) -> Path:
         return folder
 
     def report(self, summary: Mapping[str, Any], folder: Path) -> list[str]:
+        contact = (
+            f"; contact pressure on {summary['chips_in_contact']} chips"
+            if "chips_in_contact" in summary
+            else ""
+        )
         return [
             f"compaction: {summary['press_mm']:.3f} mm press, platen force "
-            f"{summary['force_n']:,.1f} N over {summary['increments']} increments; contact "
-            f"pressure on {summary['chips_in_contact']} chips; CalculiX "
-            f"{summary['solver_wall_time_s']:.1f} s"
+            f"{summary['force_n']:,.1f} N over {summary['increments']} increments{contact}; "
+            f"CalculiX {summary['solver_wall_time_s']:.1f} s"
         ]
 
 
@@ -173,10 +204,4 @@ def _chip_of_node(inputs: StageInputs, points: np.ndarray) -> np.ndarray:
         log.warning("solve: the result's nodes are not the model's; no contact count")
         return owner
     owner[cells.ravel()] = np.repeat(chip, cells.shape[1])
-    return owner
-    cells = model.cells[0].data
-    chip = np.asarray(model.cell_data["chip"][0])
-    owner_of_model = np.full(len(model.points), -1)
-    owner_of_model[cells.ravel()] = np.repeat(chip, cells.shape[1])
-    owner[:n] = owner_of_model[:n]
     return owner

@@ -160,10 +160,79 @@ def test_solve_refuses_a_model_it_cannot_run(tmp_path):
     result = run_cli("run", str(scenario), "--to", "solve", "--out", str(tmp_path / "run"))
     assert result.returncode == 2
     assert result.stderr.strip().splitlines() == [
-        "pipeline: error: --to solve: needs the contact model (mesh.kind = 'contact'; it is "
-        "'voxel')"
+        "pipeline: error: --to solve: needs the contact model (mesh.kind = 'contact') or a "
+        "cropped voxel volume (mesh.kind = 'voxel', mesh.crop, mesh.pore_space = 'box'); "
+        "mesh.kind is 'voxel'"
     ]
     assert not (tmp_path / "run").exists()
+
+
+CROPPED_VOLUME = """
+name = "volume"
+seed = 3
+[chip]
+length_mm = 20.0
+width_mm = 20.0
+thickness_mm = 2.0
+[deposition]
+chips = 24
+batch_size = 12
+target_size_mm = 80.0
+release_height_mm = [60.0, 120.0]
+[mesh]
+voxel_mm = 1.0
+pore_space = "box"
+crop = "region"
+region_mm = [-20.0, 20.0, -20.0, 20.0]
+periodic = true
+formats = ["inp", "vtu"]
+[solve]
+press_fraction = 0.01
+"""
+
+
+def test_solve_a_cropped_periodic_volume_of_a_physics_stack(tmp_path):
+    """A settled stack cropped to 40 x 40 mm with its pore space, periodic sides confined,
+    pressed by 1 % of its height between whole-face platens: the force goes through the
+    volume to the conveyor, and the result reads back with the press face moved."""
+    scenario = tmp_path / "volume.toml"
+    scenario.write_text(CROPPED_VOLUME)
+    out = tmp_path / "run"
+    result = run_cli("run", str(scenario), "--to", "solve", "--out", str(out))
+    assert result.returncode == 0, result.stderr
+    assert "compaction:" in result.stdout and "contact pressure" not in result.stdout
+    checks = json.loads((out / "mesh" / "stack_voxel_checks.json").read_text())
+    height = checks["bounds_mm"][1][2] - checks["bounds_mm"][0][2]
+    rows = list(csv.DictReader(open(out / "solve" / "force_displacement.csv")))
+    press, force = float(rows[-1]["press_mm"]), float(rows[-1]["platen_force_n"])
+    assert press == pytest.approx(0.01 * height)
+    assert force > 0 and float(rows[-1]["conveyor_force_n"]) == pytest.approx(force, rel=1e-6)
+    # The mean stress of a confined mix lies between the stiffest and the softest confined
+    # modulus of its parts x the strain (Voigt and Reuss): the pore space's PA6 and the
+    # largest eigenvalue of the chip's stiffness (Mandel form, any orientation).
+    from export.mesh_files import MATERIALS
+
+    c, pa6 = MATERIALS["CHIP"], MATERIALS["PORE"]
+    compliance = np.array(
+        [
+            [1 / c["E1"], -c["nu12"] / c["E1"], -c["nu13"] / c["E1"]],
+            [-c["nu12"] / c["E1"], 1 / c["E2"], -c["nu23"] / c["E2"]],
+            [-c["nu13"] / c["E1"], -c["nu23"] / c["E2"], 1 / c["E3"]],
+        ]
+    )
+    stiffest = max(np.linalg.eigvalsh(np.linalg.inv(compliance)).max(), 2 * c["G12"])
+    e, nu = pa6["E"], pa6["nu"]
+    softest = e * (1 - nu) / ((1 + nu) * (1 - 2 * nu))
+    stress = force / (40.0 * 40.0)
+    assert softest * 0.01 < stress < stiffest * 0.01
+    solved = pyvista.read(out / "solve" / "compaction.vtu")
+    assert {"U", "S"} <= set(solved.point_data.keys())
+    top = solved.points[:, 2] > solved.points[:, 2].max() - 1e-6
+    assert np.allclose(solved.point_data["U"][top, 2], -press)
+    bottom = solved.points[:, 2] < solved.points[:, 2].min() + 1e-6
+    assert np.allclose(solved.point_data["U"][bottom, 2], 0.0)
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["stages_completed"][-1] == "solve"
 
 
 def test_solve_without_calculix_is_one_line(tmp_path):
