@@ -42,14 +42,14 @@ def _connect(address: str):
 
     thread = threading.Thread(target=connect, daemon=True)
     thread.start()
-    thread.join(CONNECT_TIMEOUT_S + 3.0)
+    thread.join(CONNECT_TIMEOUT_S + 1.0)
     if "client" in outcome:
         return outcome["client"]
     error = outcome.get("error")
     reason = (
         f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"
         if error is not None
-        else f"no Dask handshake within {CONNECT_TIMEOUT_S + 3.0:g} s"
+        else f"no Dask handshake within {CONNECT_TIMEOUT_S + 1.0:g} s"
     )
     raise InputError(f"--scheduler {printable(address)}: cannot reach the scheduler ({reason})")
 
