@@ -120,6 +120,17 @@ class EffectRanking:
     def run(self) -> dict:
         tilt_all = self._refit_tilt()
         effects, skipped = applicable_effects(self.x)
+        if not effects:  # nothing can act on these chips: no ranking, the gap unexplained
+            base_excess, base_rows = self._score_baseline()
+            return dict(
+                baseline_refit=self._baseline_refit(tilt_all, base_rows, base_excess),
+                ranking=[],
+                not_applicable=skipped,
+                folds=[f.name for f in self.folds],
+                best=None,
+                indistinguishable=[],
+                telling_apart={},
+            )
         grids = StrengthGrids(
             self.sims, effects, self.conditions, tilt_all, self.x.settings.grid_points
         )
@@ -254,6 +265,8 @@ def how_far_best(which: dict, folds: list[Fold], sims: DropSimulations) -> dict:
     """The "how far" section: every held-out observable before and after the best effect
     (at the strength its fold fitted), and each held-out condition's gap."""
     best = which["best"]
+    if best is None:  # no candidate effect applies (as for stacks)
+        return {}
     rows, totals = [], []
     for fold in folds:
         s = fold.chosen[best]

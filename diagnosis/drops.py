@@ -150,8 +150,9 @@ class _DropDiagnosis:
             Fold("calibrate on half B, judge half A", calibration=[b], held_out=[a]),
         ]
 
-    def _scatter(self, folds: list[Fold], full: dict[str, Dataset], best: str) -> dict:
-        """Final positions of each held-out condition: experiment, baseline, best effect."""
+    def _scatter(self, folds: list[Fold], full: dict[str, Dataset], best: str | None) -> dict:
+        """Final positions of each held-out condition: experiment, baseline, best effect
+        (none when no candidate effect applies)."""
         scatter = {}
         for fold in folds:
             for ds in fold.held_out:
@@ -159,12 +160,14 @@ class _DropDiagnosis:
                     continue
                 tilt0 = self.x.condition(ds.condition).protocol.tilt_deg
                 base = self.sims.drops[self.sims.baseline(ds.condition, tilt0)]
-                key = self.sims.setting(ds.condition, fold.tilt, best, fold.chosen[best])
                 scatter[ds.condition] = {
                     "experiment": np.round(full[ds.condition].data.positions, 2).tolist(),
                     "baseline": np.round(base.positions, 2).tolist(),
-                    "best_effect": np.round(self.sims.drops[key].positions, 2).tolist(),
                 }
+                if best is not None:
+                    key = self.sims.setting(ds.condition, fold.tilt, best, fold.chosen[best])
+                    positions = self.sims.drops[key].positions
+                    scatter[ds.condition]["best_effect"] = np.round(positions, 2).tolist()
         return scatter
 
     def _description(self) -> dict:

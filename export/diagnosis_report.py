@@ -163,6 +163,8 @@ def _baseline_refit(refit: dict) -> list[str]:
 
 
 def _ranking_table(which: dict) -> list[str]:
+    if not which["ranking"]:
+        return ["", "No candidate effect can act on these chips: nothing is fitted or ranked."]
     lines = [
         "",
         "Effects fitted on calibration conditions, scored on held-out ones "
@@ -253,6 +255,8 @@ def plot_scatter(path, scatter: dict) -> None:
             ("best_effect", "tab:blue", "."),
             ("experiment", "tab:red", "x"),
         ):
+            if name not in sets:  # no best effect when none applies
+                continue
             p = np.asarray(sets[name]).reshape(-1, 2)
             ax.scatter(
                 p[:, 0], p[:, 1], s=10, c=colour, marker=marker, label=name.replace("_", " ")

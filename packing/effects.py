@@ -105,9 +105,10 @@ class Effect:
             raise InputError(f"{key}: strength must be a finite number, got {strength!r}")
         span = hi - lo
         if not lo - 1e-9 * span <= strength <= hi + 1e-9 * span:
+            value = f"{strength:g} {self.unit}".strip()  # a coefficient has no unit
             raise InputError(
-                f"{key}: strength {strength:g} {self.unit} is outside the prior range "
-                f"[{lo:g}, {hi:g}] of effect {self.name!r} ({self.parameter})"
+                f"{key}: strength {value} is outside the prior range [{lo:g}, {hi:g}] of "
+                f"effect {self.name!r} ({self.parameter})"
             )
 
 

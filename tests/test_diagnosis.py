@@ -307,6 +307,35 @@ def test_stack_diagnosis_end_to_end(tmp_path):
     assert "unknown quantity 'porosity'; valid: volume_fraction" in result.stderr
 
 
+def test_a_gap_no_candidate_effect_can_act_on_is_unexplained(tmp_path):
+    """Star chips, whose only candidate (a warp) needs a flat convex chip, dropped with a
+    withheld restitution: the gap is found and called unexplained, with the report
+    written (no ranking to show), not a traceback."""
+    import dataclasses
+
+    from pipeline.scenario_files import dumps_toml, load_scenario
+
+    star = dataclasses.replace(load_scenario("single-chip-drop"), chip=ChipSpec(shape="star"))
+    (tmp_path / "star.toml").write_text(dumps_toml(star))
+    spec = drop_spec(tmp_path, effects=("warp",), sim=20)
+    spec.write_text(spec.read_text().replace('"single-chip-drop"', '"star.toml"'))
+    data = tmp_path / "data.csv"
+    made = run_cli(
+        "synth", str(spec), "-o", str(data), "--seed", "1", "--effect", "restitution=0.8"
+    )
+    assert made.returncode == 0, made.stderr
+    out = tmp_path / "report"
+    result = run_cli("diagnose", str(spec), "--out", str(out))
+    assert result.returncode == 0, result.stderr
+    report = json.loads((out / "diagnosis.json").read_text())
+    assert report["verdict"]["kind"] == "unexplained"
+    assert "no candidate effect applies" in report["verdict"]["text"]
+    assert report["which"]["ranking"] == [] and report["which"]["best"] is None
+    assert "warp" in report["which"]["not_applicable"]
+    assert "No candidate effect can act on these chips" in (out / "diagnosis.md").read_text()
+    assert (out / "fig_scatter.png").stat().st_size > 0
+
+
 def test_effects_that_cannot_act_on_the_chip_are_set_aside():
     from diagnosis.spec import Condition, Experiment
     from diagnosis.verdicts import applicable_effects
