@@ -16,7 +16,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from core.errors import InputError, printable
+from core.errors import InputError, brief, printable
 from core.stages import load_stages
 
 __all__ = [
@@ -490,7 +490,7 @@ def _coerce(path: str, value: Any, annotation: str) -> Any:
     """Convert a TOML value to the declared type or raise naming the key."""
 
     def bad(expected: str) -> InputError:
-        return InputError(f"{path}: expected {expected}, got {type(value).__name__} {value!r}")
+        return InputError(f"{path}: expected {expected}, got {type(value).__name__} {brief(value)}")
 
     if annotation == "str":
         if not isinstance(value, str):
@@ -508,7 +508,7 @@ def _coerce(path: str, value: Any, annotation: str) -> Any:
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise bad("a number")
         if not math.isfinite(value):
-            raise InputError(f"{path}: must be finite, got {value!r}")
+            raise InputError(f"{path}: must be finite, got {brief(value)}")
         return float(value)
     if annotation == "tuple[str, ...]":
         if not isinstance(value, list | tuple) or not all(isinstance(v, str) for v in value):
@@ -559,7 +559,7 @@ def _build(cls: type, table: Mapping[str, Any], prefix: str) -> Any:
         check = f.metadata.get("check")
         problem = check(value) if check else None
         if problem:
-            raise InputError(f"{path}: {problem} (got {value!r})")
+            raise InputError(f"{path}: {problem} (got {brief(value)})")
         values[name] = value
     return cls(**values)
 
@@ -611,7 +611,7 @@ def _check_consistency(s: Scenario) -> None:
         if value != -1.0 and not 0 <= value <= 10:
             raise InputError(
                 f"physics.{name}: must be between 0 and 10 (or -1 to keep the "
-                f"preset's), got {value!r}"
+                f"preset's), got {brief(value)}"
             )
     if s.settling.hold_time_s >= s.settling.max_time_s:
         raise InputError("settling.hold_time_s: must be shorter than settling.max_time_s")

@@ -66,7 +66,7 @@ class DirectoryLock:
         try:
             data = json.loads(self.path.read_text())
             return data if isinstance(data, dict) and isinstance(data.get("pid"), int) else None
-        except (OSError, ValueError):
+        except (OSError, ValueError, RecursionError):
             return None
 
     def _remove_if_stale(self) -> bool:

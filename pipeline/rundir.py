@@ -222,7 +222,7 @@ class EnsembleDirectory:
             if state.is_file():
                 try:
                     known = json.loads(state.read_text())
-                except (OSError, json.JSONDecodeError):
+                except (OSError, ValueError, RecursionError):
                     known = None
                 if overwrite:
                     self._clear_first = True
@@ -664,7 +664,7 @@ def _state_file(work: Path, stage: str) -> Path:
 def _read_journal(path: Path) -> dict[str, Any] | None:
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError):
         return None
     return data if isinstance(data, dict) else None
 

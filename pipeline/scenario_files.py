@@ -14,6 +14,7 @@ from core.schema import Scenario, printable, scenario_from_dict, scenario_to_dic
 __all__ = ["BUILTIN", "builtin_names", "load_scenario", "dumps_toml"]
 
 BUILTIN = "paper-squares"
+MAX_SCENARIO_BYTES = 1_000_000
 
 
 def builtin_names() -> list[str]:
@@ -43,6 +44,12 @@ def load_scenario(source: str | Path | None) -> Scenario:
             f"{shown}: scenario file not found (built-in scenarios: {', '.join(builtin_names())})"
         )
     try:
+        size = path.stat().st_size
+        if size > MAX_SCENARIO_BYTES:  # checked before reading: a scenario is a few kB
+            raise InputError(
+                f"{shown}: the scenario file holds {size:,} bytes; a scenario is at most "
+                f"{MAX_SCENARIO_BYTES:,}"
+            )
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{shown}: cannot read scenario file ({exc})") from None
@@ -56,6 +63,8 @@ def _parse(text: str, origin: str, base_dir: str | None) -> Scenario:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"{origin}: malformed TOML: {exc}") from None
+    except RecursionError:
+        raise InputError(f"{origin}: malformed TOML: arrays or tables nested too deeply") from None
     try:
         return scenario_from_dict(data, base_dir)
     except InputError as exc:

@@ -27,6 +27,8 @@ def read_json(path: Path, what: str):
         return json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise InputError(f"{path}: unreadable {what} ({exc})") from None
+    except RecursionError:
+        raise InputError(f"{path}: unreadable {what} (nested too deeply)") from None
 
 
 def load_run(run_dir: str | Path) -> tuple[Scenario, list[Arrangement], dict]:
@@ -142,6 +144,10 @@ def _read_poses(path: Path, shapes: dict, target_size_mm: float) -> Arrangement:
             numbers[line - 2] = [float(v) for v in row[3:10]]
         except ValueError:
             raise InputError(f"{path} line {line}: a value is not a number") from None
+        except OverflowError:  # an integer beyond the batch column's 64 bits
+            raise InputError(
+                f"{path} line {line}: batch {printable(row[1])} is out of range"
+            ) from None
     if not np.isfinite(numbers).all():
         bad = int(np.flatnonzero(~np.isfinite(numbers).all(axis=1))[0]) + 2
         raise InputError(f"{path} line {bad}: NaN or infinite value")

@@ -95,6 +95,12 @@ BAD_SCENARIOS = {
         "mix: the weights sum to 0",
     ),
     "wrong length unit": ('[chip]\nshape = "file"\nfile = "c.obj"\nunits = "furlong"\n', "units"),
+    "array nested 1,000 deep": ("a = " + "[" * 1000 + "]" * 1000 + "\n", "nested too deeply"),
+    "a value of 600 kB": (
+        '[deposition]\nchips = "' + "y" * 600_000 + '"\n',
+        "... (600,002 characters)",
+    ),
+    "a file of 2 MB": ("# " + "n" * 2_000_000 + "\n", "a scenario is at most 1,000,000"),
     "crop to a region not given": ('[mesh]\ncrop = "region"\n', "mesh.region_mm: give"),
     "crop region of three numbers": (
         '[mesh]\ncrop = "region"\nregion_mm = [0.0, 1.0, 2.0]\n',
@@ -367,6 +373,9 @@ def _case_run_dir(case: str, d: Path, run: Path):
     if case == "describe: corrupted manifest":
         (copy / "manifest.json").write_text("{ not json")
         return ["describe", str(copy)], "manifest.json: unreadable manifest", undo
+    if case == "describe: manifest nested 100,000 deep":
+        (copy / "manifest.json").write_text("[" * 100_000 + "]" * 100_000)
+        return ["describe", str(copy)], "manifest.json: unreadable manifest (nested too", undo
     if case == "describe: NaN pose":
         poses = copy / "packing" / "poses_after_batch_02.csv"
         lines = poses.read_text().splitlines()
@@ -375,6 +384,14 @@ def _case_run_dir(case: str, d: Path, run: Path):
         lines[3] = ",".join(fields)
         poses.write_text("\n".join(lines) + "\n")
         return ["describe", str(copy)], "poses_after_batch_02.csv line 4: NaN", undo
+    if case == "describe: batch beyond 64 bits":
+        poses = copy / "packing" / "poses_after_batch_02.csv"
+        lines = poses.read_text().splitlines()
+        fields = lines[3].split(",")
+        fields[1] = "9" * 30
+        lines[3] = ",".join(fields)
+        poses.write_text("\n".join(lines) + "\n")
+        return ["describe", str(copy)], "line 4: batch 999999999999999999999999999999 is out", undo
     if case == "describe: duplicated chip id":
         poses = copy / "packing" / "poses_after_batch_01.csv"
         lines = poses.read_text().splitlines()
@@ -399,7 +416,9 @@ RUN_DIRECTORY_CASES = [
     "describe: not a run",
     "describe: missing directory",
     "describe: corrupted manifest",
+    "describe: manifest nested 100,000 deep",
     "describe: NaN pose",
+    "describe: batch beyond 64 bits",
     "describe: duplicated chip id",
     "describe: missing batch file",
     "compare: missing run",
