@@ -57,8 +57,12 @@ class DirectoryLock:
                 raise InputError(self._busy_message()) from None
             except OSError as exc:
                 raise InputError(f"{self.shown}: cannot lock ({exc.strerror or exc})") from None
-            with os.fdopen(fd, "w") as f:
-                json.dump(owner, f)
+            try:
+                with os.fdopen(fd, "w") as f:
+                    json.dump(owner, f)
+            except OSError as exc:  # a full disk: leave no empty lock behind
+                self.path.unlink(missing_ok=True)
+                raise InputError(f"{self.shown}: cannot lock ({exc.strerror or exc})") from None
             self._held = True
             return
 

@@ -439,6 +439,27 @@ def test_bad_run_directory(case, tmp_path, finished_run):
     assert_refused(result, named, d, before)
 
 
+def _no_room_at_all():
+    # Not even the lock's few bytes fit (EFBIG on the first byte written).
+    resource.setrlimit(resource.RLIMIT_FSIZE, (0, 0))
+
+
+def test_a_disk_full_before_the_lock_is_written(tmp_path):
+    """The lock is the first file written: on a disk with no room, one line and no empty
+    lock left behind (it would make the next run wait for a stale lock)."""
+    (tmp_path / "s.toml").write_text(SMALL_SCENARIO)
+    before = _tree(tmp_path)
+    result = subprocess.run(
+        [sys.executable, "-m", "pipeline", "run", str(tmp_path / "s.toml")]
+        + ["--out", str(tmp_path / "out"), "--quiet"],
+        capture_output=True,
+        text=True,
+        preexec_fn=_no_room_at_all,
+        timeout=600,
+    )
+    assert_refused(result, "cannot lock (File too large)", tmp_path, before)
+
+
 def test_a_full_output_folder(tmp_path):
     """No room at all: refused at the first write, and nothing is left."""
     (tmp_path / "s.toml").write_text(SMALL_SCENARIO)
