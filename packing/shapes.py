@@ -23,9 +23,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.errors import InputError
+from core.errors import InputError, printable
 from core.registry import Registry
-from core.schema import ChipSpec
+from core.schema import MAX_LENGTH_MM, ChipSpec
 from packing.chipshape import DEFAULT_FIBRES_DEG, ChipShape, _fibres, _frozen
 from packing.polygons import (
     check_simple,
@@ -355,11 +355,20 @@ def shape_from_record(record: dict, where: str) -> ChipShape:
         name, kind = str(record["name"]), str(record["kind"])
     except (KeyError, TypeError, ValueError) as exc:
         raise InputError(f"{where}: malformed shape record ({exc})") from None
+    name = printable(name)
     arrays = [vertices, fibres, inertia, *pieces]
     if not all(np.isfinite(a).all() for a in arrays) or not np.isfinite([volume, radius]).all():
         raise InputError(f"{where}: shape {name!r} holds NaN or infinite values")
+    if len(vertices) < 4:
+        raise InputError(f"{where}: shape {name!r} has {len(vertices)} vertices (a solid needs 4)")
+    if max(np.abs(a).max(initial=0.0) for a in (vertices, *pieces)) > MAX_LENGTH_MM:
+        raise InputError(f"{where}: shape {name!r} has coordinates beyond {MAX_LENGTH_MM:g} mm")
     if volume <= 0 or not pieces or any(len(p) < 4 for p in pieces):
         raise InputError(f"{where}: shape {name!r} has no volume or no convex pieces")
+    for k, piece in enumerate(pieces):  # a flat piece has no hull (Qhull fails on it)
+        extent = float(np.ptp(piece, axis=0).max())
+        if np.linalg.matrix_rank(piece - piece.mean(axis=0), tol=1e-9 * max(extent, 1.0)) < 3:
+            raise InputError(f"{where}: shape {name!r}: convex piece {k} is flat (no volume)")
     if collision not in ("box", "cylinder", "hull"):
         raise InputError(f"{where}: shape {name!r} has unknown collision {collision!r}")
     if any(v < 0 or v >= len(vertices) for f in faces for v in f):

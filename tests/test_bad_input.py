@@ -9,6 +9,7 @@ and observation files, run directories, command-line flags.
 from __future__ import annotations
 
 import csv
+import json
 import os
 import resource
 import shutil
@@ -17,6 +18,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import SMALL_SCENARIO, drop_spec, run_cli
 
@@ -392,6 +394,21 @@ def _case_run_dir(case: str, d: Path, run: Path):
         lines[3] = ",".join(fields)
         poses.write_text("\n".join(lines) + "\n")
         return ["describe", str(copy)], "line 4: batch 999999999999999999999999999999 is out", undo
+    if case.startswith("describe: shape") or case == "describe: flat convex piece":
+        path = copy / "packing" / "shapes.json"
+        data = json.loads(path.read_text())
+        shape = data["shapes"][0]
+        if case == "describe: shape with no vertices":
+            shape["vertices"], expected = [], "has 0 vertices (a solid needs 4)"
+        elif case == "describe: flat convex piece":
+            piece = np.array(shape["convex_pieces"][0], dtype=float)
+            piece[:, 2] = 0.0
+            shape["convex_pieces"][0], expected = piece.tolist(), "convex piece 0 is flat"
+        else:
+            shape["vertices"] = (np.array(shape["vertices"]) * 1e149).tolist()
+            expected = "has coordinates beyond 10000 mm"
+        path.write_text(json.dumps(data))
+        return ["describe", str(copy)], expected, undo
     if case == "describe: duplicated chip id":
         poses = copy / "packing" / "poses_after_batch_01.csv"
         lines = poses.read_text().splitlines()
@@ -419,6 +436,9 @@ RUN_DIRECTORY_CASES = [
     "describe: manifest nested 100,000 deep",
     "describe: NaN pose",
     "describe: batch beyond 64 bits",
+    "describe: shape with no vertices",
+    "describe: flat convex piece",
+    "describe: shape coordinates of 1e150 mm",
     "describe: duplicated chip id",
     "describe: missing batch file",
     "compare: missing run",
