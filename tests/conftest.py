@@ -68,3 +68,22 @@ def small_scenario(tmp_path: Path) -> Path:
     path = tmp_path / "small.toml"
     path.write_text(SMALL_SCENARIO)
     return path
+
+
+# The longest modules first: with --dist loadfile each module runs on one worker, and a
+# long one started last would leave the other worker idle at the end.
+_LONGEST_FIRST = (
+    "test_paper_descriptors.py",
+    "test_diagnosis.py",
+    "test_validation.py",
+    "test_resume.py",
+    "test_execution.py",
+    "test_meshing.py",
+    "test_solve.py",
+    "test_geometry_cli.py",
+)
+
+
+def pytest_collection_modifyitems(session, config, items):
+    rank = {name: k for k, name in enumerate(_LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))

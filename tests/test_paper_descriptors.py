@@ -39,6 +39,8 @@ def ensembles(tmp_path_factory):
             "--out",
             str(folder),
             "--quiet",
+            "--descriptors",
+            "contacts,layers,stack",  # what the findings below read
         )
         assert result.returncode == 0, result.stderr
         out[name] = json.loads((folder / "ensemble.json").read_text())
