@@ -13,7 +13,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["SIDES", "FACET_TAGS", "side_node_sets", "boundary_facets", "PeriodicPairs"]
+__all__ = [
+    "SIDES",
+    "FACET_TAGS",
+    "ELEMENT_FACES",
+    "side_node_sets",
+    "boundary_facets",
+    "PeriodicPairs",
+]
 
 # Side name -> (axis, which end); the facet tags FEniCS reads are 1-based in this order.
 SIDES = {
@@ -27,8 +34,17 @@ SIDES = {
 FACET_TAGS = {name: tag for tag, name in enumerate(SIDES, start=1)}
 
 # Outward faces of a VTK hexahedron and a tetrahedron (node positions in the element).
-_HEX_FACES = ((0, 3, 2, 1), (4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (2, 3, 7, 6), (3, 0, 4, 7))
-_TET_FACES = ((0, 2, 1), (0, 1, 3), (1, 2, 3), (0, 3, 2))
+ELEMENT_FACES = {
+    "hexahedron": (
+        (0, 3, 2, 1),
+        (4, 5, 6, 7),
+        (0, 1, 5, 4),
+        (1, 2, 6, 5),
+        (2, 3, 7, 6),
+        (3, 0, 4, 7),
+    ),
+    "tetra": ((0, 2, 1), (0, 1, 3), (1, 2, 3), (0, 3, 2)),
+}
 
 
 def side_node_sets(points: np.ndarray, tolerance_mm: float = 1e-6) -> dict[str, np.ndarray]:
@@ -48,7 +64,7 @@ def boundary_facets(
 ) -> dict[str, np.ndarray]:
     """The boundary faces (faces of one element only) lying on each side: side name ->
     (k, 4) or (k, 3) node indices, ordered so that the face's normal points out."""
-    local = _HEX_FACES if cell_type == "hexahedron" else _TET_FACES
+    local = ELEMENT_FACES[cell_type]
     faces = np.concatenate([cells[:, list(f)] for f in local])
     key = np.sort(faces, axis=1)
     _, first, counts = np.unique(key, axis=0, return_index=True, return_counts=True)

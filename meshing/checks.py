@@ -25,6 +25,7 @@ from scipy.sparse.csgraph import connected_components
 from geometry.arrangement import Arrangement
 from geometry.contacts import candidate_pairs
 from geometry.solids import chip_solids, union_solid
+from meshing.boundaries import ELEMENT_FACES
 from meshing.conformal import MeshingError
 from meshing.mesh import VolumeMesh
 
@@ -37,13 +38,10 @@ __all__ = [
     "split_warning",
 ]
 
-_TET_FACES = ((0, 2, 1), (0, 1, 3), (1, 2, 3), (0, 3, 2))
-_HEX_FACES = ((0, 3, 2, 1), (4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (2, 3, 7, 6), (3, 0, 4, 7))
-
 
 def element_faces(mesh: VolumeMesh) -> tuple[np.ndarray, np.ndarray]:
     """Every face of every element: (F, k) sorted node ids and (F,) owning element."""
-    local = _TET_FACES if mesh.cell_type == "tetra" else _HEX_FACES
+    local = ELEMENT_FACES[mesh.cell_type]
     faces = np.concatenate([mesh.cells[:, list(f)] for f in local])
     owner = np.tile(np.arange(mesh.n_elements), len(local))
     return np.sort(faces, axis=1), owner
@@ -74,7 +72,11 @@ def chip_pieces(mesh: VolumeMesh, sorted_faces=None) -> np.ndarray:
 def exact_chip_volumes(arrangement: Arrangement, region_mm=None) -> np.ndarray:
     """(n,) mm3: each chip's solid minus the lower chips it overlaps (the meshing rule),
     within the crop ``region_mm`` ([x_min, x_max, y_min, y_max]) when one is given."""
-    solids = _solids(arrangement, region_mm)
+    return _volumes_by_rule(arrangement, _cut(arrangement, chip_solids(arrangement), region_mm))
+
+
+def _volumes_by_rule(arrangement: Arrangement, solids: list) -> np.ndarray:
+    """(n,) mm3 of ``solids`` (one per chip), each minus the lower chips it overlaps."""
     volumes = np.array([s.volume() for s in solids])
     rank = arrangement.bottom_up_rank()
     below: dict[int, list[int]] = {}
@@ -86,9 +88,8 @@ def exact_chip_volumes(arrangement: Arrangement, region_mm=None) -> np.ndarray:
     return volumes
 
 
-def _solids(arrangement: Arrangement, region_mm=None) -> list:
-    """The chips' exact solids, cut to the crop when there is one."""
-    solids = chip_solids(arrangement)
+def _cut(arrangement: Arrangement, solids: list, region_mm=None) -> list:
+    """The chips' exact solids cut to the crop when there is one."""
     if region_mm is None:
         return solids
     x0, x1, y0, y1 = region_mm
@@ -113,10 +114,12 @@ def check_mesh(
     volumes = mesh.element_volumes()
     quality = np.asarray(mesh.quality)
     meshed = mesh.chip_volumes()
-    exact = exact_chip_volumes(arrangement, region_mm)
-    whole = exact if region_mm is None else exact_chip_volumes(arrangement)
+    solids = chip_solids(arrangement)
+    cut = _cut(arrangement, solids, region_mm)
+    exact = _volumes_by_rule(arrangement, cut)
+    whole = exact if region_mm is None else _volumes_by_rule(arrangement, solids)
     relative = np.abs(meshed - exact) / np.maximum(whole, 1e-12)
-    union = union_solid(_solids(arrangement, region_mm)).volume()
+    union = union_solid(cut).volume()
     total = float(meshed.sum())
     rounded = np.round(mesh.points / 1e-7).astype(np.int64)
     duplicates = len(mesh.points) - len(np.unique(rounded, axis=0))

@@ -26,7 +26,8 @@ import numpy as np
 
 from core.errors import ChipstackError, InputError
 from geometry.arrangement import Arrangement
-from meshing.mesh import PORE, VolumeMesh, boundary_node_sets, element_attributes
+from meshing.boundaries import side_node_sets
+from meshing.mesh import PORE, VolumeMesh, element_attributes
 from packing.overlap import penetrating_pairs
 
 __all__ = ["GmshSession", "MeshingError", "conformal_mesh", "overlapping_pairs"]
@@ -351,7 +352,7 @@ def _extract(gmsh, arrangement: Arrangement, owner: dict[int, int], n: int, laye
         chip=chip,
         **element_attributes(arrangement, chip, layer_mm),
         quality=quality,
-        node_sets=boundary_node_sets(points, _ON_PLANE_MM),
+        node_sets=side_node_sets(points, _ON_PLANE_MM),
         n_chips=n,
         kind="conformal",
         info={},

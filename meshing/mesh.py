@@ -8,9 +8,9 @@ import numpy as np
 
 from geometry.arrangement import Arrangement
 from geometry.orientation import fibre_directions_world
-from meshing.boundaries import PeriodicPairs, side_node_sets
+from meshing.boundaries import PeriodicPairs
 
-__all__ = ["VolumeMesh", "PORE", "chip_attributes", "element_attributes", "boundary_node_sets"]
+__all__ = ["VolumeMesh", "PORE", "chip_attributes", "element_attributes"]
 
 PORE = -1  # chip id of elements in the pore space (void or matrix-rich region)
 
@@ -105,10 +105,3 @@ def element_attributes(
         "fibres": np.where(solid[:, None, None], fibres_of[safe], 0.0),
         "normals": np.where(solid[:, None], normals_of[safe], 0.0),
     }
-
-
-def boundary_node_sets(points: np.ndarray, tolerance_mm: float = 1e-6) -> dict[str, np.ndarray]:
-    """Nodes on the domain's faces: ``bottom`` (lowest plane, the conveyor platen),
-    ``top`` (highest plane, the upper platen), ``xmin`` ... ``ymax`` and ``lateral`` (the
-    four sides); see :func:`meshing.boundaries.side_node_sets`."""
-    return side_node_sets(points, tolerance_mm)

@@ -20,8 +20,8 @@ import numpy as np
 from core.errors import InputError
 from geometry.arrangement import Arrangement
 from geometry.voxels import voxelize
-from meshing.boundaries import PeriodicPairs
-from meshing.mesh import VolumeMesh, boundary_node_sets, element_attributes
+from meshing.boundaries import PeriodicPairs, side_node_sets
+from meshing.mesh import VolumeMesh, element_attributes
 
 __all__ = ["voxel_mesh"]
 
@@ -58,13 +58,12 @@ def voxel_mesh(
         labels, origin = _crop(labels, origin, voxel_mm, region_mm)
     keep = labels > 0
     if pore_space == "box":
-        covered = keep.any(axis=2)
-        ii, jj = np.nonzero(covered)
         box = np.zeros_like(keep)
         top = int(np.nonzero(keep.any(axis=(0, 1)))[0].max()) + 1 if keep.any() else 0
         if region_mm is not None:  # the whole region: its sides are full faces
             box[:, :, :top] = True
-        else:
+        else:  # the chips' footprint
+            ii, jj = np.nonzero(keep.any(axis=2))
             box[ii.min() : ii.max() + 1, jj.min() : jj.max() + 1, :top] = True
         keep = box
     count = int(keep.sum())
@@ -84,7 +83,7 @@ def voxel_mesh(
     uj, uk = np.divmod(rest, nz)
     points = np.column_stack([ui, uj, uk]) * voxel_mm + origin
     chip = labels[i, j, k].astype(np.int64) - 1  # void (0) becomes PORE (-1)
-    node_sets = boundary_node_sets(points)
+    node_sets = side_node_sets(points)
     pairs = None
     if periodic:
         pairs = PeriodicPairs.of_box(points, np.union1d(node_sets["top"], node_sets["bottom"]))

@@ -464,9 +464,9 @@ def _no_room_at_all():
     resource.setrlimit(resource.RLIMIT_FSIZE, (0, 0))
 
 
-def test_a_disk_full_before_the_lock_is_written(tmp_path):
-    """The lock is the first file written: on a disk with no room, one line and no empty
-    lock left behind (it would make the next run wait for a stale lock)."""
+def _run_on_a_full_disk(tmp_path, limit) -> tuple[subprocess.CompletedProcess, dict]:
+    """The small scenario run into ``tmp_path`` by a process whose file-size limit is set
+    by ``limit``; returns the result and the folder as it was before."""
     (tmp_path / "s.toml").write_text(SMALL_SCENARIO)
     before = _tree(tmp_path)
     result = subprocess.run(
@@ -474,24 +474,22 @@ def test_a_disk_full_before_the_lock_is_written(tmp_path):
         + ["--out", str(tmp_path / "out"), "--quiet"],
         capture_output=True,
         text=True,
-        preexec_fn=_no_room_at_all,
+        preexec_fn=limit,
         timeout=600,
     )
+    return result, before
+
+
+def test_a_disk_full_before_the_lock_is_written(tmp_path):
+    """The lock is the first file written: on a disk with no room, one line and no empty
+    lock left behind (it would make the next run wait for a stale lock)."""
+    result, before = _run_on_a_full_disk(tmp_path, _no_room_at_all)
     assert_refused(result, "cannot lock (File too large)", tmp_path, before)
 
 
 def test_a_full_output_folder(tmp_path):
     """No room at all: refused at the first write, and nothing is left."""
-    (tmp_path / "s.toml").write_text(SMALL_SCENARIO)
-    before = _tree(tmp_path)
-    result = subprocess.run(
-        [sys.executable, "-m", "pipeline", "run", str(tmp_path / "s.toml")]
-        + ["--out", str(tmp_path / "out"), "--quiet"],
-        capture_output=True,
-        text=True,
-        preexec_fn=_small_fsize,
-        timeout=600,
-    )
+    result, before = _run_on_a_full_disk(tmp_path, _small_fsize)
     assert_refused(
         result, "cannot write the run (File too large); nothing was written", tmp_path, before
     )

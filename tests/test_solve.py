@@ -12,7 +12,7 @@ import meshio
 import numpy as np
 import pytest
 import pyvista
-from conftest import run_cli
+from conftest import SMALL_SCENARIO, run_cli
 
 from core.schema import ChipSpec, SolveSpec
 from export.calculix import write_contact_deck
@@ -167,18 +167,9 @@ def test_solve_refuses_a_model_it_cannot_run(tmp_path):
     assert not (tmp_path / "run").exists()
 
 
-CROPPED_VOLUME = """
-name = "volume"
-seed = 3
-[chip]
-length_mm = 20.0
-width_mm = 20.0
-thickness_mm = 2.0
-[deposition]
-chips = 24
-batch_size = 12
-target_size_mm = 80.0
-release_height_mm = [60.0, 120.0]
+CROPPED_VOLUME = (
+    SMALL_SCENARIO
+    + """
 [mesh]
 voxel_mm = 1.0
 pore_space = "box"
@@ -189,6 +180,7 @@ formats = ["inp", "vtu"]
 [solve]
 press_fraction = 0.01
 """
+)
 
 
 def test_solve_a_cropped_periodic_volume_of_a_physics_stack(tmp_path):
