@@ -42,6 +42,7 @@ def _key(default: Any, unit: str, doc: str, check: Callable[[Any], str | None] |
     return field(default=default, metadata={"unit": unit, "doc": doc, "check": check})
 
 
+MAX_SEED = 2**63 - 1  # seeds are recorded in JSON manifests and TOML: 64-bit integers
 MAX_LENGTH_MM = 1e4  # 10 m: beyond any conveyor, and safely inside float arithmetic
 MAX_TIME_S = 1e4
 
@@ -602,8 +603,8 @@ def _check_consistency(s: Scenario) -> None:
         raise InputError(
             f"deposition.batch_size: {d.batch_size} is larger than deposition.chips ({d.chips})"
         )
-    if s.seed < 0:
-        raise InputError(f"seed: must not be negative (got {s.seed})")
+    if not 0 <= s.seed <= MAX_SEED:
+        raise InputError(f"seed: must be between 0 and {MAX_SEED} (got {brief(s.seed)})")
     if s.mix and sum(c.weight for c in s.mix) <= 0:
         raise InputError("mix: the weights sum to 0; give at least one chip a positive weight")
     for name in ("friction", "restitution"):

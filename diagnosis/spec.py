@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from core.errors import InputError
-from core.schema import Scenario, printable, scenario_from_dict, scenario_to_dict
+from core.files import number, read_text
+from core.schema import MAX_LENGTH_MM, Scenario, printable, scenario_from_dict, scenario_to_dict
 from packing.drop import DropProtocol
 from packing.effects import EFFECTS
 
@@ -38,6 +39,19 @@ DROP_COLUMNS = ("condition", "drop", "x_mm", "y_mm")
 DROP_OPTIONAL = ("yaw_deg", "tilt_deg")
 QUANTITY_COLUMNS = ("condition", "quantity", "value")
 QUANTITY_OPTIONAL = ("sd", "n")
+MAX_SPEC_BYTES = 1_000_000  # a spec is a few kB
+MAX_QUANTITY = 1e6  # beyond any stack quantity (mm, %, counts per chip)
+# What an observation may be, checked before any arithmetic (positions within 10 m of the
+# aim, angles within a turn).
+OBSERVATION_RANGES = {
+    "x_mm": (-MAX_LENGTH_MM, MAX_LENGTH_MM),
+    "y_mm": (-MAX_LENGTH_MM, MAX_LENGTH_MM),
+    "yaw_deg": (-360.0, 360.0),
+    "tilt_deg": (-180.0, 180.0),
+    "value": (-MAX_QUANTITY, MAX_QUANTITY),
+    "sd": (0.0, MAX_QUANTITY),
+    "n": (1.0, MAX_QUANTITY),
+}
 MIN_DROPS = 10
 
 
@@ -167,10 +181,7 @@ def load_experiment(
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{shown}: experiment spec not found")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{shown}: cannot read the experiment spec ({exc})") from None
+    text = read_text(path, "experiment spec", MAX_SPEC_BYTES)
     if not text.strip():
         raise InputError(f"{shown}: the experiment spec is empty")
     try:
@@ -324,28 +335,32 @@ def _read_rows(path: Path, required: tuple[str, ...], optional: tuple[str, ...])
     shown = printable(path)
     if not path.is_file():
         raise InputError(f"{shown}: observations file not found")
+    text = read_text(path, "observations file")
     try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{shown}: cannot read the observations ({exc})") from None
-    rows = list(csv.reader(text.splitlines()))
+        rows = list(csv.reader(text.splitlines()))
+    except csv.Error as exc:
+        raise InputError(f"{shown}: unreadable observations file ({exc})") from None
     rows = [r for r in rows if r and any(cell.strip() for cell in r)]
     if not rows:
         raise InputError(f"{shown}: the observations file is empty")
     header = [h.strip() for h in rows[0]]
-    duplicated = sorted({h for h in header if header.count(h) > 1})
+    # Only the expected column names are ever quoted: the file may be any file, and its
+    # first line anything (a secret).
+    allowed = required + optional
+    duplicated = sorted({h for h in header if header.count(h) > 1 and h in allowed})
     if duplicated:
         raise InputError(f"{shown}: column {duplicated[0]!r} appears twice")
     missing = [c for c in required if c not in header]
     if missing:
         raise InputError(
             f"{shown}: missing column {missing[0]!r} (columns needed: {', '.join(required)}; "
-            f"optional: {', '.join(optional)}; found: {', '.join(header)})"
+            f"optional: {', '.join(optional)}; the first line is not quoted)"
         )
     unknown = [h for h in header if h not in required + optional]
     if unknown:
         raise InputError(
-            f"{shown}: unknown column {unknown[0]!r} (allowed: {', '.join(required + optional)})"
+            f"{shown}: unknown column {printable(unknown[0])!r} "
+            f"(allowed: {', '.join(required + optional)})"
         )
     if len(rows) == 1:
         raise InputError(f"{shown}: no observations below the header")
@@ -360,20 +375,15 @@ def _read_rows(path: Path, required: tuple[str, ...], optional: tuple[str, ...])
 
 
 def _float(cell: str, shown: str, line: int, column: str) -> float:
-    try:
-        value = float(cell)
-    except ValueError:
-        raise InputError(f"{shown}, line {line}: {column} {cell!r} is not a number") from None
-    if not math.isfinite(value):
-        raise InputError(f"{shown}, line {line}: {column} must be finite, got {cell!r}")
-    return value
+    low, high = OBSERVATION_RANGES[column]
+    return number(cell, f"{shown}, line {line}", column, low, high)
 
 
 def _condition_of(row: dict, known: set[str], shown: str, line: int) -> str:
     name = row["condition"]
     if name not in known:
         raise InputError(
-            f"{shown}, line {line}: condition {name!r} is not defined in the spec "
+            f"{shown}, line {line}: condition {printable(name)!r} is not defined in the spec "
             f"(defined: {', '.join(sorted(known))})"
         )
     return name
@@ -392,7 +402,9 @@ def read_drop_observations(experiment: Experiment) -> dict[str, DropData]:
             raise InputError(f"{shown}, line {line}: empty drop id")
         rows = by_condition.setdefault(name, {"ids": [], "values": []})
         if drop in rows["ids"]:
-            raise InputError(f"{shown}, line {line}: drop {drop!r} of {name!r} appears twice")
+            raise InputError(
+                f"{shown}, line {line}: drop {printable(drop)!r} of {name!r} appears twice"
+            )
         rows["ids"].append(drop)
         values = [_float(r[c], shown, line, c) for c in ("x_mm", "y_mm")]
         for column in DROP_OPTIONAL:
@@ -430,7 +442,7 @@ def read_quantity_observations(
         quantity = r["quantity"]
         if quantity not in known_quantities:
             raise InputError(
-                f"{shown}, line {line}: unknown quantity {quantity!r}; valid: "
+                f"{shown}, line {line}: unknown quantity {printable(quantity)!r}; valid: "
                 f"{', '.join(known_quantities)}"
             )
         if quantity in data.get(name, {}):

@@ -24,7 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import InputError, printable
+from core.errors import InputError, brief, printable
+from core.files import check_geometry_file
 from core.schema import LENGTH_UNITS_MM, ChipSpec
 from packing.bullet import vhacd
 from packing.chipshape import ChipShape, _fibres, _frozen
@@ -37,6 +38,7 @@ log = logging.getLogger(__name__)
 FILE_SUFFIXES = (".stl", ".obj", ".ply")
 MAX_DECOMPOSITION_ERROR = 0.10
 MAX_FACES = 200_000
+MAX_VERTEX_MM = 1e6  # 1 km: surely a wrong unit or a broken file (a chip is far smaller)
 
 
 @lru_cache(maxsize=32)
@@ -51,22 +53,27 @@ def _read(path: str, mtime: float, units: str):
             f"{shown}: unsupported geometry file type {suffix or '(none)'!r}; "
             f"use {', '.join(FILE_SUFFIXES)}"
         )
+    check_geometry_file(path, MAX_FACES)  # its size, before a byte of it is parsed
     try:
-        if os.path.getsize(path) == 0:
-            raise InputError(f"{shown}: the geometry file is empty")
-        loaded = trimesh.load(path, force="mesh", process=True)
-    except InputError:
-        raise
+        # Not processed yet: merging vertices is arithmetic, and the numbers are unchecked.
+        loaded = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for malformed files
         message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise InputError(f"{shown}: unreadable geometry file ({message})") from None
+        raise InputError(f"{shown}: unreadable geometry file ({brief(message)})") from None
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise InputError(f"{shown}: the geometry file holds no surface")
     mesh = loaded
     if len(mesh.faces) > MAX_FACES:
         raise InputError(f"{shown}: {len(mesh.faces)} faces; at most {MAX_FACES} are accepted")
-    if not np.isfinite(mesh.vertices).all():
+    vertices = np.asarray(mesh.vertices)
+    if not np.isfinite(vertices).all():
         raise InputError(f"{shown}: vertices hold NaN or infinite values")
+    reach = float(np.abs(vertices).max(initial=0.0)) * LENGTH_UNITS_MM[units]
+    if reach > MAX_VERTEX_MM:  # before any arithmetic on them: 1e150 would overflow
+        raise InputError(
+            f"{shown}: a vertex lies {reach:.3g} mm from the origin; at most {MAX_VERTEX_MM:g}"
+        )
+    mesh.process(validate=False)
     if mesh.body_count != 1:
         raise InputError(f"{shown}: holds {mesh.body_count} separate bodies; give one chip")
     if not mesh.is_watertight:

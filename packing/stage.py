@@ -5,13 +5,14 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import zipfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from core.errors import InputError
+from core.errors import InputError, brief
 from core.provenance import code_versions
 from core.schema import Scenario
 from core.stages import Stage, StageInputs, StageOutput
@@ -121,8 +122,8 @@ class PackingStage(Stage):
         try:
             with np.load(path, allow_pickle=False) as arrays:
                 return stack_from_arrays(dict(arrays), str(path))
-        except (OSError, ValueError) as exc:
-            raise InputError(f"{path}: unreadable stack record ({exc})") from None
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+            raise InputError(f"{path}: unreadable stack record ({brief(str(exc))})") from None
 
     def manifest_entry(self, summary: Mapping[str, Any]) -> dict[str, Any]:
         return dict(summary)  # packing (and container) or drop, at the top level

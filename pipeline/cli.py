@@ -12,18 +12,46 @@ import logging
 import os
 import sys
 
-from core.errors import ChipstackError
+from core.errors import ChipstackError, printable
+from core.schema import MAX_SEED
 from core.stages import check_stage_name, stage_names
+from pipeline.ensemble import MAX_REPEATS
+from pipeline.execution import MAX_WORKERS
 
 __all__ = ["main"]
 
 EXIT_BAD_INPUT = 2
+SEED_HELP = "seed of every random draw, 0 to 2**63 - 1"
 
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # one line, no usage block
         sys.stderr.write(f"pipeline: error: {message}\n")
         raise SystemExit(EXIT_BAD_INPUT)
+
+
+def _bounded(low: float, high: float, kind: type = int):
+    """An argparse type: a number of ``kind`` within [low, high] (bounds stated in the
+    flag's help; a value outside is one line and exit 2)."""
+
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{printable(text)!r} is not a number") from None
+        if not low <= value <= high:  # also refuses NaN
+            shown = (lambda v: f"{v:g}") if kind is float else str
+            raise argparse.ArgumentTypeError(
+                f"must be between {shown(low)} and {shown(high)}, got {shown(value)}"
+            )
+        return value
+
+    parse.__name__ = kind.__name__  # argparse names the type in its messages
+    return parse
+
+
+WORKERS = _bounded(1, MAX_WORKERS)
+SEED = _bounded(0, MAX_SEED)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -48,15 +76,16 @@ def _add_run(commands) -> None:
         help=f"last stage: {', '.join(stage_names())} (default: {stage_names()[0]})",
     )
     run.add_argument("--out", default=None, help="run directory (default: runs/<name>-seed<N>)")
-    run.add_argument("--seed", type=int, default=None, help="seed of every random draw")
+    run.add_argument("--seed", type=SEED, default=None, help=SEED_HELP)
     run.add_argument("--overwrite", action="store_true", help="replace an existing run directory")
     run.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     run.add_argument("-v", "--verbose", action="store_true", help="log progress details")
     run.add_argument(
         "--repeats",
-        type=int,
+        type=_bounded(2, MAX_REPEATS),
         default=None,
-        help="an ensemble of N independent runs (seeds derived from --seed) with statistics",
+        help=f"an ensemble of N independent runs, 2 to {MAX_REPEATS} (seeds derived from "
+        "--seed), with statistics",
     )
     run.add_argument(
         "--descriptors",
@@ -64,7 +93,10 @@ def _add_run(commands) -> None:
         help="comma-separated descriptors for the geometry stage (default: all)",
     )
     run.add_argument(
-        "--workers", type=int, default=None, help="local Dask workers (default: one per core)"
+        "--workers",
+        type=WORKERS,
+        default=None,
+        help=f"local Dask workers, 1 to {MAX_WORKERS} (default: one per core)",
     )
     run.add_argument(
         "--scheduler", default=None, help="address of a running Dask scheduler to use instead"
@@ -106,10 +138,22 @@ def _add_validate(commands) -> None:
     validate.add_argument(
         "--cases", default=None, help="comma-separated: drop, mat, container, mixed (default: all)"
     )
-    validate.add_argument("--repeats", type=int, default=10, help="repeats per case (paper: 10)")
-    validate.add_argument("--drops", type=int, default=50, help="drops per drop experiment")
-    validate.add_argument("--seed", type=int, default=0, help="seed of the ensembles")
-    validate.add_argument("--workers", type=int, default=None, help="local Dask workers")
+    validate.add_argument(
+        "--repeats",
+        type=_bounded(2, 1000),
+        default=10,
+        help="repeats per case, 2 to 1000 (paper: 10)",
+    )
+    validate.add_argument(
+        "--drops", type=_bounded(2, 100_000), default=50, help="drops per experiment, 2 to 100000"
+    )
+    validate.add_argument("--seed", type=SEED, default=0, help=SEED_HELP)
+    validate.add_argument(
+        "--overwrite", action="store_true", help="replace an earlier validation in --out"
+    )
+    validate.add_argument(
+        "--workers", type=WORKERS, default=None, help=f"local Dask workers, 1 to {MAX_WORKERS}"
+    )
     validate.add_argument("--scheduler", default=None, help="address of a Dask scheduler")
     validate.add_argument("-v", "--verbose", action="store_true", help="log progress details")
 
@@ -122,10 +166,10 @@ def _add_diagnose(commands) -> None:
     diagnose.add_argument(
         "--out", default=None, help="where to write (default: runs/diagnose-<spec>)"
     )
+    diagnose.add_argument("--seed", type=SEED, default=0, help=SEED_HELP)
     diagnose.add_argument(
-        "--seed", type=int, default=0, help="seed of the simulations and resamples"
+        "--workers", type=WORKERS, default=None, help=f"local Dask workers, 1 to {MAX_WORKERS}"
     )
-    diagnose.add_argument("--workers", type=int, default=None, help="local Dask workers")
     diagnose.add_argument("--scheduler", default=None, help="address of a Dask scheduler")
     diagnose.add_argument("--overwrite", action="store_true", help="replace an earlier diagnosis")
     diagnose.add_argument("--quiet", action="store_true", help="no verdict on stdout")
@@ -140,22 +184,29 @@ def _add_synth(commands) -> None:
     synth.add_argument(
         "--effect", action="append", default=[], help="NAME=STRENGTH (repeat for several)"
     )
-    synth.add_argument("--seed", type=int, default=0, help="seed of every draw")
+    synth.add_argument("--seed", type=SEED, default=0, help=SEED_HELP)
     synth.add_argument("-o", "--output", required=True, help="observations CSV to write")
-    synth.add_argument("--drops", type=int, default=50, help="drops per condition (kind drop)")
+    synth.add_argument(
+        "--drops",
+        type=_bounded(1, 100_000),
+        default=50,
+        help="drops per condition (kind drop), 1 to 100000",
+    )
     synth.add_argument(
         "--position-sd-mm",
-        type=float,
+        type=_bounded(0.0, 100.0, float),
         default=None,
-        help="measurement noise of positions (default: the spec's [measurement])",
+        help="measurement noise of positions, 0 to 100 mm (default: the spec's [measurement])",
     )
     synth.add_argument(
         "--angle-sd-deg",
-        type=float,
+        type=_bounded(0.0, 45.0, float),
         default=None,
-        help="measurement noise of yaw and tilt (default: the spec's [measurement])",
+        help="measurement noise of yaw and tilt, 0 to 45 deg (default: the spec's [measurement])",
     )
-    synth.add_argument("--workers", type=int, default=None, help="local Dask workers")
+    synth.add_argument(
+        "--workers", type=WORKERS, default=None, help=f"local Dask workers, 1 to {MAX_WORKERS}"
+    )
     synth.add_argument("--overwrite", action="store_true", help="replace an existing file")
     synth.add_argument("-v", "--verbose", action="store_true", help="log progress details")
 
@@ -175,8 +226,6 @@ def _run(args: argparse.Namespace) -> None:
 
     scenario = load_scenario(args.scenario)
     if args.seed is not None:
-        if args.seed < 0:
-            raise ChipstackError("--seed: must not be negative")
         scenario = scenario.with_seed(args.seed)
     out = args.out or f"runs/{scenario.name}-seed{scenario.seed}"
     descriptors = _names(args.descriptors)
@@ -383,10 +432,6 @@ def _validate(args: argparse.Namespace) -> None:
     cases = [c.strip() for c in args.cases.split(",") if c.strip()] if args.cases else CASES
     if not cases:
         raise ChipstackError("--cases: give at least one case")
-    if args.seed < 0:
-        raise ChipstackError("--seed: must not be negative")
-    if args.workers is not None and args.workers < 1:
-        raise ChipstackError("--workers: must be at least 1")
     bar = None
 
     def progress(step: int, total: int) -> None:
@@ -405,6 +450,8 @@ def _validate(args: argparse.Namespace) -> None:
             args.workers,
             args.scheduler,
             progress,
+            overwrite=args.overwrite,
+            command=sys.argv,
         )
     finally:
         if bar is not None:

@@ -7,10 +7,10 @@ from pathlib import Path
 from typing import Any
 
 from core.errors import InputError
+from core.files import read_json
 from core.schema import printable
 from geometry.ensemble import compare_ensembles
 from pipeline.rundir import RunDirectory
-from pipeline.stackfiles import read_json
 
 __all__ = ["load_ensemble", "compare_runs", "comparison_table"]
 
@@ -119,12 +119,12 @@ def compare_runs(
     """Compare two ensembles; writes compare.json, compare.md and Fig. 12 into ``out``."""
     from export.run_figures import comparison_figures
 
+    run = RunDirectory(out, overwrite=overwrite)
+    run.check()
     ensembles = (load_ensemble(run_a), load_ensemble(run_b))
     labels = (Path(run_a).name or str(run_a), Path(run_b).name or str(run_b))
     if labels[0] == labels[1]:
         labels = (f"A: {labels[0]}", f"B: {labels[1]}")
-    run = RunDirectory(out, overwrite=overwrite)
-    run.check()
     result = compare_ensembles(*ensembles)
     result["a"] = {"path": str(run_a), "repeats": ensembles[0]["repeats"]}
     result["b"] = {"path": str(run_b), "repeats": ensembles[1]["repeats"]}

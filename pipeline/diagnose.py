@@ -20,7 +20,7 @@ from diagnosis.synth import synthesize_drops
 from export.diagnosis_report import write_diagnosis
 from packing.effects import EFFECTS, check_effects
 from pipeline.execution import Executor
-from pipeline.rundir import RunDirectory
+from pipeline.rundir import RunDirectory, check_output_file
 from pipeline.scenario_files import load_scenario
 
 __all__ = ["diagnose", "synth", "parse_effects"]
@@ -127,14 +127,8 @@ def synth(
     if angle_sd_deg is not None:
         experiment = dataclasses.replace(experiment, angle_sd_deg=angle_sd_deg)
     strengths = parse_effects(effects, experiment.kind)
-    target = Path(output).expanduser().absolute()
     shown = f"-o {printable(output)}"
-    if target.is_dir():
-        raise InputError(f"{shown}: is a directory")
-    if target.exists() and not overwrite:
-        raise InputError(f"{shown}: file exists (use --overwrite)")
-    if not target.parent.is_dir() or not os.access(target.parent, os.W_OK):
-        raise InputError(f"{shown}: cannot write in {printable(target.parent)}")
+    target = check_output_file(output, shown, overwrite)
     with Executor(workers=workers) as executor:
         if experiment.kind == "drop":
             rows = synthesize_drops(experiment, strengths, seed, drops, executor.map)

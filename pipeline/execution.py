@@ -54,12 +54,16 @@ def _connect(address: str):
     raise InputError(f"--scheduler {printable(address)}: cannot reach the scheduler ({reason})")
 
 
+# Local worker processes: a few per core pay for waiting on files; thousands only hang.
+MAX_WORKERS = 4 * (os.cpu_count() or 1)
+
+
 class Executor:
     """``with Executor(workers=2) as ex: ex.run(task, args, on_result, on_error)``."""
 
     def __init__(self, workers: int | None = None, scheduler: str | None = None) -> None:
-        if workers is not None and workers < 1:
-            raise InputError(f"--workers: must be at least 1, got {workers}")
+        if workers is not None and not 1 <= workers <= MAX_WORKERS:
+            raise InputError(f"--workers: must be between 1 and {MAX_WORKERS}, got {workers}")
         if workers is not None and scheduler is not None:
             raise InputError("--workers: not with --scheduler (the cluster has its workers)")
         self.workers = workers

@@ -15,12 +15,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from core.errors import InputError
+from core.errors import InputError, printable
+from core.files import read_json
 from core.stages import Checkpoint, stage_names
 from pipeline.locks import DirectoryLock
 
 __all__ = [
     "RunDirectory",
+    "check_output_file",
     "StagedRun",
     "StageWriter",
     "EnsembleDirectory",
@@ -31,12 +33,33 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+MAX_JOURNAL_BYTES = 16 * 2**20  # a journal or manifest is a few kB to a few hundred
+
 
 def _nearest_existing(path: Path) -> Path:
     for candidate in (path, *path.parents):
         if candidate.exists():
             return candidate
     return Path("/")
+
+
+def check_output_file(given: str | Path, shown: str, overwrite: bool) -> Path:
+    """The absolute path of an output file (``~`` expanded), refused early in one line
+    naming ``shown`` if it is a directory, exists without ``overwrite``, or cannot be
+    written; the file itself is then written to a temporary name and renamed."""
+    try:
+        target = Path(given).expanduser().absolute()
+        if target.is_dir():
+            raise InputError(f"{shown}: is a directory")
+        if target.exists() and not overwrite:
+            raise InputError(f"{shown}: file exists (use --overwrite)")
+        if target.exists() and not os.access(target, os.W_OK):
+            raise InputError(f"{shown}: cannot replace it (read-only or immutable)")
+        if not target.parent.is_dir() or not os.access(target.parent, os.W_OK | os.X_OK):
+            raise InputError(f"{shown}: cannot write in {printable(str(target.parent))}")
+    except OSError as exc:
+        raise InputError(f"{shown}: {exc.strerror or exc}") from None
+    return target
 
 
 class RunDirectory:
@@ -84,6 +107,8 @@ class RunDirectory:
                 raise InputError(f"{out}: is a symbolic link; give the real directory")
             if self.target.exists() and not self.target.is_dir():
                 raise InputError(f"{out}: exists and is not a directory")
+            if self.target.is_dir() and not os.access(self.target, os.W_OK | os.X_OK):
+                raise InputError(f"{out}: cannot write in it (read-only or immutable)")
             ancestor = _nearest_existing(self.target.parent)
             if not ancestor.is_dir() or not os.access(ancestor, os.W_OK | os.X_OK):
                 raise InputError(f"{out}: cannot write under {str(ancestor)!r}")
@@ -220,10 +245,7 @@ class EnsembleDirectory:
             entries = list(self.target.iterdir())
             state = self.target / self.STATE
             if state.is_file():
-                try:
-                    known = json.loads(state.read_text())
-                except (OSError, ValueError, RecursionError):
-                    known = None
+                known = _read_journal(state)
                 if overwrite:
                     self._clear_first = True
                 elif known == identity:
@@ -502,7 +524,8 @@ class StagedRun:
         for name in names[names.index(stage) :]:
             self.stages.pop(name, None)
             _remove(self.work / name)
-            _state_file(self.work, name).unlink(missing_ok=True)
+            for state in _state_files(self.work, name):
+                state.unlink(missing_ok=True)
         self.journal["stages_completed"] = self.completed
         self._write_journal()
 
@@ -514,7 +537,7 @@ class StagedRun:
             isinstance(entry, dict)
             and entry.get("status") == "running"
             and entry.get("inputs_sha256") == inputs
-            and _state_file(self.work, stage).is_file()
+            and any(state.is_file() for state in _state_files(self.work, stage))
         ):
             self.invalidate(stage)
             self.stages[stage] = {"inputs_sha256": inputs, "status": "running"}
@@ -547,7 +570,8 @@ class StagedRun:
         if isinstance(previous, dict) and "resumed_after_batch" in previous:
             entry["resumed_after_batch"] = previous["resumed_after_batch"]
         self.stages[name] = entry
-        _state_file(self.work, name).unlink(missing_ok=True)
+        for state in _state_files(self.work, name):
+            state.unlink(missing_ok=True)
         self.journal["stages_completed"] = self.completed
         self._write_journal()
 
@@ -613,58 +637,119 @@ class StagedRun:
 
 
 class RunCheckpoint(Checkpoint):
-    """A stage's partial state in the build: ``.STAGE-state.npz`` and the journal's count
-    of completed steps (batches), written state file first."""
+    """A stage's partial state in the build: ``.STAGE-state.npz`` (and the one before it,
+    ``.STAGE-state.prev.npz``), with the journal's count of completed steps (batches)
+    and the SHA-256 of each good state file.
+
+    A state file is written first and recorded in the journal after, and the previous
+    good state is kept until the new one is recorded. So a file that a kill or a full disk
+    cut short, or that was damaged later, fails its checksum: the stage resumes from the
+    other one, or from the start, with one warning, and never sticks on it.
+    """
 
     def __init__(self, run: StagedRun, stage: str) -> None:
         self.run, self.stage = run, stage
-        self.path = _state_file(run.work, stage)
+        self.path, self.previous = _state_files(run.work, stage)
 
     @property
     def _entry(self) -> dict[str, Any]:
         return self.run.stages[self.stage]
 
-    def resume(self, decode):
-        """``decode(arrays, where)`` of the saved state, or None to start afresh (nothing
-        saved, a count that disagrees with the journal, or an unreadable file)."""
-        if not self.path.is_file():
-            return None
-        try:
-            import numpy as np
+    def _good_states(self) -> dict[str, int]:
+        """Checksum to batch count of the state files the journal recorded."""
+        states = self._entry.get("states")
+        if not isinstance(states, dict):
+            return {}
+        return {k: v for k, v in states.items() if isinstance(v, int) and v >= 0}
 
-            with np.load(self.path, allow_pickle=False) as arrays:
-                state = decode(dict(arrays), str(self.path))
-        except (OSError, ValueError, InputError) as exc:
+    def resume(self, decode):
+        """``decode(arrays, where)`` of the latest good saved state, or None to start afresh
+        (nothing saved, or nothing that passes its checksum and decodes)."""
+        good = self._good_states()
+        found = [p for p in (self.path, self.previous) if p.is_file()]
+        damaged = []
+        for path in found:
+            count = good.get(_sha256(path))
+            if count is None:
+                damaged.append(path)
+                continue
+            state = self._decode(path, decode)
+            if state is None or getattr(state, "batches_done", None) != count:
+                damaged.append(path)
+                continue
+            if damaged:
+                log.warning(
+                    "%s: damaged checkpoint (its checksum or contents differ from the "
+                    "journal); resuming %s after batch %d from the one before it",
+                    damaged[0],
+                    self.stage,
+                    count,
+                )
+            self._entry["batches_completed"] = count
+            self._entry["resumed_after_batch"] = count
+            self.run._write_journal()
+            log.info("resuming %s after batch %d", self.stage, count)
+            return state
+        if damaged:
             log.warning(
-                "%s: unreadable (%s); starting %s from the start", self.path, exc, self.stage
+                "%s: damaged checkpoint (its checksum or contents differ from the journal) "
+                "and no good one before it; starting %s from the start",
+                damaged[0],
+                self.stage,
             )
-        else:
-            done = getattr(state, "batches_done", None)
-            if done is not None and done == self._entry.get("batches_completed"):
-                self._entry["resumed_after_batch"] = done
-                self.run._write_journal()
-                log.info("resuming %s after batch %d", self.stage, done)
-                return state
-        self.path.unlink(missing_ok=True)
+        for path in found:
+            path.unlink(missing_ok=True)
         self._entry["batches_completed"] = 0
+        self._entry["states"] = {}
         self.run._write_journal()
         return None
 
+    @staticmethod
+    def _decode(path: Path, decode):
+        import zipfile
+
+        import numpy as np
+
+        try:
+            with np.load(path, allow_pickle=False) as arrays:
+                return decode(dict(arrays), str(path))
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, InputError):
+            return None
+
     def save(self, arrays: dict[str, Any], done: int) -> None:
-        """Record ``done`` completed batches: the state file first, then the journal."""
+        """Record ``done`` completed batches: the state file first, then the journal; the
+        state before it is kept until then."""
+        good = self._good_states()
+        if self.path.is_file():
+            os.replace(self.path, self.previous)
         save_npz_atomically(self.path, arrays)
+        keep = {k: v for k, v in good.items() if v == max(good.values(), default=-1)}
+        keep[_sha256(self.path)] = done
+        self._entry["states"] = keep
         self._entry["batches_completed"] = done
         self.run._write_journal()
 
 
-def _state_file(work: Path, stage: str) -> Path:
-    return work / f".{stage}-state.npz"
+def _sha256(path: Path) -> str:
+    import hashlib
+
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(2**20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _state_files(work: Path, stage: str) -> tuple[Path, Path]:
+    """The stage's latest saved state and the one before it."""
+    return work / f".{stage}-state.npz", work / f".{stage}-state.prev.npz"
 
 
 def _read_journal(path: Path) -> dict[str, Any] | None:
+    """The JSON table at ``path``, or None when it is missing, damaged or not a table."""
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError):
+        data = read_json(path, "journal", MAX_JOURNAL_BYTES)
+    except InputError:
         return None
     return data if isinstance(data, dict) else None
 

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from core.errors import InputError
+from core.files import read_text
 from core.schema import Scenario, printable, scenario_from_dict, scenario_to_dict
 
 __all__ = ["BUILTIN", "builtin_names", "load_scenario", "dumps_toml"]
@@ -43,16 +44,7 @@ def load_scenario(source: str | Path | None) -> Scenario:
         raise InputError(
             f"{shown}: scenario file not found (built-in scenarios: {', '.join(builtin_names())})"
         )
-    try:
-        size = path.stat().st_size
-        if size > MAX_SCENARIO_BYTES:  # checked before reading: a scenario is a few kB
-            raise InputError(
-                f"{shown}: the scenario file holds {size:,} bytes; a scenario is at most "
-                f"{MAX_SCENARIO_BYTES:,}"
-            )
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{shown}: cannot read scenario file ({exc})") from None
+    text = read_text(path, "scenario file", MAX_SCENARIO_BYTES)  # a scenario is a few kB
     return _parse(text, shown, str(path.resolve().parent))
 
 

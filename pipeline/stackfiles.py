@@ -3,32 +3,22 @@
 from __future__ import annotations
 
 import csv
-import json
 import re
 from pathlib import Path
 
 import numpy as np
 
 from core.errors import InputError
+from core.files import read_json, read_text
 from core.schema import MAX_LENGTH_MM, Scenario, printable
 from export.tables import POSE_COLUMNS
 from geometry.arrangement import Arrangement
 from packing.shapes import make_shape, shape_from_record, varies_per_chip
 from pipeline.scenario_files import load_scenario
 
-__all__ = ["load_run", "read_json"]
+__all__ = ["load_run"]
 
 _POSES = re.compile(r"poses_after_batch_(\d+)\.csv")
-
-
-def read_json(path: Path, what: str):
-    """The parsed JSON file at ``path``, or a one-line error naming it as ``what``."""
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError(f"{path}: unreadable {what} ({exc})") from None
-    except RecursionError:
-        raise InputError(f"{path}: unreadable {what} (nested too deeply)") from None
 
 
 def load_run(run_dir: str | Path) -> tuple[Scenario, list[Arrangement], dict]:
@@ -111,10 +101,10 @@ def _read_shapes(path: Path, scenario: Scenario) -> dict:
 
 
 def _read_poses(path: Path, shapes: dict, target_size_mm: float) -> Arrangement:
+    text = read_text(path, "poses file")
     try:
-        with open(path, newline="", encoding="utf-8") as f:
-            rows = list(csv.reader(f))
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        rows = list(csv.reader(text.splitlines()))
+    except csv.Error as exc:
         raise InputError(f"{path}: unreadable poses file ({exc})") from None
     if not rows:
         raise InputError(f"{path}: empty poses file")

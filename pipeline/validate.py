@@ -16,10 +16,10 @@ parallel; results are gathered here, written to ``validation.json`` and
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import math
 from collections.abc import Callable, Sequence
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +28,7 @@ import numpy as np
 from core.errors import InputError
 from core.schema import printable
 from pipeline.run import derive_seed
+from pipeline.rundir import RunDirectory
 from pipeline.scenario_files import load_scenario
 
 __all__ = ["CASES", "validate", "PAPER"]
@@ -119,21 +120,40 @@ def validate(
     workers: int | None = None,
     scheduler: str | None = None,
     progress: Callable[[int, int], None] | None = None,
+    overwrite: bool = False,
+    command: list[str] | None = None,
 ) -> list[dict[str, Any]]:
-    """Run the validation cases into ``out``; returns the table rows (also written)."""
-    _check_arguments(out, cases, repeats, drops)
-    folder = Path(out)
+    """Run the validation cases into the directory ``out`` (written as a whole when done,
+    with the guards of every run directory); returns the table rows (also written)."""
+    _check_arguments(cases, repeats, drops)
+    run = RunDirectory(out, overwrite=overwrite)
+    run.check()
     tasks = _tasks(cases, repeats, drops, seed)
-    folder.mkdir(parents=True, exist_ok=True)
     results, errors = _run(tasks, workers, scheduler, progress)
-    rows = _rows(results, folder, seed)
-    report = {"seed": seed, "repeats": repeats, "drops": drops, "rows": rows, "errors": errors}
-    (folder / "validation.json").write_text(json.dumps(report, indent=2) + "\n")
-    (folder / "validation.md").write_text(table_markdown(rows) + "\n")
+    with run:
+        folder = run.path("validation.json").parent
+        rows = _rows(results, folder, seed)
+        report = {"seed": seed, "repeats": repeats, "drops": drops, "rows": rows}
+        run.write_json("validation.json", {**report, "errors": errors})
+        run.write_text("validation.md", table_markdown(rows) + "\n")
+        run.write_json(
+            "manifest.json",
+            {
+                "tool": "chipstack",
+                "kind": "validation",
+                "command": command or [],
+                "cases": list(cases),
+                "seed": seed,
+                "repeats": repeats,
+                "drops": drops,
+                "errors": len(errors),
+                "finished_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+            },
+        )
     return rows
 
 
-def _check_arguments(out: str | Path, cases: Sequence[str], repeats: int, drops: int) -> None:
+def _check_arguments(cases: Sequence[str], repeats: int, drops: int) -> None:
     for case in cases:
         if case not in CASES:
             raise InputError(
@@ -143,9 +163,6 @@ def _check_arguments(out: str | Path, cases: Sequence[str], repeats: int, drops:
         raise InputError(f"--repeats: must be between 2 and 1000, got {repeats}")
     if not 2 <= drops <= 100000:
         raise InputError(f"--drops: must be between 2 and 100000, got {drops}")
-    folder = Path(out)
-    if folder.exists() and not folder.is_dir():
-        raise InputError(f"{printable(out)}: exists and is not a directory")
 
 
 def _tasks(
@@ -339,7 +356,6 @@ def _container_row(runs: list[dict], label: str) -> dict[str, Any]:
 def _mixed_row(result, folder: Path) -> dict[str, Any]:
     """Fig. 18: the mixed stack written as a run (described, meshed and rendered)."""
     from pipeline.run import write_run
-    from pipeline.rundir import RunDirectory
 
     run = RunDirectory(folder / "mixed", overwrite=True)
     with run:

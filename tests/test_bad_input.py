@@ -102,7 +102,7 @@ BAD_SCENARIOS = {
         '[deposition]\nchips = "' + "y" * 600_000 + '"\n',
         "... (600,002 characters)",
     ),
-    "a file of 2 MB": ("# " + "n" * 2_000_000 + "\n", "a scenario is at most 1,000,000"),
+    "a file of 2 MB": ("# " + "n" * 2_000_000 + "\n", "at most 1,000,000 are read"),
     "crop to a region not given": ('[mesh]\ncrop = "region"\n', "mesh.region_mm: give"),
     "crop region of three numbers": (
         '[mesh]\ncrop = "region"\nregion_mm = [0.0, 1.0, 2.0]\n',
@@ -177,7 +177,49 @@ BAD_GEOMETRY_FILES = {
     "missing file": (None, None, "geometry file not found"),
     # a 20 mm chip said to be in metres
     "metres read as millimetres": ("c.obj", _obj(), "chip (22360.7 mm across) is larger"),
+    # numbers out of range, refused before any arithmetic on them (class 2)
+    "coordinates of 1e150": (
+        "c.obj",
+        _obj(vertices=[tuple(1e150 * v for v in p) for p in CUBE_VERTICES]),
+        "c.obj: a vertex lies 2e+151 mm from the origin",
+    ),
+    "coordinates of 1e200": (
+        "c.obj",
+        _obj(vertices=[tuple(1e200 * v for v in p) for p in CUBE_VERTICES]),
+        "c.obj: a vertex lies 2e+201 mm from the origin",
+    ),
+    "coordinates of 1e-300 (no volume)": (
+        "c.obj",
+        _obj(vertices=[tuple(1e-300 * v for v in p) for p in CUBE_VERTICES]),
+        "c.obj",
+    ),
+    # sizes checked before reading (class 3): sparse files cost nothing to make
+    "sparse 10 GB STL": ("c.stl", ("sparse", 10 * 2**30), "at most 67,108,864 are read"),
+    "binary STL declaring more triangles than it holds": (
+        "c.stl",
+        b"\0" * 80 + (1_000_000).to_bytes(4, "little") + b"\0" * 50,
+        "declaring 1,000,000 triangles (50,000,084 bytes) holds 134 bytes",
+    ),
+    "binary STL of 1,000,000 triangles": (
+        "c.stl",
+        ("sparse-stl", 1_000_000),
+        "declares 1,000,000 triangles; at most 200,000",
+    ),
 }
+
+
+def _write_case_file(path: Path, content) -> None:
+    """Bytes, text, or a sparse file: (\"sparse\", size) or (\"sparse-stl\", triangles),
+    a binary STL header declaring that many."""
+    if isinstance(content, tuple):
+        kind, n = content
+        with open(path, "wb") as f:
+            if kind == "sparse-stl":
+                f.write(b"\0" * 80 + n.to_bytes(4, "little"))
+                n = 84 + 50 * n
+            f.truncate(n)
+        return
+    path.write_bytes(content if isinstance(content, bytes) else content.encode())
 
 
 @pytest.mark.parametrize("case", sorted(BAD_GEOMETRY_FILES))
@@ -185,8 +227,7 @@ def test_bad_geometry_file(case, tmp_path):
     name, content, named = BAD_GEOMETRY_FILES[case]
     name = name or "nope.stl"
     if content is not None:
-        path = tmp_path / name
-        path.write_bytes(content if isinstance(content, bytes) else content.encode())
+        _write_case_file(tmp_path / name, content)
     units = 'units = "m"\n' if case.startswith("metres") else ""
     (tmp_path / "s.toml").write_text(f'[chip]\nshape = "file"\nfile = "{name}"\n{units}')
     before = _tree(tmp_path)
@@ -257,6 +298,21 @@ BAD_OBSERVATIONS = {
         "no drops for condition 'high'",
     ),
     "empty file": (None, None, "the observations file is empty"),
+    # numbers out of range (class 2), named by file, line and column
+    "1e308 mm": (HEADER, _rows_with(_set(3, 2, "1e308")), "line 5: x_mm 1e+308 is outside"),
+    "a position 20 m away": (HEADER, _rows_with(_set(6, 3, "-20000")), "line 8: y_mm -20000"),
+    "a yaw of 1e5 degrees": (
+        (*HEADER, "yaw_deg"),
+        [[*r, 100000.0 if k == 2 else 10.0] for k, r in enumerate(_good_rows())],
+        "line 4: yaw_deg 100000 is outside [-360, 360]",
+    ),
+    "a tilt of -1e300 degrees": (
+        (*HEADER, "tilt_deg"),
+        [[*r, -1e300 if k == 7 else 1.0] for k, r in enumerate(_good_rows())],
+        "line 9: tilt_deg -1e+300 is outside",
+    ),
+    # size checked before reading (class 3)
+    "sparse 100 MB observations": ("sparse", 100 * 2**20, "at most 67,108,864 are read"),
 }
 
 
@@ -267,6 +323,8 @@ def test_bad_observation_file(case, tmp_path):
     data = tmp_path / "data.csv"
     if header is None:
         data.write_text("")
+    elif header == "sparse":
+        _write_case_file(data, (header, rows))
     else:
         _write_drops(data, rows, header)
     before = _tree(tmp_path)
@@ -306,6 +364,58 @@ def test_bad_experiment_spec(case, tmp_path):
     before = _tree(tmp_path)
     result = run_cli("diagnose", str(tmp_path / "spec.toml"), "--out", str(tmp_path / "o"))
     assert_refused(result, named, tmp_path, before)
+
+
+def test_a_file_not_in_the_expected_format_is_never_quoted(tmp_path):
+    """An observations path pointing at any other file (outside the spec's folder too) is
+    refused without a word of its content reaching the terminal."""
+    secret = tmp_path / "private" / "token.txt"
+    secret.parent.mkdir()
+    secret.write_text("SECRET-TOKEN-4711,root:x:0:0\nmore secrets\n")
+    folder = tmp_path / "specs"
+    folder.mkdir()
+    spec = drop_spec(folder, effects=("friction",))
+    spec.write_text(spec.read_text().replace('"data.csv"', '"../private/token.txt"'))
+    before = _tree(tmp_path)
+    result = run_cli("diagnose", str(spec), "--out", str(tmp_path / "out"), "--workers", "1")
+    assert_refused(result, "token.txt: missing column 'condition'", tmp_path, before)
+    assert "SECRET" not in result.stderr and "root:x" not in result.stderr
+
+
+def test_a_spreadsheet_csv_with_a_byte_order_mark_is_read_like_plain_utf8(tmp_path):
+    """ "CSV UTF-8" from a spreadsheet starts with a byte-order mark: same observations."""
+    from diagnosis.spec import load_experiment, read_drop_observations
+    from pipeline.scenario_files import load_scenario
+
+    spec = drop_spec(tmp_path, effects=("friction",))
+    _write_drops(tmp_path / "data.csv", _good_rows())
+    plain = read_drop_observations(load_experiment(spec, load_scenario))
+    text = (tmp_path / "data.csv").read_text()
+    (tmp_path / "data.csv").write_bytes(b"\xef\xbb\xbf" + text.encode())
+    marked = read_drop_observations(load_experiment(spec, load_scenario))
+    assert sorted(marked) == sorted(plain) == ["high", "low"]
+    for name in plain:
+        assert np.array_equal(marked[name].positions, plain[name].positions)
+
+
+def test_validate_expands_home_and_writes_a_whole_run_directory(tmp_path):
+    """``--out ~/v`` means the home folder (no folder named ``~``); the result is a run
+    directory with its manifest, replaced only with --overwrite."""
+    home = tmp_path / "home"
+    home.mkdir()
+    args = [sys.executable, "-m", "pipeline", "validate", "--cases", "drop"]
+    args += ["--repeats", "2", "--drops", "5", "--workers", "1", "--out", "~/v"]
+    env = {**os.environ, "HOME": str(home)}
+    first = subprocess.run(args, capture_output=True, text=True, env=env, cwd=tmp_path)
+    assert first.returncode == 0, first.stderr
+    assert not (tmp_path / "~").exists()
+    manifest = json.loads((home / "v" / "manifest.json").read_text())
+    assert manifest["kind"] == "validation" and manifest["cases"] == ["drop"]
+    assert (home / "v" / "validation.md").is_file()
+    again = subprocess.run(args, capture_output=True, text=True, env=env, cwd=tmp_path)
+    assert again.returncode == 2 and "use --overwrite" in again.stderr
+    replaced = subprocess.run([*args, "--overwrite"], capture_output=True, text=True, env=env)
+    assert replaced.returncode == 0, replaced.stderr
 
 
 # -- run directories -----------------------------------------------------------------------
@@ -365,6 +475,19 @@ def _case_run_dir(case: str, d: Path, run: Path):
         (d / "locked").mkdir()
         undo = _read_only(d / "locked")
         return ["run", str(scenario), "--out", str(d / "locked" / "out")], "cannot write", undo
+    if case == "validate: output holds other files":
+        (d / "home").mkdir()
+        (d / "home" / "validation.md").write_text("my notes")
+        return ["validate", "--out", str(d / "home"), "--overwrite"], "no manifest.json", undo
+    if case == "validate: read-only output folder":
+        (d / "locked").mkdir()
+        undo = _read_only(d / "locked")
+        return ["validate", "--out", str(d / "locked")], "cannot write", undo
+    if case == "compare: read-only output folder":
+        (d / "locked").mkdir()
+        undo = _read_only(d / "locked")
+        args = ["compare", str(run), str(run), "--out", str(d / "locked" / "c")]
+        return args, "cannot write", undo
     if case == "describe: not a run":
         (d / "notes").mkdir()
         return ["describe", str(d / "notes")], "not a run directory (no manifest.json)", undo
@@ -409,6 +532,18 @@ def _case_run_dir(case: str, d: Path, run: Path):
             expected = "has coordinates beyond 10000 mm"
         path.write_text(json.dumps(data))
         return ["describe", str(copy)], expected, undo
+    if case == "describe: sparse poses file of 1 GB":
+        with open(copy / "packing" / "poses_after_batch_01.csv", "r+b") as f:
+            f.truncate(2**30)
+        return ["describe", str(copy)], "poses_after_batch_01.csv: the poses file holds", undo
+    if case == "describe: sparse manifest of 1 GB":
+        with open(copy / "manifest.json", "r+b") as f:
+            f.truncate(2**30)
+        return ["describe", str(copy)], "manifest.json: the manifest holds 1,073,741,824", undo
+    if case == "describe: shapes file in UTF-16":
+        path = copy / "packing" / "shapes.json"
+        path.write_bytes(path.read_text().encode("utf-16"))
+        return ["describe", str(copy)], "shapes.json: the shapes file is not UTF-8", undo
     if case == "describe: duplicated chip id":
         poses = copy / "packing" / "poses_after_batch_01.csv"
         lines = poses.read_text().splitlines()
@@ -441,6 +576,12 @@ RUN_DIRECTORY_CASES = [
     "describe: shape coordinates of 1e150 mm",
     "describe: duplicated chip id",
     "describe: missing batch file",
+    "describe: sparse poses file of 1 GB",
+    "describe: sparse manifest of 1 GB",
+    "describe: shapes file in UTF-16",
+    "validate: output holds other files",
+    "validate: read-only output folder",
+    "compare: read-only output folder",
     "compare: missing run",
 ]
 
@@ -498,7 +639,8 @@ def test_a_full_output_folder(tmp_path):
 # -- command-line flags --------------------------------------------------------------------
 BAD_FLAGS = {
     "seed not a number": (["run", "--seed", "abc"], "--seed"),
-    "negative seed": (["run", "--seed", "-1"], "--seed: must not be negative"),
+    "negative seed": (["run", "--seed", "-1"], "--seed: must be between 0 and"),
+    "seed beyond 64 bits": (["run", "--seed", str(2**64)], "--seed: must be between 0 and"),
     "unknown stage": (["run", "--to", "consolidate"], "--to consolidate: unknown stage"),
     "stage with a newline": (["run", "--to", "mesh\nmore"], "--to"),
     "one repeat": (["run", "--repeats", "1"], "--repeats: must be between 2"),
@@ -514,6 +656,12 @@ BAD_FLAGS = {
     ),
     "workers without repeats": (["run", "--workers", "2"], "--workers"),
     "unknown validation case": (["validate", "--cases", "nope"], "--cases"),
+    # every count has an upper bound (class 7), refused before anything starts
+    "100,000 workers": (["run", "--repeats", "3", "--workers", "100000"], "--workers: must be"),
+    "100,000 validation workers": (["validate", "--workers", "100000"], "--workers: must be"),
+    "100,000 diagnosis workers": (["diagnose", "s.toml", "--workers", "100000"], "--workers"),
+    "a billion validation drops": (["validate", "--drops", "1000000000"], "--drops: must be"),
+    "a million validation repeats": (["validate", "--repeats", "1000000"], "--repeats: must"),
     "missing scenario file": (["run", "nope.toml"], "nope.toml"),
     "scenario is a directory": (["run", "."], "is a directory"),
 }
@@ -543,6 +691,8 @@ BAD_SYNTH_FLAGS = {
     "zero drops": (["--drops", "0"], "--drops: must be between 1 and 100000"),
     "NaN noise": (["--position-sd-mm", "nan"], "--position-sd-mm: must be between 0 and 100"),
     "negative noise": (["--angle-sd-deg", "-1"], "--angle-sd-deg: must be between 0 and 45"),
+    "100,000 workers": (["--workers", "100000"], "--workers: must be between 1 and"),
+    "a billion drops": (["--drops", "1000000000"], "--drops: must be between 1 and 100000"),
 }
 
 

@@ -154,6 +154,58 @@ def test_a_killed_run_resumes_to_the_same_bits(scenario, reference, tmp_path, po
     assert not list(tmp_path.glob(".run.*")), "the build, its state and the lock are gone"
 
 
+def _truncate(path: Path) -> None:
+    with open(path, "r+b") as f:
+        f.truncate(path.stat().st_size // 2)
+
+
+def _flip(path: Path) -> None:
+    data = bytearray(path.read_bytes())
+    middle = len(data) // 2
+    data[middle : middle + 64] = bytes(b ^ 0xFF for b in data[middle : middle + 64])
+    path.write_bytes(bytes(data))
+
+
+DAMAGES = {
+    "latest truncated": (_truncate, False),
+    "latest with flipped bytes": (_flip, False),
+    "latest emptied": (lambda p: p.write_bytes(b""), False),
+    "both truncated": (_truncate, True),
+}
+
+
+@pytest.mark.parametrize("damage", list(DAMAGES))
+def test_a_damaged_checkpoint_is_caught_and_the_run_finishes_to_the_same_bits(
+    scenario, reference, tmp_path, damage
+):
+    """The packing state a kill left behind is damaged afterwards: the journal's checksum
+    catches it, one warning says so, and the same command resumes from the state before
+    it (or, with both damaged, from the start) to the uninterrupted run's bytes."""
+    out = tmp_path / "run"
+    journal = _kill_when(scenario, out, lambda j: _batches(j) >= 3)
+    partial = tmp_path / ".run.partial"
+    latest, previous = partial / ".packing-state.npz", partial / ".packing-state.prev.npz"
+    assert latest.is_file() and previous.is_file()
+    spoil, both = DAMAGES[damage]
+    spoil(latest)
+    if both:
+        spoil(previous)
+
+    again = run_cli("run", str(scenario), "--out", str(out), *ARGS)
+    assert again.returncode == 0, again.stderr
+    warnings = [line for line in again.stderr.splitlines() if "damaged checkpoint" in line]
+    assert len(warnings) == 1, again.stderr
+    manifest = _manifest(out)
+    if both:
+        assert "from the start" in warnings[0]
+        assert "resumed_after_batch" not in manifest
+    else:
+        assert manifest["resumed_after_batch"] == _batches(journal) - 1
+    assert _files(out) == _files(reference)
+    assert _stable(manifest) == _stable(_manifest(reference))
+    assert not list(tmp_path.glob(".run.*")), "the build, its state and the lock are gone"
+
+
 def test_a_kill_while_updating_a_finished_run_leaves_it_whole(scenario, reference, tmp_path):
     """Rebuilding the mesh of a finished run, killed half way: the finished run stays as it
     was, and the next start completes the update."""
