@@ -13,10 +13,8 @@ import os
 import sys
 
 from core.errors import ChipstackError, printable
-from core.schema import MAX_SEED
+from core.schema import MAX_REPEATS, MAX_SEED, MAX_WORKERS
 from core.stages import check_stage_name, stage_names
-from pipeline.ensemble import MAX_REPEATS
-from pipeline.execution import MAX_WORKERS
 
 __all__ = ["main"]
 

@@ -13,11 +13,7 @@ from pathlib import Path
 
 from core.errors import InputError
 from core.schema import printable
-from diagnosis.drops import diagnose_drops
 from diagnosis.spec import Experiment, load_experiment, read_drop_observations
-from diagnosis.stacks import QUANTITIES, diagnose_stacks, synthesize_quantities
-from diagnosis.synth import synthesize_drops
-from export.diagnosis_report import write_diagnosis
 from packing.effects import EFFECTS, check_effects
 from pipeline.execution import Executor
 from pipeline.rundir import RunDirectory, check_output_file
@@ -62,6 +58,12 @@ def diagnose(
     experiment = load_experiment(spec, load_scenario)
     data = _observations(experiment)
     run_dir = RunDirectory(out, overwrite=overwrite)
+    # The statistics, the simulations and the report are imported only once the inputs
+    # are known to be good (seconds of scipy and matplotlib that a typo need not pay for).
+    from diagnosis.drops import diagnose_drops
+    from diagnosis.stacks import diagnose_stacks
+    from export.diagnosis_report import write_diagnosis
+
     start = time.perf_counter()
     with run_dir as run:  # locked from here: a second diagnosis into it is refused
         with Executor(workers=workers, scheduler=scheduler) as executor:
@@ -82,6 +84,7 @@ def _observations(experiment: Experiment):
     if experiment.kind == "drop":
         return read_drop_observations(experiment)
     from diagnosis.spec import read_quantity_observations
+    from diagnosis.stacks import QUANTITIES
 
     return read_quantity_observations(experiment, tuple(QUANTITIES))
 
@@ -129,6 +132,9 @@ def synth(
     strengths = parse_effects(effects, experiment.kind)
     shown = f"-o {printable(output)}"
     target = check_output_file(output, shown, overwrite)
+    from diagnosis.stacks import synthesize_quantities
+    from diagnosis.synth import synthesize_drops
+
     with Executor(workers=workers) as executor:
         if experiment.kind == "drop":
             rows = synthesize_drops(experiment, strengths, seed, drops, executor.map)

@@ -14,7 +14,7 @@ from typing import Any
 
 from core.errors import InputError, SimulationError
 from core.provenance import code_versions
-from core.schema import Scenario
+from core.schema import MAX_REPEATS, Scenario
 from core.stages import StageOptions
 from pipeline.execution import Executor
 from pipeline.run import RepeatResult, compute_run, derive_seed, stages_to, write_run
@@ -25,7 +25,6 @@ __all__ = ["run_ensemble", "MAX_REPEATS"]
 
 log = logging.getLogger(__name__)
 
-MAX_REPEATS = 1000
 SEED_RULE = "numpy SeedSequence([seed, index]).generate_state(1)[0]"
 
 

@@ -16,7 +16,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from core.errors import InputError
-from core.schema import printable
+from core.schema import MAX_WORKERS, printable
 
 __all__ = ["Executor", "CONNECT_TIMEOUT_S"]
 
@@ -52,10 +52,6 @@ def _connect(address: str):
         else f"no Dask handshake within {CONNECT_TIMEOUT_S + 1.0:g} s"
     )
     raise InputError(f"--scheduler {printable(address)}: cannot reach the scheduler ({reason})")
-
-
-# Local worker processes: a few per core pay for waiting on files; thousands only hang.
-MAX_WORKERS = 4 * (os.cpu_count() or 1)
 
 
 class Executor:

@@ -23,12 +23,20 @@ import pytest
 from conftest import SMALL_SCENARIO, drop_spec, run_cli
 
 
-def _tree(folder: Path) -> dict[str, bytes | None]:
+def _content(path: Path):
+    """A file's bytes; for the sparse giants of the catalogue, its size and mtime (reading
+    10 GB of zeros would take the test a minute)."""
+    if not path.is_file():
+        return None
+    status = path.stat()
+    if status.st_size > 2**24:
+        return (status.st_size, status.st_mtime_ns)
+    return path.read_bytes()
+
+
+def _tree(folder: Path) -> dict[str, bytes | tuple | None]:
     """Every path under ``folder`` (hidden ones too) with its content."""
-    return {
-        p.relative_to(folder).as_posix(): (p.read_bytes() if p.is_file() else None)
-        for p in sorted(folder.rglob("*"))
-    }
+    return {p.relative_to(folder).as_posix(): _content(p) for p in sorted(folder.rglob("*"))}
 
 
 def assert_refused(result: subprocess.CompletedProcess, named: str, folder: Path, before) -> None:
@@ -392,10 +400,42 @@ def test_a_spreadsheet_csv_with_a_byte_order_mark_is_read_like_plain_utf8(tmp_pa
     plain = read_drop_observations(load_experiment(spec, load_scenario))
     text = (tmp_path / "data.csv").read_text()
     (tmp_path / "data.csv").write_bytes(b"\xef\xbb\xbf" + text.encode())
+    spec.write_bytes(b"\xef\xbb\xbf" + spec.read_bytes())  # the spec too
     marked = read_drop_observations(load_experiment(spec, load_scenario))
     assert sorted(marked) == sorted(plain) == ["high", "low"]
     for name in plain:
         assert np.array_equal(marked[name].positions, plain[name].positions)
+
+
+def test_a_run_directory_edited_in_a_spreadsheet_reads_the_same(tmp_path, finished_run):
+    """A poses table and a scenario saved back with a byte-order mark describe the same
+    stack."""
+    from pipeline.stackfiles import load_run
+
+    copy = tmp_path / "run"
+    shutil.copytree(finished_run, copy)
+    for name in ("scenario.toml", "packing/poses_after_batch_01.csv"):
+        (copy / name).write_bytes(b"\xef\xbb\xbf" + (copy / name).read_bytes())
+    scenario, history, _ = load_run(copy)
+    plain_scenario, plain_history, _ = load_run(finished_run)
+    assert scenario == plain_scenario
+    assert np.array_equal(history[0].positions, plain_history[0].positions)
+
+
+def test_synth_on_a_full_disk_leaves_no_partial_file(tmp_path):
+    """The observations are written to a temporary name and renamed: a disk that fills
+    while writing is one line, and neither the file nor its temporary is left."""
+    spec = drop_spec(tmp_path)
+    before = _tree(tmp_path)
+    result = subprocess.run(
+        [sys.executable, "-m", "pipeline", "synth", str(spec), "-o", str(tmp_path / "d.csv")]
+        + ["--drops", "40", "--workers", "1"],
+        capture_output=True,
+        text=True,
+        preexec_fn=_small_fsize,
+        timeout=600,
+    )
+    assert_refused(result, "d.csv: cannot write (File too large)", tmp_path, before)
 
 
 def test_validate_expands_home_and_writes_a_whole_run_directory(tmp_path):
