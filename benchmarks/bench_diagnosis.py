@@ -179,6 +179,14 @@ def main() -> int:
         f"  (true effect among the tied best, whatever the verdict: {lenient} of "
         f"{len(effect_cases)})"
     )
+    if effect_cases:
+        sizes = [len(r["indistinguishable"]) for r in effect_cases]
+        kinds = sorted({r["verdict"] for r in effect_cases})
+        print(
+            f"tie set (the best and those indistinguishable from it): mean size "
+            f"{statistics.mean(sizes):.1f}, largest {max(sizes)}; verdicts: "
+            + ", ".join(f"{k} {sum(r['verdict'] == k for r in effect_cases)}" for k in kinds)
+        )
     if reductions:
         print(
             "median held-out gap reduction of the true effect: "

@@ -15,7 +15,7 @@ from diagnosis.statistics import bootstrap_indices, gap_statistic
 from packing.effects import EFFECTS, contact_model
 from packing.presets import PRESETS
 
-__all__ = ["Dataset", "DropSimulations", "NULL_REPLICAS"]
+__all__ = ["Dataset", "DropSimulations", "NULL_REPLICAS", "NOISE_POOL"]
 
 NULL_REPLICAS = 400
 
@@ -23,6 +23,9 @@ NULL_REPLICAS = 400
 # "B" is an independent second baseline that measures the simulation's own noise.
 BASELINE_POOL = "A"
 NOISE_POOL = "B"
+
+
+TILT_GRID_DEG = (0.0, 2.5, 5.0, 7.5, 10.0, 15.0, 20.0)
 
 
 class DropSimulations:
@@ -54,6 +57,11 @@ class DropSimulations:
         self.n = experiment.settings.sim_drops
         preset = PRESETS.get(experiment.scenario.physics.preset, key="physics.preset")
         self.contact = contact_model(preset, experiment.scenario.physics)
+        # The release tilts the baseline refit may choose: a fixed grid and every
+        # condition's own tilt (the spec's value must be one of the candidates).
+        self.tilt_grid = tuple(
+            sorted(set(TILT_GRID_DEG) | {float(c.protocol.tilt_deg) for c in experiment.conditions})
+        )
 
     # -- keys ----------------------------------------------------------------------------
     @staticmethod
@@ -61,12 +69,18 @@ class DropSimulations:
         # Rounded so that a strength reached by two routes (grid, midpoint) is one setting.
         return (condition, round(tilt, 9), effect, round(strength, 12), pool)
 
-    def baseline(self, condition: str, tilt: float, pool: str = BASELINE_POOL) -> tuple:
-        return self.key(condition, tilt, None, 0.0, pool)
+    def own_tilt(self, condition: str, tilt: float | None) -> float:
+        """``tilt``, or with None the condition's own release tilt (the spec's)."""
+        return self.x.condition(condition).protocol.tilt_deg if tilt is None else tilt
 
-    def setting(self, condition: str, tilt: float, effect: str | None, strength: float):
-        """The key of ``effect`` at ``strength``; an effect at its neutral strength is the
-        baseline itself, so it shares the baseline's simulation."""
+    def baseline(self, condition: str, tilt: float | None, pool: str = BASELINE_POOL) -> tuple:
+        return self.key(condition, self.own_tilt(condition, tilt), None, 0.0, pool)
+
+    def setting(self, condition: str, tilt: float | None, effect: str | None, strength: float):
+        """The key of ``effect`` at ``strength`` (release tilt ``tilt``, None: the
+        condition's own); an effect at its neutral strength is the baseline itself, so it
+        shares the baseline's simulation."""
+        tilt = self.own_tilt(condition, tilt)
         neutral = EFFECTS.get(effect).neutral(self.contact) if effect else 0.0
         if effect is None or abs(strength - neutral) <= 1e-12:
             return self.baseline(condition, tilt)
@@ -163,17 +177,31 @@ class Dataset:
         """Scales and noise floor from the baseline's two independent pools: replicas of
         the experiment's size drawn from pool B, compared with pool A, are what a gap
         looks like when there is none."""
-        tilt = sims.x.condition(self.condition).protocol.tilt_deg
-        sim_a = sims.observables[sims.baseline(self.condition, tilt)]
-        b = sims.drops[sims.baseline(self.condition, tilt, NOISE_POOL)]
+        a = sims.baseline(self.condition, None)
+        b = sims.baseline(self.condition, None, NOISE_POOL)
+        self.scale, self.null, self.floor = self.noise_floor(sims, a, b, rng)
+
+    def noise_floor(
+        self, sims: DropSimulations, key_a: tuple, key_b: tuple, rng: np.random.Generator
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(scales (K,), null G (R,), 95 % floor (K,)) of this dataset against the model
+        simulated twice, independently, as ``key_a`` and ``key_b``: replicas of the
+        experiment's size drawn from pool B, compared with pool A, are what a gap looks
+        like when the model is right."""
+        sim_a = sims.observables[key_a]
+        b = sims.drops[key_b]
         n = self.data.n
-        draws = bootstrap_indices(len(b.positions), NULL_REPLICAS, rng)[:, :n]
+        # Replicas of the experiment's own size, drawn with replacement from pool B (also
+        # when the experiment has more drops than the pool: cutting them to the pool's
+        # size would make the null's replicas smaller than the experiment).
+        draws = rng.integers(0, len(b.positions), size=(NULL_REPLICAS, n))
         replicas = np.array([sims.observe(b.take(i), self.condition) for i in draws])
         spread = np.maximum(self.resampled.std(axis=0), replicas.std(axis=0))
         spread = np.maximum(spread, 1e-6 * (1 + np.abs(sim_a)))
-        self.scale = spread * np.sqrt(1 + n / sims.n)
-        self.null = gap_statistic(replicas, sim_a, self.scale)
-        self.floor = np.percentile(np.abs(replicas - sim_a), 95, axis=0)
+        scale = spread * np.sqrt(1 + n / sims.n)
+        null = gap_statistic(replicas, sim_a, scale)
+        floor = np.percentile(np.abs(replicas - sim_a), 95, axis=0)
+        return scale, null, floor
 
     @property
     def expected_null(self) -> float:

@@ -94,8 +94,8 @@ class _DropDiagnosis:
         where = locate_gap(full, self.sims, self.rng, self.settings.alpha)
         folds = self._folds(full)
         which = EffectRanking(self.sims, folds, full).run()
-        how_far = how_far_best(which, folds, self.sims)
-        verdict = self._verdict(where, which)
+        how_far = how_far_best(which, folds, self.sims, self.rng)
+        verdict = self._verdict(where, which, how_far)
         return {
             "scatter": self._scatter(folds, full, which["best"]),
             **self._description(),
@@ -112,7 +112,7 @@ class _DropDiagnosis:
         for c in self.x.conditions:
             tilt = c.protocol.tilt_deg
             keys += [self.sims.baseline(c.name, tilt), self.sims.baseline(c.name, tilt, NOISE_POOL)]
-            keys += [self.sims.baseline(c.name, t) for t in TILT_GRID_DEG]
+            keys += [self.sims.baseline(c.name, t) for t in self.sims.tilt_grid]
         self.sims.ensure(keys)
 
     def _datasets(self, parts: list[tuple[str, np.ndarray | None]]) -> list[Dataset]:
@@ -193,7 +193,7 @@ class _DropDiagnosis:
             "seed": self.seed,
         }
 
-    def _verdict(self, where: dict, which: dict) -> dict:
+    def _verdict(self, where: dict, which: dict, how_far: dict) -> dict:
         significant = [t["condition"] for t in where["tests"] if t["significant"]]
         if not significant:
             return dict(
@@ -209,7 +209,7 @@ class _DropDiagnosis:
                 text=f"Gap in {', '.join(significant)}; refitting the baseline's release tilt "
                 f"({refit['all_conditions_deg']:g} deg) closes it on held-out conditions.",
             )
-        return effect_verdict(significant, which)
+        return effect_verdict(significant, which, how_far, self.settings.alpha)
 
 
 def diagnose_drops(

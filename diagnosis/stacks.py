@@ -232,7 +232,7 @@ class _StackDiagnosis:
             where=where,
             which=which,
             how_far=how_far,
-            verdict=self._verdict(where, which),
+            verdict=self._verdict(where, which, how_far),
         )
 
     def _description(self, names: list[str]) -> dict:
@@ -293,7 +293,7 @@ class _StackDiagnosis:
             beyond_noise=abs(z) > 1.96,
         )
 
-    def _verdict(self, where, which) -> dict:
+    def _verdict(self, where, which, how_far) -> dict:
         significant = [t["condition"] for t in where["tests"] if t["significant"]]
         if not significant:
             return dict(
@@ -301,7 +301,7 @@ class _StackDiagnosis:
                 text="The measurements lie within the simulation's "
                 "noise in every condition (chi-square tests, Holm-adjusted).",
             )
-        return effect_verdict(significant, which)
+        return effect_verdict(significant, which, how_far, self.x.settings.alpha)
 
 
 def diagnose_stacks(

@@ -49,13 +49,20 @@ def holm(p_values: list[float]) -> list[float]:
 
 
 def interval(samples: np.ndarray, level: float = 0.95) -> tuple[float, float]:
-    """Percentile interval of bootstrap samples (nan-aware)."""
+    """Percentile interval of bootstrap samples.
+
+    A resample whose value is undefined (NaN: a ratio with nothing to divide) is not
+    dropped, which would leave an interval conditional on the ratio being defined: it
+    counts as below the lower bound and above the upper one, so the interval can only
+    widen, and is unbounded (-inf or inf) once more than the tail's share is undefined.
+    """
     samples = np.asarray(samples, dtype=float)
-    samples = samples[np.isfinite(samples)]
-    if samples.size == 0:
+    if samples.size == 0 or np.isnan(samples).all():
         return (float("nan"), float("nan"))
     tail = (1 - level) / 2 * 100
-    lo, hi = np.percentile(samples, [tail, 100 - tail])
+    undefined = np.isnan(samples)
+    lo = np.percentile(np.where(undefined, -np.inf, samples), tail, method="lower")
+    hi = np.percentile(np.where(undefined, np.inf, samples), 100 - tail, method="higher")
     return float(lo), float(hi)
 
 

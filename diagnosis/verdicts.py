@@ -38,9 +38,12 @@ def applicable_effects(experiment: Experiment) -> tuple[list[str], dict[str, str
     return usable, skipped
 
 
-def effect_verdict(significant: list[str], which: dict) -> dict:
+def effect_verdict(significant: list[str], which: dict, how_far: dict, alpha: float) -> dict:
     """``unexplained`` when the gap the best effect closes on held-out data has an
-    interval reaching 0, else ``explained`` with the effects tied with it."""
+    interval reaching 0; ``partly explained`` when it closes a significant part but the
+    held-out data are still not consistent with it (the residual gap after it, tested
+    against the noise floor per held-out condition, Holm-adjusted, is significant);
+    else ``explained``, with the effects tied with it."""
     gap = ", ".join(significant)
     if not which["ranking"]:
         return dict(kind="unexplained", text=f"Gap in {gap}; no candidate effect applies.")
@@ -59,9 +62,37 @@ def effect_verdict(significant: list[str], which: dict) -> dict:
         f"Gap in {gap}; {top['effect']} closes {shown} of it on held-out conditions at "
         f"strength {top['strength']:.3g} {top['unit']}."
     )
+    remaining = _still_off(how_far.get("conditions", []), alpha)
     if others:
         text += f" Indistinguishable from it: {', '.join(others)}."
-    return dict(kind="explained", effect=top["effect"], indistinguishable=others, text=text)
+    if remaining:
+        text += (
+            f" A significant gap remains after it in {', '.join(remaining)} (residual test "
+            "against the noise floor, Holm-adjusted): an effect outside the library, or "
+            "more than one, is at work."
+        )
+        kind = "partly explained"
+    else:
+        kind = "explained"
+    return dict(
+        kind=kind,
+        effect=top["effect"],
+        indistinguishable=others,
+        still_off=remaining,
+        text=text,
+    )
+
+
+def _still_off(conditions: list[dict], alpha: float) -> list[str]:
+    """The held-out conditions whose gap after the best effect is still beyond the noise
+    floor (``p_after``, Holm-adjusted across them)."""
+    from diagnosis.statistics import holm
+
+    if not conditions:
+        return []
+    adjusted = holm([row["p_after"] for row in conditions])
+    pairs = zip(conditions, adjusted, strict=True)
+    return sorted({row["condition"] for row, p in pairs if p < alpha})
 
 
 def how_far(best: str, top: dict, rows: list, conditions: list) -> dict:

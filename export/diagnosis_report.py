@@ -18,10 +18,10 @@ __all__ = ["write_diagnosis", "report_markdown"]
 def _fmt(value, digits: int = 3) -> str:
     if value is None:
         return "-"
-    if isinstance(value, float) and not math.isfinite(value):
+    if isinstance(value, float) and math.isnan(value):
         return "n/a"
     if isinstance(value, float):
-        return f"{value:.{digits}g}"
+        return f"{value:.{digits}g}"  # an unbounded interval's end prints as inf
     return str(value)
 
 
@@ -299,7 +299,10 @@ def plot_ranking(path, ranking: list[dict]) -> None:
     y = np.arange(len(names))
     v = np.nan_to_num(np.array(values, dtype=float))
     ax.barh(y, v, color="tab:blue")
-    err = np.array([v - np.nan_to_num(lo), np.nan_to_num(hi) - v])
+    # An unbounded end (too many resamples with no gap to close) is drawn to the edge.
+    lo = np.nan_to_num(np.array(lo, dtype=float), nan=0.0, neginf=-1.0, posinf=1.0)
+    hi = np.nan_to_num(np.array(hi, dtype=float), nan=0.0, neginf=-1.0, posinf=1.0)
+    err = np.array([v - np.minimum(lo, v), np.maximum(hi, v) - v])
     ax.errorbar(v, y, xerr=np.clip(err, 0, None), fmt="none", ecolor="k")
     ax.set_yticks(y)
     ax.set_yticklabels(names)

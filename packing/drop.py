@@ -154,16 +154,19 @@ def simulate_drops(
 ) -> DropSample:
     """``n`` drops of the scenario's chip under ``protocol`` with effects switched on.
 
-    The drops share one world and touch only the floor, so they cost one world, not n.
-    The random draws (tilt fractions, spin directions) depend on ``seed`` alone, not on
-    the strengths or the tilt range: two calls that differ in a strength differ only by
-    the effect (common random numbers, which make the fit of a strength smooth).
+    The drops share one world and touch only the floor, so they cost one world, not n;
+    each is independent of the others given the parameters: drop k's random draws (tilt
+    fractions, spin directions) come from its own stream (``seed`` and k), and the air's
+    loads act on each drop until that drop has landed, whatever the others do. The draws
+    depend on ``seed`` alone, not on the strengths, the tilt range or ``n``: two calls
+    that differ in a strength differ only by the effect (common random numbers, which
+    make the fit of a strength smooth).
     """
     strengths = dict(strengths or {})
     preset = PRESETS.get(scenario.physics.preset, key="physics.preset")
-    rng = np.random.default_rng(seed)
-    fractions = rng.uniform(-1.0, 1.0, size=(n, 2))
-    spin_draws = rng.normal(size=(n, 3))
+    streams = [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(n)]
+    fractions = np.array([r.uniform(-1.0, 1.0, size=2) for r in streams]).reshape(n, 2)
+    spin_draws = np.array([r.normal(size=3) for r in streams]).reshape(n, 3)
     (shape,) = draw_shapes(scenario, 1, np.random.default_rng(scenario.seed))
     shape = shaped(shape, strengths)
     setup = setup_effects(preset, scenario.physics, strengths)
@@ -194,18 +197,19 @@ def simulate_drops(
         tracker = _RestTracker(world, s.speed_mm_s * s.hold_time_s, hold_checks)
         tracker.add(chips)
         start = world.time_s
-        flying = bool(per_step)
+        in_flight = list(chips) if per_step else []
         while tracker.awake and world.time_s - start < s.max_time_s:
-            if flying:
-                awake = sorted(tracker.awake)
-                fastest = 0.0
+            in_flight = [c for c in in_flight if c in tracker.awake]
+            if in_flight:
                 for _ in range(check_steps):
-                    pos, vel = apply_effect_loads(world, awake, per_step)
-                    fastest = float(np.linalg.norm(vel, axis=1).max())
+                    apply_effect_loads(world, in_flight, per_step)
                     world.step()
-                # Still in the air (above the height where it could touch the floor) or fast.
-                airborne = (pos[:, 2] > shape.circumradius_mm + 1.0).any()
-                flying = bool(airborne or fastest > _FLIGHT_SPEED_MM_S)
+                # Each drop on its own: under the air's loads while still in the air (above
+                # the height where it could touch the floor) or fast.
+                pos, _, vel, _ = world.kinematics(in_flight)
+                airborne = pos[:, 2] > shape.circumradius_mm + 1.0
+                fast = np.linalg.norm(vel, axis=1) > _FLIGHT_SPEED_MM_S
+                in_flight = [c for c, keep in zip(in_flight, airborne | fast, strict=True) if keep]
             else:
                 world.step(check_steps)
             tracker.update(np.inf)

@@ -139,12 +139,16 @@ def _read_poses(path: Path, shapes: dict, target_size_mm: float) -> Arrangement:
                 f"{path} line {line}: batch {printable(row[1])} is out of range"
             ) from None
     if not np.isfinite(numbers).all():
-        bad = int(np.flatnonzero(~np.isfinite(numbers).all(axis=1))[0]) + 2
-        raise InputError(f"{path} line {bad}: NaN or infinite value")
+        row, column = np.argwhere(~np.isfinite(numbers))[0]
+        raise InputError(
+            f"{path} line {row + 2}: NaN or infinite value in column {POSE_COLUMNS[3 + column]}"
+        )
     far = np.abs(numbers[:, :3]) > MAX_LENGTH_MM
     if far.any():
-        bad = int(np.flatnonzero(far.any(axis=1))[0]) + 2
-        raise InputError(f"{path} line {bad}: position beyond {MAX_LENGTH_MM:g} mm")
+        row, column = np.argwhere(far)[0]
+        raise InputError(
+            f"{path} line {row + 2}: {POSE_COLUMNS[3 + column]} beyond {MAX_LENGTH_MM:g} mm"
+        )
     if batch.min() < 1 or (np.diff(batch) < 0).any():
         raise InputError(f"{path}: batch numbers must start at 1 and never decrease")
     quaternions = numbers[:, 3:7]

@@ -77,10 +77,12 @@ _LONGEST_FIRST = (
     "test_diagnosis.py",
     "test_validation.py",
     "test_resume.py",
-    "test_execution.py",
+    "test_bad_input.py",
     "test_meshing.py",
-    "test_solve.py",
     "test_geometry_cli.py",
+    "test_execution.py",
+    "test_reliability.py",
+    "test_solve.py",
 )
 
 

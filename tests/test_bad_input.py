@@ -548,7 +548,7 @@ def _case_run_dir(case: str, d: Path, run: Path):
         fields[3] = "nan"
         lines[3] = ",".join(fields)
         poses.write_text("\n".join(lines) + "\n")
-        return ["describe", str(copy)], "poses_after_batch_02.csv line 4: NaN", undo
+        return ["describe", str(copy)], "line 4: NaN or infinite value in column x_mm", undo
     if case == "describe: batch beyond 64 bits":
         poses = copy / "packing" / "poses_after_batch_02.csv"
         lines = poses.read_text().splitlines()

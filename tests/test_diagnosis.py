@@ -124,6 +124,51 @@ def test_air_drag_holds_a_flat_chip_at_its_terminal_speed():
     assert torques[0, 0] < 0  # the tilt is +20 deg about x
 
 
+def test_each_drop_is_independent_of_the_others_simulated_with_it():
+    """Drop k lands where it lands whatever else is dropped beside it: its own random
+    stream (spin and tilt), and the air's loads until it has landed itself (a drop that
+    lands early is not kept under the air by one still falling)."""
+    from packing.drop import DropProtocol, simulate_drops
+    from pipeline.scenario_files import load_scenario
+
+    scenario = load_scenario("single-chip-drop")
+    protocol = DropProtocol(height_mm=150.0, tilt_deg=10.0)
+    strengths = {"air_drag": 3.0, "release_perturbation": 10.0}
+    two = simulate_drops(scenario, protocol, 2, strengths, seed=3)
+    six = simulate_drops(scenario, protocol, 6, strengths, seed=3)
+    np.testing.assert_allclose(six.positions[:2], two.positions, atol=1e-6)
+    np.testing.assert_allclose(six.tilt_deg[:2], two.tilt_deg, atol=1e-6)
+    assert np.abs(six.positions[2:] - six.positions[0]).max() > 0.1  # not all the same drop
+
+
+def test_an_effect_that_leaves_a_significant_gap_is_only_partly_explained():
+    """'Explained' needs the held-out data to be consistent with the best effect: a
+    residual gap beyond the noise floor after it (Holm across held-out conditions) makes
+    the verdict 'partly explained', naming where."""
+    from diagnosis.verdicts import effect_verdict
+
+    top = dict(
+        effect="warp",
+        held_out_reduction=0.6,
+        held_out_reduction_ci95=[0.3, 0.8],
+        gap_closed_ci95=[0.5, 2.0],
+        strength=0.4,
+        unit="mm",
+    )
+    which = dict(ranking=[top], indistinguishable=["warp"])
+
+    def residual(*p_after):
+        rows = [dict(condition=f"c{k}", p_after=p) for k, p in enumerate(p_after)]
+        return effect_verdict(["c0", "c1"], which, dict(conditions=rows), 0.05)
+
+    assert residual(0.4, 0.6)["kind"] == "explained"
+    partly = residual(0.001, 0.6)
+    assert partly["kind"] == "partly explained" and partly["still_off"] == ["c0"]
+    assert "remains after it in c0" in partly["text"]
+    # Holm across the held-out conditions: 0.03 and 0.04 are not both below 0.05 / 2.
+    assert residual(0.03, 0.6)["kind"] == "explained"
+
+
 def test_rounded_chip_volume_matches_the_minkowski_formula():
     shape = _square()  # 20 x 20 x 2 mm
     r = 0.5
@@ -167,13 +212,16 @@ def test_effects_change_simulated_drops_the_way_physics_says():
         assert sample.settled.all()
         return float(np.median(np.hypot(*sample.positions.T))), sample
 
-    base, _ = median_distance({})
+    base, base_sample = median_distance({})
     bouncy, _ = median_distance({"restitution": 0.7})
     soft, _ = median_distance({"compliant_floor": 2.0})
     _, warped = median_distance({"warp": 2.5})
     assert bouncy > 2 * base  # more bounce, farther travel
     assert soft < base  # a soft floor swallows the bounce
-    assert np.median(warped.tilt_deg) > 1.0  # a bowed chip rests on its ends
+    # A bowed chip often comes to rest tilted on its curved face (about 40 % of drops over
+    # seeds 4 to 6), a flat one almost never.
+    assert np.mean(warped.tilt_deg > 1.0) > 0.25
+    assert np.mean(base_sample.tilt_deg > 1.0) < 0.1
 
 
 def test_stack_deposition_with_effects(small_scenario):
@@ -248,6 +296,17 @@ def test_diagnose_finds_a_withheld_effect_and_no_gap_without_one(tmp_path):
     for name in ("diagnosis.md", "fig_scatter.png", "fig_effects.png", "manifest.json"):
         assert (out / name).stat().st_size > 0
     assert "## 3. How far" in (out / "diagnosis.md").read_text()
+
+    # The same data with the true effect taken out of the library: friction closes part of
+    # the gap, but the held-out data are not consistent with it (never "explained").
+    outside = tmp_path / "outside.toml"
+    outside.write_text(
+        spec.read_text().replace('"restitution", "friction"', '"friction"'), encoding="utf-8"
+    )
+    result = run_cli("diagnose", str(outside), "--out", str(tmp_path / "o2"), "--workers", "2")
+    assert result.returncode == 0, result.stderr
+    verdict = json.loads((tmp_path / "o2" / "diagnosis.json").read_text())["verdict"]
+    assert verdict["kind"] in ("partly explained", "unexplained"), verdict
 
     made = run_cli("synth", str(spec), "--seed", "12", "-o", str(data), "--overwrite")
     assert made.returncode == 0, made.stderr
