@@ -10,6 +10,7 @@ physically sensible range before any arithmetic, the file, line and column named
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -23,6 +24,7 @@ __all__ = [
     "MAX_GEOMETRY_BYTES",
     "check_size",
     "check_geometry_file",
+    "file_sha256",
     "number",
     "read_json",
     "read_text",
@@ -98,6 +100,15 @@ def number(
     if not low <= value <= high:
         raise InputError(f"{where}: {column} {value:g} is outside [{low:g}, {high:g}]")
     return value
+
+
+def file_sha256(path: str | Path) -> str:
+    """The SHA-256 of a file's bytes, read in blocks (a large file is never held whole)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(2**20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def check_geometry_file(path: str | Path, max_triangles: int) -> None:

@@ -43,7 +43,8 @@ def _key(default: Any, unit: str, doc: str, check: Callable[[Any], str | None] |
 
 
 MAX_SEED = 2**63 - 1  # seeds are recorded in JSON manifests and TOML: 64-bit integers
-MAX_REPEATS = 1000  # runs of an ensemble
+MAX_REPEATS = 1000  # runs of an ensemble, repeats of a validation case
+MAX_DROPS = 100_000  # drops of one experiment or condition
 # Local worker processes: a few per core pay for waiting on files; thousands only hang.
 MAX_WORKERS = 4 * (os.cpu_count() or 1)
 MAX_LENGTH_MM = 1e4  # 10 m: beyond any conveyor, and safely inside float arithmetic

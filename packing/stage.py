@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import zipfile
@@ -13,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from core.errors import InputError, brief
+from core.files import file_sha256
 from core.provenance import code_versions
 from core.schema import Scenario
 from core.stages import Stage, StageInputs, StageOutput
@@ -67,7 +67,7 @@ class PackingStage(Stage):
         for spec in scenario.chips:
             if spec.file:
                 try:
-                    digest = hashlib.sha256(Path(spec.file).read_bytes()).hexdigest()
+                    digest = file_sha256(spec.file)
                 except OSError as exc:
                     raise InputError(
                         f"chip.file {spec.file!r}: unreadable ({exc.strerror})"

@@ -13,7 +13,7 @@ import os
 import sys
 
 from core.errors import ChipstackError, printable
-from core.schema import MAX_REPEATS, MAX_SEED, MAX_WORKERS
+from core.schema import MAX_DROPS, MAX_REPEATS, MAX_SEED, MAX_WORKERS
 from core.stages import check_stage_name, stage_names
 
 __all__ = ["main"]
@@ -138,12 +138,15 @@ def _add_validate(commands) -> None:
     )
     validate.add_argument(
         "--repeats",
-        type=_bounded(2, 1000),
+        type=_bounded(2, MAX_REPEATS),
         default=10,
-        help="repeats per case, 2 to 1000 (paper: 10)",
+        help=f"repeats per case, 2 to {MAX_REPEATS} (paper: 10)",
     )
     validate.add_argument(
-        "--drops", type=_bounded(2, 100_000), default=50, help="drops per experiment, 2 to 100000"
+        "--drops",
+        type=_bounded(2, MAX_DROPS),
+        default=50,
+        help=f"drops per experiment, 2 to {MAX_DROPS}",
     )
     validate.add_argument("--seed", type=SEED, default=0, help=SEED_HELP)
     validate.add_argument(
@@ -186,9 +189,9 @@ def _add_synth(commands) -> None:
     synth.add_argument("-o", "--output", required=True, help="observations CSV to write")
     synth.add_argument(
         "--drops",
-        type=_bounded(1, 100_000),
+        type=_bounded(1, MAX_DROPS),
         default=50,
-        help="drops per condition (kind drop), 1 to 100000",
+        help=f"drops per condition (kind drop), 1 to {MAX_DROPS}",
     )
     synth.add_argument(
         "--position-sd-mm",

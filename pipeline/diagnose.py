@@ -12,7 +12,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from core.errors import InputError
-from core.schema import printable
+from core.schema import MAX_DROPS, printable
 from diagnosis.spec import Experiment, load_experiment, read_drop_observations
 from packing.effects import EFFECTS, check_effects
 from pipeline.execution import Executor
@@ -116,8 +116,8 @@ def synth(
     measurement noise as in the spec unless given here."""
     if seed < 0:
         raise InputError("--seed: must not be negative")
-    if not 1 <= drops <= 100_000:
-        raise InputError(f"--drops: must be between 1 and 100000, got {drops}")
+    if not 1 <= drops <= MAX_DROPS:
+        raise InputError(f"--drops: must be between 1 and {MAX_DROPS}, got {drops}")
     for flag, value, top in (
         ("--position-sd-mm", position_sd_mm, 100.0),
         ("--angle-sd-deg", angle_sd_deg, 45.0),

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from core.errors import InputError, printable
-from core.files import read_json
+from core.files import file_sha256, read_json
 from core.stages import Checkpoint, stage_names
 from pipeline.locks import DirectoryLock
 
@@ -669,7 +669,7 @@ class RunCheckpoint(Checkpoint):
         found = [p for p in (self.path, self.previous) if p.is_file()]
         damaged = []
         for path in found:
-            count = good.get(_sha256(path))
+            count = good.get(file_sha256(path))
             if count is None:
                 damaged.append(path)
                 continue
@@ -724,20 +724,10 @@ class RunCheckpoint(Checkpoint):
             os.replace(self.path, self.previous)
         save_npz_atomically(self.path, arrays)
         keep = {k: v for k, v in good.items() if v == max(good.values(), default=-1)}
-        keep[_sha256(self.path)] = done
+        keep[file_sha256(self.path)] = done
         self._entry["states"] = keep
         self._entry["batches_completed"] = done
         self.run._write_journal()
-
-
-def _sha256(path: Path) -> str:
-    import hashlib
-
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(2**20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def _state_files(work: Path, stage: str) -> tuple[Path, Path]:

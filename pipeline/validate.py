@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from core.errors import InputError
-from core.schema import printable
+from core.schema import MAX_DROPS, MAX_REPEATS, printable
 from pipeline.run import derive_seed
 from pipeline.rundir import RunDirectory
 from pipeline.scenario_files import load_scenario
@@ -159,10 +159,10 @@ def _check_arguments(cases: Sequence[str], repeats: int, drops: int) -> None:
             raise InputError(
                 f"--cases: unknown case {printable(case)!r}; valid: {', '.join(CASES)}"
             )
-    if not 2 <= repeats <= 1000:
-        raise InputError(f"--repeats: must be between 2 and 1000, got {repeats}")
-    if not 2 <= drops <= 100000:
-        raise InputError(f"--drops: must be between 2 and 100000, got {drops}")
+    if not 2 <= repeats <= MAX_REPEATS:
+        raise InputError(f"--repeats: must be between 2 and {MAX_REPEATS}, got {repeats}")
+    if not 2 <= drops <= MAX_DROPS:
+        raise InputError(f"--drops: must be between 2 and {MAX_DROPS}, got {drops}")
 
 
 def _tasks(

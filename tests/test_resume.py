@@ -169,7 +169,6 @@ def _flip(path: Path) -> None:
 DAMAGES = {
     "latest truncated": (_truncate, False),
     "latest with flipped bytes": (_flip, False),
-    "latest emptied": (lambda p: p.write_bytes(b""), False),
     "both truncated": (_truncate, True),
 }
 
