@@ -11,9 +11,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from diagnosis.drop_simulations import NOISE_POOL, TILT_GRID_DEG, Dataset, DropSimulations
+from diagnosis.drop_simulations import TILT_GRID_DEG, Dataset, DropSimulations
 from diagnosis.ranking import effect_entry, held_out_reduction, rank_effects
-from diagnosis.statistics import gap_statistic, interval
+from diagnosis.statistics import exceedance_p, gap_statistic, interval
 from diagnosis.verdicts import applicable_effects, how_far
 from packing.effects import EFFECTS
 
@@ -269,10 +269,9 @@ def how_far_best(
     best = which["best"]
     if best is None:  # no candidate effect applies (as for stacks)
         return {}
-    # The second pool of a setting: its key with the pool changed (the same settings).
     sims.ensure(
         [
-            sims.setting(ds.condition, f.tilt, best, f.chosen[best])[:4] + (NOISE_POOL,)
+            sims.second_pool(sims.setting(ds.condition, f.tilt, best, f.chosen[best]))
             for f in folds
             for ds in f.held_out
         ]
@@ -298,22 +297,22 @@ def how_far_best(
                 )
                 for k, name in enumerate(sims.names)
             ]
-            key_a = sims.setting(ds.condition, fold.tilt, best, s)
-            key_b = key_a[:4] + (NOISE_POOL,)
-            scale, null, _ = ds.noise_floor(sims, key_a, key_b, rng)
+            key = sims.setting(ds.condition, fold.tilt, best, s)
+            scale, null, _ = ds.noise_floor(sims, key, sims.second_pool(key), rng)
             g_model = float(gap_statistic(ds.observed, after, scale))
+            gap_before = float(np.mean(z0**2))
             totals.append(
                 dict(
                     fold=fold.name,
                     condition=ds.condition,
                     strength=s,
-                    gap_before=float(np.mean(z0**2)),
+                    gap_before=gap_before,
                     gap_after=float(np.mean(z1**2)),
                     null_mean=ds.expected_null,
-                    p_before=ds.p_value(float(np.mean(z0**2))),
+                    p_before=ds.p_value(gap_before),
                     residual_gap=g_model,
                     residual_null_mean=float(null.mean()),
-                    p_after=float((1 + (null >= g_model).sum()) / (1 + len(null))),
+                    p_after=exceedance_p(null, g_model),
                 )
             )
     return how_far(best, which["ranking"][0], rows, totals)

@@ -11,7 +11,7 @@ import numpy as np
 
 from diagnosis.observables import drop_observables, symmetry_order
 from diagnosis.spec import DropData, Experiment
-from diagnosis.statistics import bootstrap_indices, gap_statistic
+from diagnosis.statistics import bootstrap_indices, exceedance_p, gap_statistic
 from packing.effects import EFFECTS, contact_model
 from packing.presets import PRESETS
 
@@ -85,6 +85,11 @@ class DropSimulations:
         if effect is None or abs(strength - neutral) <= 1e-12:
             return self.baseline(condition, tilt)
         return self.key(condition, tilt, effect, strength, BASELINE_POOL)
+
+    @staticmethod
+    def second_pool(key: tuple) -> tuple:
+        """The same setting simulated again, independently (its noise-floor twin)."""
+        return key[:4] + (NOISE_POOL,)
 
     # -- running -------------------------------------------------------------------------
     def ensure(self, keys: list[tuple]) -> None:
@@ -208,4 +213,4 @@ class Dataset:
         return float(self.null.mean())
 
     def p_value(self, g: float) -> float:
-        return float((1 + (self.null >= g).sum()) / (1 + len(self.null)))
+        return exceedance_p(self.null, g)

@@ -48,6 +48,12 @@ def holm(p_values: list[float]) -> list[float]:
     return adjusted.tolist()
 
 
+def exceedance_p(null: np.ndarray, g: float) -> float:
+    """The permutation-style p-value of ``g`` against the null sample: (1 + #{null >= g})
+    / (1 + size), never 0."""
+    return float((1 + (np.asarray(null) >= g).sum()) / (1 + len(null)))
+
+
 def interval(samples: np.ndarray, level: float = 0.95) -> tuple[float, float]:
     """Percentile interval of bootstrap samples.
 

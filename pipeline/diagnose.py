@@ -6,7 +6,6 @@ import csv
 import dataclasses
 import io
 import logging
-import os
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -16,7 +15,7 @@ from core.schema import MAX_DROPS, printable
 from diagnosis.spec import Experiment, load_experiment, read_drop_observations
 from packing.effects import EFFECTS, check_effects
 from pipeline.execution import Executor
-from pipeline.rundir import RunDirectory, check_output_file
+from pipeline.rundir import RunDirectory, check_output_file, write_atomically
 from pipeline.scenario_files import load_scenario
 
 __all__ = ["diagnose", "synth", "parse_effects"]
@@ -144,11 +143,8 @@ def synth(
     writer = csv.DictWriter(buffer, fieldnames=list(rows[0]), lineterminator="\n")
     writer.writeheader()
     writer.writerows(rows)
-    temporary = target.parent / f".{target.name}.partial-{os.getpid()}"
     try:
-        temporary.write_text(buffer.getvalue(), encoding="utf-8")
-        os.replace(temporary, target)
+        write_atomically(target, buffer.getvalue())
     except OSError as exc:
-        temporary.unlink(missing_ok=True)
         raise InputError(f"{shown}: cannot write ({exc.strerror or exc})") from None
     return target, len(rows)

@@ -126,6 +126,11 @@ class RunDirectory:
             raise InputError(f"--out {self.given!r}: cannot create ({exc.strerror})") from None
         return self
 
+    @property
+    def folder(self) -> Path:
+        """The directory being built (renamed to the target when complete)."""
+        return self._partial
+
     def path(self, name: str) -> Path:
         """Where to write ``name`` (relative to the run directory); folders are created."""
         path = self._partial / name
@@ -369,14 +374,18 @@ def write_atomically(path: Path, data: bytes | str) -> Path:
     return path
 
 
-def save_npz_atomically(path: Path, arrays: dict[str, Any]) -> Path:
+def save_npz_atomically(path: Path, arrays: dict[str, Any]) -> str:
+    """Write ``arrays`` as an ``.npz`` file atomically; returns the SHA-256 of its bytes."""
+    import hashlib
     import io
 
     import numpy as np
 
     buffer = io.BytesIO()
     np.savez(buffer, **arrays)
-    return write_atomically(path, buffer.getvalue())
+    data = buffer.getvalue()
+    write_atomically(path, data)
+    return hashlib.sha256(data).hexdigest()
 
 
 def _link_or_copy(source: str, destination: str) -> None:
@@ -722,9 +731,10 @@ class RunCheckpoint(Checkpoint):
         good = self._good_states()
         if self.path.is_file():
             os.replace(self.path, self.previous)
-        save_npz_atomically(self.path, arrays)
-        keep = {k: v for k, v in good.items() if v == max(good.values(), default=-1)}
-        keep[file_sha256(self.path)] = done
+        digest = save_npz_atomically(self.path, arrays)
+        latest = max(good.values(), default=-1)  # the state just moved aside
+        keep = {k: v for k, v in good.items() if v == latest}
+        keep[digest] = done
         self._entry["states"] = keep
         self._entry["batches_completed"] = done
         self.run._write_journal()

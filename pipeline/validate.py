@@ -131,10 +131,9 @@ def validate(
     tasks = _tasks(cases, repeats, drops, seed)
     results, errors = _run(tasks, workers, scheduler, progress)
     with run:
-        folder = run.path("validation.json").parent
-        rows = _rows(results, folder, seed)
-        report = {"seed": seed, "repeats": repeats, "drops": drops, "rows": rows}
-        run.write_json("validation.json", {**report, "errors": errors})
+        rows = _rows(results, run.folder, seed)
+        report = {"seed": seed, "repeats": repeats, "drops": drops, "rows": rows, "errors": errors}
+        run.write_json("validation.json", report)
         run.write_text("validation.md", table_markdown(rows) + "\n")
         run.write_json(
             "manifest.json",
