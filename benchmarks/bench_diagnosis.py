@@ -1,17 +1,25 @@
-"""Blind test of ``pipeline diagnose`` on synthetic drop data whose effect it is not told.
+"""Calibration study of ``pipeline diagnose`` on blind drop data, in resumable parts.
 
-For every candidate drop effect at two strengths, and for effect-free data with ten
-seeds, the simulation makes a pseudo-experiment (3 conditions x 50 drops: 200 mm,
-500 mm, and 1000 mm turned 30 deg), the diagnosis runs without knowing the effect, and
-the script prints a confusion table, the held-out gap reduction of the true effect and
-the targets:
+Every case is a pseudo-experiment made by the simulation (``synthesize_drops``, the
+library behind ``pipeline synth``) and diagnosed without being told what made it. Each
+case's result is cached as one JSON file under ``benchmarks/results/diagnosis/<part>/``
+(committed), so the study accumulates across sessions; a rerun skips the cases already
+there and ``--minutes`` stops it cleanly between cases.
 
-* the true effect ranked first or among the indistinguishable best in >= 80 % of cases;
-* median held-out gap reduction >= 60 %;
-* effect-free data declared "no significant gap" in >= 9 of 10 seeds;
-* a full diagnosis of 3 conditions x 50 drops with all candidate effects <= 5 min.
+Parts:
 
-Usage: ``python benchmarks/bench_diagnosis.py [--workers N] [--out FILE] [--quick]``.
+* ``nulls``: effect-free datasets (varied conditions, 30 to 100 drops, measurement
+  noise): "no significant gap" in >= 95 %, with its Clopper-Pearson interval.
+* ``effects``: 5 cases per drop effect, strength drawn from the upper half of its prior:
+  verdict "explained" with the true effect first or in a tie set of at most 2 in
+  >= 90 %; mean tie-set size; confusion; coverage of the 95 % strength intervals.
+* ``outside``: for each drop effect, two datasets made with it and diagnosed with it
+  taken out of the library, two two-effect mixtures and a measurement distortion:
+  never "explained" in >= 80 %.
+* ``seeds``: three diagnosis seeds on each of 5 datasets agree on verdict and top effect.
+
+Usage: ``python benchmarks/bench_diagnosis.py --part nulls [--cases N] [--minutes M]
+[--workers N]``; ``--report`` prints the tables of every part from the cache only.
 """
 
 from __future__ import annotations
@@ -24,184 +32,247 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+from scipy.stats import binomtest
+
 from diagnosis.drops import diagnose_drops
 from diagnosis.spec import DropData, load_experiment
 from diagnosis.synth import synthesize_drops
+from packing.effects import EFFECTS
 from pipeline.execution import Executor
 from pipeline.scenario_files import load_scenario
 
-SPEC = """
-kind = "drop"
-name = "blind benchmark"
-scenario = "single-chip-drop"
-observations = "data.csv"
-[measurement]
-position_sd_mm = 0.5
-angle_sd_deg = 0.5
-[[condition]]
-name = "h200"
-height_mm = 200
-[[condition]]
-name = "h500"
-height_mm = 500
-[[condition]]
-name = "h1000-yaw30"
-height_mm = 1000
-yaw_deg = 30
-"""
-
-CASES = [
-    ("air_drag", 2.0),
-    ("air_drag", 4.0),
-    ("release_perturbation", 10.0),
-    ("release_perturbation", 25.0),
-    ("edge_rounding", 0.4),
-    ("edge_rounding", 0.8),
-    ("warp", 1.0),
-    ("warp", 2.5),
-    ("friction", 0.2),
-    ("friction", 0.9),
-    ("restitution", 0.05),
-    ("restitution", 0.6),
-    ("compliant_floor", 0.5),
-    ("compliant_floor", 1.5),
-]
-NULL_SEEDS = 10
-DROPS = 50
+RESULTS = Path(__file__).resolve().parent / "results" / "diagnosis"
+DROP_EFFECTS = (
+    "air_drag",
+    "compliant_floor",
+    "edge_rounding",
+    "friction",
+    "release_perturbation",
+    "restitution",
+    "warp",
+)
+PLANNED = {"nulls": 100, "effects": 35, "outside": 17, "seeds": 5}
+# The release conditions cases draw from: (height mm, yaw deg).
+CONDITION_POOL = ((150, 0), (200, 0), (300, 15), (500, 0), (700, 30), (1000, 30), (1000, 0))
 
 
-def _short(value) -> str:
-    return "-" if value is None else f"{value:.2f}"
+def case_plan(part: str, index: int) -> dict:
+    """The case ``index`` of ``part``, fixed by its index alone (so that a resumed study
+    makes the same cases): conditions, drops, noise, truth, the library and seeds."""
+    rng = np.random.default_rng([hash_part(part), index])
+    k = int(rng.integers(1, 4))
+    chosen = sorted(rng.choice(len(CONDITION_POOL), size=k, replace=False).tolist())
+    plan = dict(
+        part=part,
+        index=index,
+        conditions=[CONDITION_POOL[c] for c in chosen],
+        drops=int(rng.integers(30, 101)),
+        position_sd_mm=float(rng.uniform(0.2, 2.0)),
+        angle_sd_deg=float(rng.uniform(0.2, 2.0)),
+        truth={},
+        library=list(DROP_EFFECTS),
+        distortion=None,
+        seed=1000 + index,
+        diagnosis_seeds=[index],
+    )
+    if part == "effects":
+        effect = DROP_EFFECTS[index % len(DROP_EFFECTS)]
+        plan["truth"] = {effect: _upper_half(effect, rng)}
+        plan["drops"] = 50
+    elif part == "outside":
+        if index < 2 * len(DROP_EFFECTS):
+            effect = DROP_EFFECTS[index % len(DROP_EFFECTS)]
+            plan["truth"] = {effect: _upper_half(effect, rng)}
+            plan["library"] = [e for e in DROP_EFFECTS if e != effect]
+        elif index < 2 * len(DROP_EFFECTS) + 2:
+            pair = [("restitution", "warp"), ("air_drag", "friction")][index % 2]
+            plan["truth"] = {e: _upper_half(e, rng) for e in pair}
+        else:
+            plan["distortion"] = dict(position_scale=1.25)
+        plan["drops"] = 50
+    elif part == "seeds":
+        effect = DROP_EFFECTS[(3 * index) % len(DROP_EFFECTS)]
+        plan["truth"] = {effect: _upper_half(effect, rng)}
+        plan["drops"] = 50
+        plan["diagnosis_seeds"] = [index, 100 + index, 200 + index]
+    return plan
 
 
-def _data(rows, experiment) -> dict[str, DropData]:
-    import numpy as np
+def hash_part(part: str) -> int:
+    return sum(ord(c) * 31**k for k, c in enumerate(part)) % 2**31
 
+
+def _upper_half(effect: str, rng: np.random.Generator) -> float:
+    lo, hi = EFFECTS.get(effect).prior
+    return float(rng.uniform((lo + hi) / 2, hi))
+
+
+def spec_text(plan: dict) -> str:
+    lines = [
+        'kind = "drop"',
+        f'name = "{plan["part"]} {plan["index"]}"',
+        'scenario = "single-chip-drop"',
+        'observations = "data.csv"',
+        "[measurement]",
+        f"position_sd_mm = {plan['position_sd_mm']}",
+        f"angle_sd_deg = {plan['angle_sd_deg']}",
+        "[diagnosis]",
+        "effects = [" + ", ".join(f'"{e}"' for e in plan["library"]) + "]",
+    ]
+    for height, yaw in plan["conditions"]:
+        lines += ["[[condition]]", f'name = "h{height}-yaw{yaw}"', f"height_mm = {height}"]
+        lines.append(f"yaw_deg = {yaw}")
+    return "\n".join(lines) + "\n"
+
+
+def run_case(plan: dict, executor: Executor) -> dict:
+    folder = Path(tempfile.mkdtemp(prefix="bench-diagnosis-"))
+    (folder / "spec.toml").write_text(spec_text(plan))
+    (folder / "data.csv").write_text("condition,drop,x_mm,y_mm\n")
+    experiment = load_experiment(folder / "spec.toml", load_scenario)
+    start = time.perf_counter()
+    rows = synthesize_drops(experiment, plan["truth"], plan["seed"], plan["drops"], executor.map)
+    data = _data(rows, experiment, plan["distortion"])
+    runs = []
+    for seed in plan["diagnosis_seeds"]:
+        t0 = time.perf_counter()
+        result = diagnose_drops(experiment, data, executor.map, seed=seed)
+        runs.append(_summary(result, plan, time.perf_counter() - t0))
+    return dict(plan=plan, runs=runs, wall_s=time.perf_counter() - start)
+
+
+def _data(rows, experiment, distortion) -> dict[str, DropData]:
+    scale = (distortion or {}).get("position_scale", 1.0)
     out = {}
     for condition in experiment.conditions:
         mine = [r for r in rows if r["condition"] == condition.name]
         out[condition.name] = DropData(
-            np.array([[r["x_mm"], r["y_mm"]] for r in mine]),
+            scale * np.array([[r["x_mm"], r["y_mm"]] for r in mine]),
             np.array([r["yaw_deg"] for r in mine]),
             np.array([r["tilt_deg"] for r in mine]),
         )
     return out
 
 
+def _summary(result: dict, plan: dict, seconds: float) -> dict:
+    which = result["which"] or {}
+    ranking = which.get("ranking", [])
+    truth = list(plan["truth"])
+    record = dict(
+        verdict=result["verdict"]["kind"],
+        detection_p=result["where"]["overall"]["p_value"],
+        best=which.get("best"),
+        tie_set=which.get("indistinguishable", []),
+        ranking=[e["effect"] for e in ranking],
+        seconds=round(seconds, 1),
+    )
+    if len(truth) == 1 and ranking:
+        entry = {e["effect"]: e for e in ranking}.get(truth[0])
+        if entry is not None:
+            lo, hi = entry["strength_ci95"]
+            record["strength"] = entry["strength"]
+            record["strength_ci95"] = [lo, hi]
+            record["covered"] = bool(lo <= plan["truth"][truth[0]] <= hi)
+    return record
+
+
+# -- tables ---------------------------------------------------------------------------------
+def _cached(part: str) -> list[dict]:
+    folder = RESULTS / part
+    return [json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))]
+
+
+def _rate(hits: int, n: int) -> str:
+    if n == 0:
+        return "no cases yet"
+    lo, hi = binomtest(hits, n).proportion_ci(0.95, method="exact")
+    share = f"{hits} / {n} = {100 * hits / n:.1f} %"
+    return f"{share} (95 % Clopper-Pearson {100 * lo:.1f} to {100 * hi:.1f} %)"
+
+
+def report(part: str) -> None:
+    cases = _cached(part)
+    print(f"\n## {part}: {len(cases)} of {PLANNED[part]} planned cases cached")
+    if not cases:
+        return
+    runs = [c["runs"][0] for c in cases]
+    seconds = [r["seconds"] for r in runs]
+    print(f"diagnosis time: median {statistics.median(seconds):.0f} s, max {max(seconds):.0f} s")
+    if part == "nulls":
+        quiet = sum(r["verdict"] == "no significant gap" for r in runs)
+        print(f"'no significant gap': {_rate(quiet, len(runs))}; target >= 95 %")
+    elif part == "effects":
+        truth = [next(iter(c["plan"]["truth"])) for c in cases]
+        good = [
+            r["verdict"] == "explained" and t in r["tie_set"] and len(r["tie_set"]) <= 2
+            for r, t in zip(runs, truth, strict=True)
+        ]
+        print(
+            "explained, true effect in a tie set of <= 2: "
+            f"{_rate(sum(good), len(good))}; target >= 90 %"
+        )
+        sizes = [len(r["tie_set"]) for r in runs if r["tie_set"]]
+        if sizes:
+            print(f"tie-set size: mean {statistics.mean(sizes):.2f}, largest {max(sizes)}")
+        covered = [r["covered"] for r in runs if "covered" in r]
+        print(
+            "95 % strength intervals covering the truth: "
+            f"{_rate(sum(covered), len(covered))}; target 90 to 98 %"
+        )
+        print("\n| true effect | strength | verdict | best | tie set |")
+        print("|---|---|---|---|---|")
+        for c, r, t in zip(cases, runs, truth, strict=True):
+            tied = ", ".join(r["tie_set"])
+            strength = c["plan"]["truth"][t]
+            print(f"| {t} | {strength:.3g} | {r['verdict']} | {r['best']} | {tied} |")
+    elif part == "outside":
+        never = [r["verdict"] != "explained" for r in runs]
+        print(f"not 'explained': {_rate(sum(never), len(never))}; target >= 80 %")
+        for c, r in zip(cases, runs, strict=True):
+            what = c["plan"]["distortion"] or c["plan"]["truth"]
+            print(f"- {what}: {r['verdict']} (best {r['best']})")
+    elif part == "seeds":
+        agree = [len({(r["verdict"], r["best"]) for r in c["runs"]}) == 1 for c in cases]
+        print(f"three seeds agree on verdict and best effect: {_rate(sum(agree), len(agree))}")
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--part", choices=sorted(PLANNED), action="append")
+    parser.add_argument(
+        "--cases", type=int, default=None, help="cases of the part (default: planned)"
+    )
+    parser.add_argument("--minutes", type=float, default=None, help="stop after this long")
     parser.add_argument("--workers", type=int, default=None)
-    parser.add_argument("--out", default="bench_diagnosis.json")
-    parser.add_argument("--quick", action="store_true", help="4 effect cases, 3 null seeds")
-    parser.add_argument("--only", default=None, help="comma-separated effects to test (no null)")
-    parser.add_argument("--merge", default=None, help="JSON of an earlier run to add to the table")
+    parser.add_argument("--report", action="store_true", help="tables from the cache only")
     args = parser.parse_args()
-    folder = Path(tempfile.mkdtemp(prefix="bench-diagnosis-"))
-    (folder / "spec.toml").write_text(SPEC)
-    (folder / "data.csv").write_text("condition,drop,x_mm,y_mm\n")
-    experiment = load_experiment(folder / "spec.toml", load_scenario)
-    cases = [(name, s, 100 + k) for k, (name, s) in enumerate(CASES)]
-    cases += [(None, 0.0, 500 + k) for k in range(NULL_SEEDS)]
-    if args.quick:
-        cases = cases[::4][:4] + [(None, 0.0, 500 + k) for k in range(3)]
-    if args.only:
-        wanted = set(args.only.split(","))
-        cases = [c for c in cases if c[0] in wanted]
-    records = []
-    with Executor(workers=args.workers) as executor:
-        print(f"{executor.n_workers} Dask workers; {len(cases)} blind diagnoses", flush=True)
-        for truth, strength, seed in cases:
-            start = time.perf_counter()
-            rows = synthesize_drops(
-                experiment, {truth: strength} if truth else {}, seed, DROPS, executor.map
-            )
-            result = diagnose_drops(experiment, _data(rows, experiment), executor.map, seed=seed)
-            seconds = time.perf_counter() - start
-            ranking = result["which"]["ranking"]
-            by_name = {e["effect"]: e for e in ranking}
-            record = dict(
-                truth=truth,
-                strength=strength,
-                seed=seed,
-                verdict=result["verdict"]["kind"],
-                best=result["which"]["best"],
-                indistinguishable=result["which"]["indistinguishable"],
-                true_rank=[e["effect"] for e in ranking].index(truth) + 1 if truth else None,
-                true_reduction=by_name[truth]["held_out_reduction"] if truth else None,
-                best_reduction=ranking[0]["held_out_reduction"],
-                refit_tilt_deg=result["which"]["baseline_refit"]["all_conditions_deg"],
-                seconds=seconds,
-            )
-            # Identified: the report names a gap it explains, with the true effect first or
-            # tied with the first. (Leniently: the true effect is among the tied best
-            # whatever the verdict.)
-            tied = record["indistinguishable"]
-            record["identified"] = bool(
-                truth and record["verdict"] == "explained" and truth in tied
-            )
-            record["identified_lenient"] = bool(truth and truth in tied)
-            records.append(record)
-            print(
-                f"{truth or 'no effect':22s} {strength:6.3g}  verdict {record['verdict']:19s} "
-                f"best {record['best']:21s} true rank {record['true_rank']}  tied "
-                f"{len(record['indistinguishable'])}  true reduction "
-                f"{_short(record['true_reduction'])}"
-                f"  {seconds:.0f} s",
-                flush=True,
-            )
-            Path(args.out).write_text(json.dumps(records, indent=1, default=float))
-    if args.merge:
-        replaced = {(r["truth"], r["strength"]) for r in records}
-        earlier = json.loads(Path(args.merge).read_text())
-        records = [r for r in earlier if (r["truth"], r["strength"]) not in replaced] + records
-    effect_cases = [r for r in records if r["truth"]]
-    null_cases = [r for r in records if not r["truth"]]
-    identified = sum(
-        r["verdict"] == "explained" and r["truth"] in r["indistinguishable"] for r in effect_cases
-    )
-    lenient = sum(r["truth"] in r["indistinguishable"] for r in effect_cases)
-    reductions = [
-        r["true_reduction"] for r in effect_cases if r["true_reduction"] == r["true_reduction"]
-    ]
-    quiet = sum(r["verdict"] == "no significant gap" for r in null_cases)
-    print("\nconfusion (rows: true effect; columns: effect ranked first)")
-    names = sorted({r["truth"] for r in effect_cases} | {r["best"] for r in effect_cases})
-    print(" " * 22 + " ".join(f"{n[:8]:>8s}" for n in names))
-    for truth in sorted({r["truth"] for r in effect_cases}):
-        counts = [sum(r["truth"] == truth and r["best"] == n for r in effect_cases) for n in names]
-        print(f"{truth:22s}" + " ".join(f"{c:8d}" for c in counts))
-    print(
-        "\ntrue effect first or among the indistinguishable best: "
-        f"{identified} of {len(effect_cases)} "
-        f"({100 * identified / max(len(effect_cases), 1):.0f} %; target >= 80 %)"
-    )
-    print(
-        f"  (true effect among the tied best, whatever the verdict: {lenient} of "
-        f"{len(effect_cases)})"
-    )
-    if effect_cases:
-        sizes = [len(r["indistinguishable"]) for r in effect_cases]
-        kinds = sorted({r["verdict"] for r in effect_cases})
-        print(
-            f"tie set (the best and those indistinguishable from it): mean size "
-            f"{statistics.mean(sizes):.1f}, largest {max(sizes)}; verdicts: "
-            + ", ".join(f"{k} {sum(r['verdict'] == k for r in effect_cases)}" for k in kinds)
-        )
-    if reductions:
-        print(
-            "median held-out gap reduction of the true effect: "
-            f"{100 * statistics.median(reductions):.0f} % "
-            f"(target >= 60 %)"
-        )
-    print(
-        f"effect-free data declared 'no significant gap': {quiet} of {len(null_cases)} (target "
-        ">= 9 of 10)"
-    )
-    times = [r["seconds"] for r in records]
-    print(
-        f"diagnosis time (synthesis included): median {statistics.median(times):.0f} s, "
-        f"max {max(times):.0f} s (target <= 300 s)"
-    )
+    parts = args.part or sorted(PLANNED)
+    if not args.report:
+        deadline = time.time() + 60 * args.minutes if args.minutes else float("inf")
+        with Executor(workers=args.workers) as executor:
+            for part in parts:
+                folder = RESULTS / part
+                folder.mkdir(parents=True, exist_ok=True)
+                for index in range(args.cases or PLANNED[part]):
+                    path = folder / f"case-{index:03d}.json"
+                    if path.exists():
+                        continue
+                    if time.time() > deadline:
+                        print("time budget spent; rerun to go on", flush=True)
+                        break
+                    record = run_case(case_plan(part, index), executor)
+                    partial = path.with_suffix(".part")
+                    partial.write_text(json.dumps(record, indent=1))
+                    partial.replace(path)  # a case is cached whole or not at all
+                    first = record["runs"][0]
+                    print(
+                        f"{part} {index:3d}: {first['verdict']:19s} best {first['best']} "
+                        f"({record['wall_s']:.0f} s)",
+                        flush=True,
+                    )
+    for part in parts:
+        report(part)
     return 0
 
 

@@ -1,8 +1,16 @@
-"""Which effect, and how far it goes, for drop experiments. The baseline's own fitted
-parameter (the release tilt range) is refitted first; then every candidate effect's
-strength is fitted on each fold's calibration data and scored on its held-out data, the
-effects are ranked by the gap they close there, and the best one's held-out gap is shown
-before and after, per observable."""
+"""Which model, and how far it goes, for drop experiments.
+
+The candidates are the baseline refitted (its own fitted parameter, the release tilt
+range) and every applicable effect (its strength fitted at the spec's release tilt).
+Each is fitted on a fold's calibration conditions only, by the energy distance of the
+calibration drops to the simulated ones, and scored on the fold's held-out drops by
+their energy scores: a proper per-drop score, so models are compared drop by drop on
+data none of them was fitted to. The effects are ranked by the held-out gap (energy
+distance) they close; the ones not significantly worse than the best (one-sided paired
+tests on the per-drop scores, Holm-adjusted) are its tie set. The best effect's held-out
+data are then tested against an independent simulation of it (the adequacy test that
+"explained" needs), and shown before and after, per observable.
+"""
 
 from __future__ import annotations
 
@@ -10,10 +18,12 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.stats import ttest_1samp
 
 from diagnosis.drop_simulations import TILT_GRID_DEG, Dataset, DropSimulations
-from diagnosis.ranking import effect_entry, held_out_reduction, rank_effects
-from diagnosis.statistics import exceedance_p, gap_statistic, interval
+from diagnosis.drop_where import energy_test
+from diagnosis.ranking import effect_entry, held_out_reduction
+from diagnosis.statistics import holm, interval
 from diagnosis.verdicts import applicable_effects, how_far
 from packing.effects import EFFECTS
 
@@ -29,20 +39,31 @@ class Fold:
     held_out: list[Dataset]
     refit_tilt: float = math.nan  # the baseline's tilt refitted on this calibration
     tilt: float | None = None  # the tilt the effects are fitted at (None: each condition's)
-    base_gap: np.ndarray | None = None  # (1 + B,) held-out G of the baseline
     chosen: dict[str, float] = field(default_factory=dict)  # effect -> fitted strength
 
 
+@dataclass
+class HeldOut:
+    """One model scored on every fold's held-out drops."""
+
+    scores: np.ndarray  # (N,) energy score of each held-out drop (all folds)
+    energy: np.ndarray  # (1 + B,) held-out energy distance summed over datasets
+    rows: list[dict]  # per fold and held-out condition
+
+
 def best_tilt(sims: DropSimulations, datasets: list[Dataset]) -> float:
-    """The release tilt of ``sims.tilt_grid`` with the least summed gap over ``datasets``."""
+    """The release tilt of ``sims.tilt_grid`` closest to ``datasets`` (summed energy
+    distance)."""
     grid = sims.tilt_grid
-    gaps = [sum(sims.gap(ds, sims.baseline(ds.condition, t)) for ds in datasets) for t in grid]
+    gaps = [
+        sum(sims.energy(ds, sims.baseline(ds.condition, t))[0] for ds in datasets) for t in grid
+    ]
     return float(grid[int(np.argmin(gaps))])
 
 
 class StrengthGrids:
     """The strengths tried for each effect (simulated for every condition at one release
-    tilt) and the gap curves over them."""
+    tilt) and the discrepancy curves over them."""
 
     def __init__(
         self,
@@ -76,11 +97,12 @@ class StrengthGrids:
     def curve(
         self, datasets: list[Dataset], tilt: float, effect: str, grid: list[float] | None = None
     ) -> np.ndarray:
-        """G summed over ``datasets``, (strengths, 1 + B): the estimate, then per resample."""
+        """Energy distance summed over ``datasets``, (strengths, 1 + B): the estimate,
+        then per resample of both the observed and the simulated drops."""
         setting = self.sims.setting
         return np.array(
             [
-                sum(self.sims.gaps(ds, setting(ds.condition, tilt, effect, s)) for ds in datasets)
+                sum(self.sims.energy(ds, setting(ds.condition, tilt, effect, s)) for ds in datasets)
                 for s in (self.grids[effect] if grid is None else grid)
             ]
         )
@@ -102,152 +124,173 @@ class StrengthGrids:
 
 
 class EffectRanking:
-    """The "which" section: refits the baseline's release tilt, fits every applicable
-    effect's strength on each fold's calibration data, scores it on the held-out data and
-    ranks the effects by the gap they close there."""
+    """The "which" section: the refitted baseline and every applicable effect, each
+    fitted on each fold's calibration data and scored on its held-out drops; the effects
+    ranked by the held-out gap they close, with the tie set of the best."""
 
-    def __init__(self, sims: DropSimulations, folds: list[Fold], full: dict[str, Dataset]):
+    def __init__(
+        self,
+        sims: DropSimulations,
+        folds: list[Fold],
+        full: dict[str, Dataset],
+        rng: np.random.Generator,
+    ):
         self.sims = sims
         self.x = sims.x
+        self.alpha = self.x.settings.alpha
         self.folds = folds
         self.conditions = list(full)
         self.everything = list(full.values())
-        self.resamples = 1 + self.x.settings.bootstrap
+        self.rng = rng
 
     def run(self) -> dict:
+        self.sims.ensure(
+            [self.sims.baseline(c, t) for c in self.conditions for t in self.sims.tilt_grid]
+        )
         tilt_all = self._refit_tilt()
+        base = self._held_out(lambda ds, fold: self.sims.baseline(ds.condition, None))
+        refit = self._held_out(lambda ds, fold: self.sims.baseline(ds.condition, fold.refit_tilt))
         effects, skipped = applicable_effects(self.x)
-        if not effects:  # nothing can act on these chips: no ranking, the gap unexplained
-            base_excess, base_rows = self._score_baseline()
-            return dict(
-                baseline_refit=self._baseline_refit(tilt_all, base_rows, base_excess),
-                ranking=[],
-                not_applicable=skipped,
-                folds=[f.name for f in self.folds],
-                best=None,
-                indistinguishable=[],
-                telling_apart={},
+        ranked, results, held = [], {}, {}
+        if effects:
+            grids = StrengthGrids(
+                self.sims, effects, self.conditions, None, self.x.settings.grid_points
             )
-        points = self.x.settings.grid_points
-        grids = StrengthGrids(self.sims, effects, self.conditions, None, points)
-        grids.simulate()
-        grids.refine([(f.calibration, f.tilt) for f in self.folds] + [(self.everything, None)])
-        base_excess, base_rows = self._score_baseline()
-        results, closed = {}, {}
-        for effect in effects:
-            excess, per_fold = self._score_held_out(effect, grids)
-            # The gap closed (absolute, in units of G) is what is tested; the reduction
-            # (closed over the baseline's excess) is what is reported.
-            closed[effect] = base_excess - excess
-            fitted = self._fit_on_everything(effect, grids, None)
-            reduction = held_out_reduction(excess, base_excess)
-            results[effect] = effect_entry(effect, fitted, reduction, closed[effect], per_fold)
-        ranking = rank_effects(results, closed)
-        best = ranking[0]
-        tied = [e for e in ranking if results[e]["indistinguishable_from_best"]]
+            grids.simulate()
+            grids.refine([(f.calibration, f.tilt) for f in self.folds] + [(self.everything, None)])
+            for effect in effects:
+                held[effect] = self._fit_and_score(effect, grids)
+                closed = base.energy - held[effect].energy
+                reduction = held_out_reduction(held[effect].energy, base.energy)
+                fitted = self._fit_on_everything(effect, grids)
+                results[effect] = effect_entry(effect, fitted, reduction, closed, held[effect].rows)
+            ranked = sorted(effects, key=lambda e: -results[e]["gap_closed"])
+            self._tie_set(ranked, results, held)
+        best = ranked[0] if ranked else None
+        tied = [e for e in ranked if results[e]["indistinguishable_from_best"]]
         return dict(
-            baseline_refit=self._baseline_refit(tilt_all, base_rows, base_excess),
-            ranking=[results[e] for e in ranking],
+            baseline_refit=self._baseline_refit(tilt_all, base, refit),
+            ranking=[results[e] for e in ranked],
             not_applicable=skipped,
             folds=[f.name for f in self.folds],
             best=best,
             indistinguishable=tied,
+            tie_set_size=len(tied),
             telling_apart={e: self._separating_observation(best, e) for e in tied if e != best},
         )
 
     def _refit_tilt(self) -> float:
-        """The baseline refit is a candidate of its own, judged held out (refitted on each
-        fold's calibration conditions). The effects are fitted at the release tilt the
-        spec states: fitted on top of a tilt refitted first (on every condition, the
-        held-out one included), the tilt absorbed part of an effect's signature and leaked
-        the held-out data into the fit."""
+        """The baseline refit is a candidate of its own, refitted on each fold's
+        calibration conditions and judged on the held-out ones. The effects are fitted at
+        the release tilt the spec states."""
         for fold in self.folds:
             fold.refit_tilt = best_tilt(self.sims, fold.calibration)
             fold.tilt = None
         return best_tilt(self.sims, self.everything)
 
-    def _score_baseline(self) -> tuple[np.ndarray, list[dict]]:
-        """The baseline's held-out excess gap (1 + B,), and the refitted tilt's rows."""
-        base_excess = np.zeros(self.resamples)
-        rows = []
+    def _held_out(self, model) -> HeldOut:
+        """Score the model ``model(dataset, fold) -> simulation key`` on every fold's
+        held-out datasets."""
+        scores, rows = [], []
+        energy = 0.0
         for fold in self.folds:
-            held = fold.held_out
-            g = sum(self.sims.gaps(ds, self.sims.baseline(ds.condition, fold.tilt)) for ds in held)
-            fold.base_gap = g
-            base_excess += g - sum(ds.expected_null for ds in held)
-            rows += [self._refit_row(fold, ds) for ds in held]
-        return base_excess, rows
+            for ds in fold.held_out:
+                key = model(ds, fold)
+                scores.append(self.sims.scores(ds, key))
+                e = self.sims.energy(ds, key)
+                energy = energy + e
+                rows.append(dict(fold=fold.name, condition=ds.condition, held_out_gap=float(e[0])))
+        return HeldOut(np.concatenate(scores), energy, rows)
 
-    def _refit_row(self, fold: Fold, ds: Dataset) -> dict:
-        g = self.sims.gap(ds, self.sims.baseline(ds.condition, fold.refit_tilt))
-        return dict(
-            fold=fold.name,
-            condition=ds.condition,
-            refit_tilt_deg=fold.refit_tilt,
-            gap=g,
-            null_mean=ds.expected_null,
-            p_value=ds.p_value(g),
-        )
-
-    def _score_held_out(self, effect: str, grids: StrengthGrids) -> tuple[np.ndarray, list]:
-        """The held-out excess gap (1 + B,) with ``effect`` fitted per fold, and the folds'
-        rows. Each fold's strength is fitted once on its calibration data and held; the
-        held-out data are resampled (a test-set bootstrap). The fit's own uncertainty is in
-        the strength's interval (from refits on resampled data), not in the score."""
-        excess = np.zeros(self.resamples)
-        per_fold = []
+    def _fit_and_score(self, effect: str, grids: StrengthGrids) -> HeldOut:
+        """Fit the effect's strength on each fold's calibration data (the minimum of the
+        calibration curve), then score it on the fold's held-out drops."""
         for fold in self.folds:
             k = int(grids.curve(fold.calibration, fold.tilt, effect)[:, 0].argmin())
-            chosen = grids.curve(fold.held_out, fold.tilt, effect)[k]
-            excess += chosen - sum(ds.expected_null for ds in fold.held_out)
-            strength = grids.grids[effect][k]
-            per_fold.append(
-                dict(
-                    fold=fold.name,
-                    strength=strength,
-                    held_out_gap=float(chosen[0]),
-                    baseline_gap=float(fold.base_gap[0]),
-                )
-            )
-            fold.chosen[effect] = strength
-        return excess, per_fold
+            fold.chosen[effect] = grids.grids[effect][k]
+        held = self._held_out(
+            lambda ds, fold: self.sims.setting(ds.condition, fold.tilt, effect, fold.chosen[effect])
+        )
+        for row, (fold, _) in zip(held.rows, self._held_pairs(), strict=True):
+            row["strength"] = fold.chosen[effect]
+        return held
 
-    def _fit_on_everything(
-        self, effect: str, grids: StrengthGrids, tilt: float | None
-    ) -> list[float]:
-        """The strength fitted on all conditions: the estimate, then one per resample."""
-        curve = grids.curve(self.everything, tilt, effect)
+    def _held_pairs(self) -> list[tuple[Fold, Dataset]]:
+        return [(fold, ds) for fold in self.folds for ds in fold.held_out]
+
+    def _tie_set(self, ranked: list[str], results: dict, held: dict[str, HeldOut]) -> None:
+        """Every effect's one-sided paired test of "worse than the best" on the per-drop
+        held-out scores, Holm-adjusted across the effects: those not significantly worse
+        are tied with the best."""
+        best = ranked[0]
+        others = ranked[1:]
+        raw = [_p_worse(held[e].scores - held[best].scores) for e in others]
+        adjusted = holm(raw) if raw else []
+        results[best]["p_worse_than_best"] = 1.0
+        results[best]["indistinguishable_from_best"] = True
+        for effect, p in zip(others, adjusted, strict=True):
+            results[effect]["p_worse_than_best"] = float(p)
+            results[effect]["indistinguishable_from_best"] = bool(p >= self.alpha)
+
+    def _fit_on_everything(self, effect: str, grids: StrengthGrids) -> list[float]:
+        """The strength fitted on all conditions, then refitted on each resample of the
+        observed and the simulated drops: its interval carries the fit's noise."""
+        curve = grids.curve(self.everything, None, effect)
         return np.array(grids.grids[effect])[curve.argmin(axis=0)].tolist()
 
-    def _baseline_refit(self, tilt_all: float, rows: list[dict], excess: np.ndarray) -> dict:
+    def _baseline_refit(self, tilt_all: float, base: HeldOut, refit: HeldOut) -> dict:
+        """The refitted baseline on held-out data, with its adequacy test (held-out drops
+        against an independent simulation at the refitted tilt, Holm across them)."""
+        pairs = self._held_pairs()
+        keys = [self.sims.baseline(ds.condition, fold.refit_tilt) for fold, ds in pairs]
+        self.sims.ensure([self.sims.second_pool(k) for k in keys])
+        rows = []
+        for (fold, ds), key in zip(pairs, keys, strict=True):
+            _, p = energy_test(ds, self.sims, self.sims.second_pool(key), self.rng)
+            rows.append(
+                dict(
+                    fold=fold.name,
+                    condition=ds.condition,
+                    refit_tilt_deg=fold.refit_tilt,
+                    gap=float(self.sims.energy(ds, key)[0]),
+                    p_value=p,
+                )
+            )
+        adjusted = holm([r["p_value"] for r in rows])
+        for row, p in zip(rows, adjusted, strict=True):
+            row["p_holm"] = float(p)
+        closed = base.energy - refit.energy
         return dict(
             parameter="release tilt range (deg), fitted in the paper",
             grid_deg=list(self.sims.tilt_grid),
             all_conditions_deg=tilt_all,
             held_out=rows,
-            held_out_excess=float(excess[0]),
-            held_out_excess_ci95=list(interval(excess[1:])),
+            held_out_excess=float(refit.energy[0]),
+            held_out_excess_ci95=list(interval(refit.energy[1:])),
+            held_out_reduction=float(held_out_reduction(refit.energy, base.energy)[0]),
+            gap_closed_ci95=list(interval(closed[1:])),
+            adequate=bool(all(p >= self.alpha for p in adjusted)),
         )
 
     def _separating_observation(self, best: str, other: str) -> dict:
         """Where the two effects' held-out predictions differ most, in units of the
-        experiment's standard error, and how many drops per condition would separate them
-        (two-sided 5 %, power 80 %: |z| = 2.8)."""
+        sd of that observable's difference when there is no gap (at the condition's full
+        drop count), and how many drops per condition would separate them (two-sided
+        5 %, power 80 %: |z| = 2.8)."""
         top = dict(z=0.0)
-        for fold in self.folds:
-            for ds in fold.held_out:
-                a = self._prediction(ds, fold, best)
-                b = self._prediction(ds, fold, other)
-                z = np.abs(a - b) / ds.scale
-                k = int(np.argmax(z))
-                if z[k] > top["z"]:
-                    top = dict(
-                        z=float(z[k]),
-                        observable=self.sims.names[k],
-                        condition=ds.condition,
-                        best_predicts=float(a[k]),
-                        other_predicts=float(b[k]),
-                    )
+        for fold, ds in self._held_pairs():
+            a = self._prediction(ds, fold, best)
+            b = self._prediction(ds, fold, other)
+            z = np.abs(a - b) / self.sims.observable_sd[ds.condition]
+            k = int(np.argmax(z))
+            if z[k] > top["z"]:
+                top = dict(
+                    z=float(z[k]),
+                    observable=self.sims.names[k],
+                    condition=ds.condition,
+                    best_predicts=float(a[k]),
+                    other_predicts=float(b[k]),
+                )
         n = max(ds.data.n for ds in self.everything)
         if top["z"] > 0:
             top["drops_needed_per_condition"] = int(np.ceil(n * (2.8 / top["z"]) ** 2))
@@ -258,61 +301,57 @@ class EffectRanking:
         return self.sims.observables[key]
 
 
+def _p_worse(differences: np.ndarray) -> float:
+    """One-sided p-value of "mean score difference > 0" (the model worse than the best);
+    1 when the two models score every drop alike."""
+    if np.ptp(differences) == 0:
+        return 1.0
+    return float(ttest_1samp(differences, 0.0, alternative="greater").pvalue)
+
+
 def how_far_best(
     which: dict, folds: list[Fold], sims: DropSimulations, rng: np.random.Generator
 ) -> dict:
     """The "how far" section: every held-out observable before and after the best effect
-    (at the strength its fold fitted), and each held-out condition's gap, with the
-    residual test of the best effect: its gap after against the noise floor of the
-    fitted model itself (a second, independent simulation of it), since an effect can
-    change the spread of what it predicts (a bouncier chip scatters wider)."""
+    (at the strength its fold fitted), and each held-out condition's gap with the
+    adequacy test of the best effect: its held-out drops against a second, independent
+    simulation of it (exact permutation test)."""
     best = which["best"]
-    if best is None:  # no candidate effect applies (as for stacks)
+    if best is None:  # no candidate effect applies
         return {}
-    sims.ensure(
-        [
-            sims.second_pool(sims.setting(ds.condition, f.tilt, best, f.chosen[best]))
-            for f in folds
-            for ds in f.held_out
-        ]
-    )
+    pairs = [(fold, ds) for fold in folds for ds in fold.held_out]
+    keys = [sims.setting(ds.condition, f.tilt, best, f.chosen[best]) for f, ds in pairs]
+    sims.ensure([sims.second_pool(k) for k in keys])
     rows, totals = [], []
-    for fold in folds:
-        s = fold.chosen[best]
-        for ds in fold.held_out:
-            before = sims.observables[sims.baseline(ds.condition, fold.tilt)]
-            after = sims.observables[sims.setting(ds.condition, fold.tilt, best, s)]
-            z0 = (ds.observed - before) / ds.scale
-            z1 = (ds.observed - after) / ds.scale
-            rows += [
-                dict(
-                    fold=fold.name,
-                    condition=ds.condition,
-                    observable=name,
-                    experiment=float(ds.observed[k]),
-                    before=float(before[k]),
-                    after=float(after[k]),
-                    z_before=float(z0[k]),
-                    z_after=float(z1[k]),
-                )
-                for k, name in enumerate(sims.names)
-            ]
-            key = sims.setting(ds.condition, fold.tilt, best, s)
-            scale, null, _ = ds.noise_floor(sims, key, sims.second_pool(key), rng)
-            g_model = float(gap_statistic(ds.observed, after, scale))
-            gap_before = float(np.mean(z0**2))
-            totals.append(
-                dict(
-                    fold=fold.name,
-                    condition=ds.condition,
-                    strength=s,
-                    gap_before=gap_before,
-                    gap_after=float(np.mean(z1**2)),
-                    null_mean=ds.expected_null,
-                    p_before=ds.p_value(gap_before),
-                    residual_gap=g_model,
-                    residual_null_mean=float(null.mean()),
-                    p_after=exceedance_p(null, g_model),
-                )
+    for (fold, ds), key in zip(pairs, keys, strict=True):
+        base_key = sims.baseline(ds.condition, fold.tilt)
+        before, after = sims.observables[base_key], sims.observables[key]
+        sd = sims.observable_sd[ds.condition]
+        z0, z1 = (ds.observed - before) / sd, (ds.observed - after) / sd
+        rows += [
+            dict(
+                fold=fold.name,
+                condition=ds.condition,
+                observable=name,
+                experiment=float(ds.observed[k]),
+                before=float(before[k]),
+                after=float(after[k]),
+                z_before=float(z0[k]),
+                z_after=float(z1[k]),
             )
+            for k, name in enumerate(sims.names)
+        ]
+        _, p_before = energy_test(ds, sims, base_key, rng)
+        _, p_after = energy_test(ds, sims, sims.second_pool(key), rng)
+        totals.append(
+            dict(
+                fold=fold.name,
+                condition=ds.condition,
+                strength=fold.chosen[best],
+                gap_before=float(sims.energy(ds, base_key)[0]),
+                gap_after=float(sims.energy(ds, key)[0]),
+                p_before=p_before,
+                p_after=p_after,
+            )
+        )
     return how_far(best, which["ranking"][0], rows, totals)

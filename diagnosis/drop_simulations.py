@@ -1,6 +1,7 @@
 """The two kinds of drop sample a drop diagnosis compares: the simulated settings it runs
-(kept, with their observables) and the observed drops of a condition (with the bootstrap
-resamples, scales and noise floor that make gaps comparable)."""
+(kept, with their observables and standardised features) and the observed drops of a
+condition (with their bootstrap weights); and the energy distances and scores between
+them."""
 
 from __future__ import annotations
 
@@ -9,18 +10,16 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from diagnosis.observables import drop_observables, symmetry_order
+from diagnosis.observables import FeatureMetric, drop_features, drop_observables, symmetry_order
 from diagnosis.spec import DropData, Experiment
-from diagnosis.statistics import bootstrap_indices, exceedance_p, gap_statistic
+from diagnosis.statistics import mean_cross, mean_within, resample_weights
 from packing.effects import EFFECTS, contact_model
 from packing.presets import PRESETS
 
-__all__ = ["Dataset", "DropSimulations", "NULL_REPLICAS", "NOISE_POOL"]
+__all__ = ["Dataset", "DropSimulations", "NOISE_POOL"]
 
-NULL_REPLICAS = 400
-
-# The setting without any effect, and the pool every fitted setting is drawn from; pool
-# "B" is an independent second baseline that measures the simulation's own noise.
+# The pool every setting is drawn from; pool "B" is the same setting simulated again,
+# independently, to test a fitted model on data it was not chosen with.
 BASELINE_POOL = "A"
 NOISE_POOL = "B"
 
@@ -52,8 +51,13 @@ class DropSimulations:
         self.index = {c.name: k for k, c in enumerate(experiment.conditions)}
         self.drops: dict[tuple, DropData] = {}
         self.observables: dict[tuple, np.ndarray] = {}
-        self._resampled: dict[tuple, np.ndarray] = {}
-        self._resample_indices: np.ndarray | None = None
+        self.metric: dict[str, FeatureMetric] = {}  # condition -> how drops compare
+        self.sim_weights: dict[str, np.ndarray] = {}  # condition -> (1 + B, n) counts
+        self._features: dict[tuple, np.ndarray] = {}
+        self._within: dict[tuple, np.ndarray] = {}
+        self._cross: dict[tuple, np.ndarray] = {}
+        # condition -> (K,) sd of each observable's difference when there is no gap
+        self.observable_sd: dict[str, np.ndarray] = {}
         self.n = experiment.settings.sim_drops
         preset = PRESETS.get(experiment.scenario.physics.preset, key="physics.preset")
         self.contact = contact_model(preset, experiment.scenario.physics)
@@ -123,47 +127,79 @@ class DropSimulations:
         yaw0 = self.x.condition(condition).protocol.yaw_deg
         return drop_observables(d.positions, d.yaw_deg, d.tilt_deg, yaw0, self.order, self.names)
 
-    # -- gaps ----------------------------------------------------------------------------
-    def resampled(self, key: tuple) -> np.ndarray:
-        """Observables (B, K) of the simulation ``key`` resampled: the same drop indices for
-        every setting, so settings stay paired (their drops share the release draws)."""
-        if key not in self._resampled:
-            if self._resample_indices is None:
-                rng = np.random.default_rng([self.seed, 19])
-                self._resample_indices = bootstrap_indices(self.n, self.x.settings.bootstrap, rng)
-            d = self.drops[key]
-            self._resampled[key] = np.array(
-                [self.observe(d.take(i), key[0]) for i in self._resample_indices]
-            )
-        return self._resampled[key]
+    # -- whole-distribution comparisons -----------------------------------------------------
+    def raw_features(self, d: DropData, condition: str) -> np.ndarray:
+        """Per-drop features (n, d), with only the columns the experiment records."""
+        yaw0 = self.x.condition(condition).protocol.yaw_deg
+        yaw = d.yaw_deg if "yaw_spread" in self.names else None
+        tilt = d.tilt_deg if "tilt_q50" in self.names else None
+        return drop_features(d.positions, yaw, tilt, yaw0, self.order)
 
-    def gap(self, ds: Dataset, key: tuple) -> float:
-        """G of the observed dataset against the simulation ``key``."""
-        return float(gap_statistic(ds.observed, self.observables[key], ds.scale))
-
-    def gaps(self, ds: Dataset, key: tuple) -> np.ndarray:
-        """G of the dataset and of each resample, (1 + B,). A resample draws both the
-        observed drops and the simulated ones, so intervals carry the simulation's noise."""
-        sim = self.observables[key]
-        return np.concatenate(
+    def set_metric(self, condition: str, experiment: DropData) -> None:
+        """Fix the condition's feature scale from the experiment pooled with the baseline
+        (a scale of the pooled drops leaves the permutation tests exact), and the
+        bootstrap weights of its simulated samples (the same for every setting: their
+        drops share the release draws, so settings stay paired)."""
+        pooled = np.vstack(
             [
-                [gap_statistic(ds.observed, sim, ds.scale)],
-                gap_statistic(ds.resampled, self.resampled(key), ds.scale),
+                self.raw_features(experiment, condition),
+                self.raw_features(self.drops[self.baseline(condition, None)], condition),
             ]
         )
+        self.metric[condition] = FeatureMetric.of(
+            pooled, "yaw_spread" in self.names, "tilt_q50" in self.names
+        )
+        rng = np.random.default_rng([self.seed, 19, self.index[condition]])
+        self.sim_weights[condition] = resample_weights(self.n, self.x.settings.bootstrap, rng)
+
+    def features(self, key: tuple) -> np.ndarray:
+        """Standardised features (m, d) of the simulation ``key``."""
+        if key not in self._features:
+            raw = self.raw_features(self.drops[key], key[0])
+            self._features[key] = self.metric[key[0]].apply(raw)
+        return self._features[key]
+
+    def within(self, key: tuple) -> np.ndarray:
+        """Mean distance between distinct drops of ``key`` and of each resample (1 + B,)."""
+        if key not in self._within:
+            f = self.features(key)
+            distances = self.metric[key[0]].distances(f).sum(axis=0)
+            self._within[key] = mean_within(distances, self.sim_weights[key[0]])
+        return self._within[key]
+
+    def cross(self, ds: Dataset, key: tuple) -> np.ndarray:
+        """Distances (n, m) of the dataset's drops to the simulated drops of ``key``."""
+        cache = (id(ds), key)
+        if cache not in self._cross:
+            blocks = self.metric[key[0]].distances(ds.features, self.features(key))
+            self._cross[cache] = blocks.sum(axis=0)
+        return self._cross[cache]
+
+    def energy(self, ds: Dataset, key: tuple) -> np.ndarray:
+        """The energy distance (U-statistic, standardised features) of the dataset to the
+        simulation ``key``, then of each resample (1 + B,): a resample draws both the
+        observed drops and the simulated ones, so intervals carry both noises. About 0
+        when ``key`` is right, positive when it is not."""
+        between = mean_cross(self.cross(ds, key), ds.weights, self.sim_weights[key[0]])
+        return 2.0 * between - ds.within - self.within(key)
+
+    def scores(self, ds: Dataset, key: tuple) -> np.ndarray:
+        """Each observed drop's energy score under the simulation ``key`` (n,): lower is a
+        better prediction of that drop."""
+        return self.cross(ds, key).mean(axis=1) - 0.5 * self.within(key)[0]
 
 
 @dataclass
 class Dataset:
-    """The observed drops of one condition (or a part of them) and their statistics."""
+    """The observed drops of one condition (or a part of them): their observables, their
+    standardised features and bootstrap weights, and the mean distance between them."""
 
     condition: str
     data: DropData
-    observed: np.ndarray  # (K,)
-    resampled: np.ndarray  # (B, K)
-    scale: np.ndarray | None = None  # (K,) standard error of exp - sim
-    null: np.ndarray | None = None  # (R,) G of independent replicas
-    floor: np.ndarray | None = None  # (K,) 95 % of |replica - sim|
+    observed: np.ndarray  # (K,) observables
+    features: np.ndarray  # (n, d) standardised by the condition's metric
+    weights: np.ndarray  # (1 + B, n) bootstrap counts, row 0 the data themselves
+    within: np.ndarray  # (1 + B,) mean distance between distinct drops
 
     @classmethod
     def observe(
@@ -173,44 +209,8 @@ class Dataset:
         sims: DropSimulations,
         rng: np.random.Generator,
     ) -> Dataset:
-        """The observables of ``data`` and of its bootstrap resamples (not calibrated)."""
-        boot = bootstrap_indices(data.n, sims.x.settings.bootstrap, rng)
-        resampled = np.array([sims.observe(data.take(b), condition) for b in boot])
-        return cls(condition, data, sims.observe(data, condition), resampled)
-
-    def calibrate(self, sims: DropSimulations, rng: np.random.Generator) -> None:
-        """Scales and noise floor from the baseline's two independent pools: replicas of
-        the experiment's size drawn from pool B, compared with pool A, are what a gap
-        looks like when there is none."""
-        a = sims.baseline(self.condition, None)
-        b = sims.baseline(self.condition, None, NOISE_POOL)
-        self.scale, self.null, self.floor = self.noise_floor(sims, a, b, rng)
-
-    def noise_floor(
-        self, sims: DropSimulations, key_a: tuple, key_b: tuple, rng: np.random.Generator
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(scales (K,), null G (R,), 95 % floor (K,)) of this dataset against the model
-        simulated twice, independently, as ``key_a`` and ``key_b``: replicas of the
-        experiment's size drawn from pool B, compared with pool A, are what a gap looks
-        like when the model is right."""
-        sim_a = sims.observables[key_a]
-        b = sims.drops[key_b]
-        n = self.data.n
-        # Replicas of the experiment's own size, drawn with replacement from pool B (also
-        # when the experiment has more drops than the pool: cutting them to the pool's
-        # size would make the null's replicas smaller than the experiment).
-        draws = rng.integers(0, len(b.positions), size=(NULL_REPLICAS, n))
-        replicas = np.array([sims.observe(b.take(i), self.condition) for i in draws])
-        spread = np.maximum(self.resampled.std(axis=0), replicas.std(axis=0))
-        spread = np.maximum(spread, 1e-6 * (1 + np.abs(sim_a)))
-        scale = spread * np.sqrt(1 + n / sims.n)
-        null = gap_statistic(replicas, sim_a, scale)
-        floor = np.percentile(np.abs(replicas - sim_a), 95, axis=0)
-        return scale, null, floor
-
-    @property
-    def expected_null(self) -> float:
-        return float(self.null.mean())
-
-    def p_value(self, g: float) -> float:
-        return exceedance_p(self.null, g)
+        metric = sims.metric[condition]
+        features = metric.apply(sims.raw_features(data, condition))
+        weights = resample_weights(data.n, sims.x.settings.bootstrap, rng)
+        within = mean_within(metric.distances(features).sum(axis=0), weights)
+        return cls(condition, data, sims.observe(data, condition), features, weights, within)

@@ -1,51 +1,114 @@
-"""Statistics shared by the diagnoses: gap statistics, noise floors and tests.
+"""Statistics shared by the diagnoses: energy distances between samples, their exact
+permutation tests, proper per-drop scores, bootstrap weights and intervals.
 
-The gap between an experiment and a simulation is measured, per condition, by
+Drops are compared as whole distributions. Each drop is a point of standardised
+features (see ``diagnosis.observables.drop_features``) and two samples X (model, m
+drops) and Y (experiment, n drops) of a condition are compared by their energy distance
+(Szekely and Rizzo 2013),
 
-    G = mean over observables k of ((O_exp,k - O_sim,k) / s_k)^2,
+    E = 2 E|X - Y| - E|X - X'| - E|Y - Y'|,
 
-with s_k the standard error of the difference (the experiment's, from a bootstrap,
-combined with the simulation's). Under no gap G is about 1; its null distribution is
-measured, not assumed, by comparing replicas drawn from an independent simulation with
-the simulation (the noise floor). The excess ``G - E0[G]`` is the gap that an effect may
-close.
+which is zero exactly when the two distributions are equal. Its U-statistic (pairs of
+distinct drops only) is unbiased: it averages 0 when the model is right, whatever the
+sample sizes, so it is the gap an effect may close. The energy score of one observed
+drop y, ES(y) = E|X - y| - E|X - X'| / 2, is a proper score of the model's predictive
+distribution (lower is better), and the mean score difference of two models on the same
+drops is half the difference of their energy distances: per-drop scores give paired
+comparisons of models on held-out data.
+
+Each drop's features come in blocks (position, yaw, tilt) and the distance between two
+drops is the sum of their blocks' distances, so E is the sum of the blocks' energy
+distances and no noisy block drowns a clear one; detection takes the largest of the
+blocks' and the total's standardised statistics (max-T).
+
+Tests permute the labels (experiment or simulation) of the drops within each condition:
+under "the model is right" the drops of a condition are exchangeable, so the permutation
+null is exact for any sample sizes, and it does not hinge on one pool of simulations.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from geometry.stats import holm
+
 __all__ = [
-    "bootstrap_indices",
-    "energy_test",
-    "gap_statistic",
+    "PERMUTATIONS",
+    "energy_statistics",
+    "exceedance_p",
     "holm",
     "interval",
+    "mean_cross",
+    "max_t",
+    "mean_within",
+    "permutation_masks",
+    "resample_weights",
+    "standardise",
 ]
 
-
-def bootstrap_indices(n: int, resamples: int, rng: np.random.Generator) -> np.ndarray:
-    """(resamples, n) indices drawn with replacement."""
-    return rng.integers(0, n, size=(resamples, n))
+# Label permutations per test: the smallest attainable p-value is 1 / 1000.
+PERMUTATIONS = 999
 
 
-def gap_statistic(observed: np.ndarray, simulated: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """G of observables (..., K) against simulated (K,) with scales (K,); shape (...)."""
-    z = (np.asarray(observed) - simulated) / scale
-    return np.mean(z**2, axis=-1)
+def resample_weights(n: int, resamples: int, rng: np.random.Generator) -> np.ndarray:
+    """(1 + resamples, n) bootstrap counts: row 0 is the sample itself (all ones), each
+    further row how often each of the n items is drawn in one resample of size n."""
+    draws = rng.integers(0, n, size=(resamples, n))
+    counts = np.zeros((resamples, n))
+    np.add.at(counts, (np.repeat(np.arange(resamples), n), draws.ravel()), 1.0)
+    return np.vstack([np.ones((1, n)), counts])
 
 
-def holm(p_values: list[float]) -> list[float]:
-    """Holm-Bonferroni adjusted p-values (same order)."""
-    p = np.asarray(p_values, dtype=float)
-    order = np.argsort(p)
-    adjusted = np.empty_like(p)
-    running = 0.0
-    m = len(p)
-    for rank, k in enumerate(order):
-        running = max(running, min(1.0, (m - rank) * p[k]))
-        adjusted[k] = running
-    return adjusted.tolist()
+def mean_cross(distances: np.ndarray, weights_a: np.ndarray, weights_b: np.ndarray):
+    """Mean distance between the two samples of ``distances`` (n, m) under paired rows of
+    bootstrap weights (R, n) and (R, m): (R,)."""
+    n, m = distances.shape
+    return ((weights_a @ distances) * weights_b).sum(axis=1) / (n * m)
+
+
+def mean_within(distances: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Mean distance between distinct drops of one sample (U-statistic) under rows of
+    bootstrap weights (R, n): (R,). A resample's copies of one drop are not a pair (their
+    distance, 0, would bias the resamples' within-sample distance down)."""
+    pairs = weights.sum(axis=1) ** 2 - (weights**2).sum(axis=1)
+    return ((weights @ distances) * weights).sum(axis=1) / pairs
+
+
+def permutation_masks(n: int, m: int, permutations: int, rng: np.random.Generator) -> np.ndarray:
+    """(1 + permutations, n + m) bool: which of n + m pooled drops are labelled
+    "experiment"; row 0 is the observed labelling (the first n)."""
+    observed = np.zeros(n + m, dtype=bool)
+    observed[:n] = True
+    shuffled = np.array([rng.permutation(observed) for _ in range(permutations)])
+    return np.vstack([observed, shuffled.reshape(permutations, n + m)])
+
+
+def energy_statistics(distances: np.ndarray, masks: np.ndarray) -> np.ndarray:
+    """The two-sample energy statistic n m / (n + m) * E (V-statistic) of the pooled
+    drops' ``distances`` (N, N) under each labelling of ``masks`` (R, N): (R,)."""
+    a = masks.astype(float)
+    n = a[0].sum()
+    m = len(distances) - n
+    ad = a @ distances
+    within_a = (ad * a).sum(axis=1)
+    between = (ad * (1.0 - a)).sum(axis=1)
+    within_b = distances.sum() - within_a - 2.0 * between
+    e = 2.0 * between / (n * m) - within_a / n**2 - within_b / m**2
+    return n * m / (n + m) * e
+
+
+def standardise(statistics: np.ndarray) -> np.ndarray:
+    """Statistics (S, R) computed under the same labellings (row 0 of each: the observed
+    one), each standardised by its permutation null's mean and sd."""
+    null = statistics[:, 1:]
+    sd = np.maximum(null.std(axis=1, keepdims=True), 1e-300)
+    return (statistics - null.mean(axis=1, keepdims=True)) / sd
+
+
+def max_t(statistics: np.ndarray) -> np.ndarray:
+    """The max-T statistic (R,) of several statistics (S, R): the largest standardised
+    one. Its permutation p-value tests all S at once, the multiplicity paid for exactly."""
+    return standardise(statistics).max(axis=0)
 
 
 def exceedance_p(null: np.ndarray, g: float) -> float:
@@ -70,29 +133,3 @@ def interval(samples: np.ndarray, level: float = 0.95) -> tuple[float, float]:
     lo = np.percentile(np.where(undefined, -np.inf, samples), tail, method="lower")
     hi = np.percentile(np.where(undefined, np.inf, samples), 100 - tail, method="higher")
     return float(lo), float(hi)
-
-
-def energy_test(
-    a: np.ndarray, b: np.ndarray, permutations: int, rng: np.random.Generator
-) -> tuple[float, float]:
-    """Two-sample energy-distance test (Szekely & Rizzo) of point sets a (n, d) and
-    b (m, d): the statistic and its permutation p-value."""
-    pooled = np.vstack([a, b])
-    n = len(a)
-    distances = np.linalg.norm(pooled[:, None, :] - pooled[None, :, :], axis=-1)
-
-    def statistic(first: np.ndarray) -> float:
-        second = ~first
-        k, m = first.sum(), second.sum()
-        between = distances[np.ix_(first, second)].mean()
-        within_a = distances[np.ix_(first, first)].sum() / (k * k)
-        within_b = distances[np.ix_(second, second)].sum() / (m * m)
-        return float(k * m / (k + m) * (2 * between - within_a - within_b))
-
-    mask = np.zeros(len(pooled), dtype=bool)
-    mask[:n] = True
-    observed = statistic(mask)
-    exceed = 0
-    for _ in range(permutations):
-        exceed += statistic(rng.permutation(mask)) >= observed
-    return observed, (1 + exceed) / (1 + permutations)

@@ -28,11 +28,12 @@ def _fmt(value, digits: int = 3) -> str:
 def report_markdown(result: dict) -> str:
     """The report as Markdown."""
     lines = _summary(result)
-    lines += _where_section(result["where"], drop=result["kind"] == "drop")
+    drop = result["kind"] == "drop"
+    lines += _where_section(result["where"], drop)
     lines += _which_section(
         result["which"], no_gap=result["verdict"]["kind"] == "no significant gap"
     )
-    lines += _how_far_section(result.get("how_far") or {})
+    lines += _how_far_section(result.get("how_far") or {}, drop)
     return "\n".join(lines) + "\n"
 
 
@@ -54,51 +55,75 @@ def _interval(pair, show=_fmt) -> str:
 
 # -- 1. where --------------------------------------------------------------------------
 def _where_section(where: dict, drop: bool) -> list[str]:
-    return [
-        "## 1. Where the gap lies",
-        "",
+    lines = ["## 1. Where the gap lies", ""]
+    if "overall" in where:
+        o = where["overall"]
+        lines += [
+            "Overall test (the detection): the energy distance of the experiment's drops "
+            "(position, yaw over the chip's symmetry, tilt; standardised) to the baseline "
+            "simulation's, summed over conditions, against its exact permutation null "
+            f"({o['permutations']} label permutations within each condition): statistic "
+            f"{_fmt(o['statistic'])}, null mean {_fmt(o['null_mean'])}, "
+            f"p = {_fmt(o['p_value'])}.",
+            "",
+        ]
+    return lines + [
         *_tests_table(where["tests"], drop),
-        *_observables_table(where["observables"]),
+        *_observables_table(where["observables"], drop),
         *_regions(where.get("regions")),
     ]
 
 
 def _tests_table(tests: list[dict], drop: bool) -> list[str]:
-    # Only drops have scatters, hence the energy test's column.
+    if drop:
+        about = (
+            "Test per condition: the energy statistic of its drops against the same "
+            "permutations (exact), Holm-adjusted across conditions."
+        )
+    else:
+        about = (
+            "Overall test per condition: the gap statistic G (mean squared standardised "
+            "discrepancy; about 1 when there is no gap) against its chi-squared null. "
+            "Holm-adjusted across conditions."
+        )
     lines = [
-        "Overall test per condition: the gap statistic G (mean squared standardised "
-        "discrepancy; about its null mean when there is no gap) against its null "
-        "distribution (simulation against an independent simulation); for drops also a "
-        "two-sample energy-distance test of the scatters, the two Bonferroni-combined into "
-        "p. Holm-adjusted across conditions.",
+        about,
         "",
-        "| condition | G | null mean | p | p (Holm) | significant | share of the gap |"
-        + (" energy test p |" if drop else ""),
-        "|---|---|---|---|---|---|---|" + ("---|" if drop else ""),
+        f"| condition | {'energy' if drop else 'G'} | null mean | p | p (Holm) | significant "
+        "| share of the gap |",
+        "|---|---|---|---|---|---|---|",
     ]
     for t in tests:
-        row = (
+        lines.append(
             f"| {t['condition']} | {_fmt(t['gap'])} "
             f"| {_fmt(t['null_mean'])} | {_fmt(t['p_value'])} "
             f"| {_fmt(t['p_holm'])} | {'yes' if t['significant'] else 'no'} "
             f"| {percent(t['share_of_gap'])} |"
         )
-        if drop:
-            row += f" {_fmt(t['energy_p_value'])} |"
-        lines.append(row)
     return lines
 
 
-def _observables_table(rows: list[dict]) -> list[str]:
+def _observables_table(rows: list[dict], drop: bool) -> list[str]:
+    if drop:
+        about = (
+            "Every observable: experiment minus simulation, its bootstrap 95 % interval "
+            "(both samples resampled), the noise floor (95 % of |difference| under the "
+            "permutations) and its permutation p-value, Holm-adjusted across every "
+            "observable, ring and sector of every condition (one family). Starred rows are "
+            "significant after that adjustment."
+        )
+    else:
+        about = (
+            "Every observable: experiment minus simulation, its bootstrap 95 % interval "
+            "and the noise floor. Starred rows lie beyond it with an interval excluding 0."
+        )
     lines = [
         "",
-        "Every observable: experiment minus simulation, its bootstrap 95 % interval and "
-        "the noise floor (95 % of |simulation - independent simulation| at the experiment's "
-        "size). Starred rows lie beyond the noise floor with an interval excluding 0.",
+        about,
         "",
         "| condition | observable | experiment | simulation | difference | 95 % interval | "
-        "noise floor | z |",
-        "|---|---|---|---|---|---|---|---|",
+        "noise floor | z |" + (" p (Holm) |" if drop else ""),
+        "|---|---|---|---|---|---|---|---|" + ("---|" if drop else ""),
     ]
     for r in rows:
         star = " *" if r["beyond_noise"] else ""
@@ -106,6 +131,7 @@ def _observables_table(rows: list[dict]) -> list[str]:
             f"| {r['condition']} | {r['observable']}{star} | {_fmt(r['experiment'])} | "
             f"{_fmt(r['simulation'])} | {_fmt(r['difference'])} | {_interval(r['ci95'])} | "
             f"{_fmt(r['noise_floor'])} | {_fmt(r['z'], 2)} |"
+            + (f" {_fmt(r['p_holm'])} |" if drop else "")
         )
     return lines
 
@@ -115,8 +141,9 @@ def _regions(regions: list[dict] | None) -> list[str]:
         return []
     lines = [
         "",
-        "Regions of the scatter (rings by the simulation's distance quantiles, 45-degree "
-        "sectors) whose share of drops differs beyond a Bonferroni-corrected 5 % level:",
+        "Regions of the scatter (rings by the pooled drops' distance quantiles, 45-degree "
+        "sectors) whose share of drops differs significantly (permutation p-values, "
+        "Holm-adjusted with the observables):",
         "",
     ]
     notable = [r for r in regions if r["notable"]]
@@ -137,6 +164,8 @@ def _regions(regions: list[dict] | None) -> list[str]:
 # -- 2. which --------------------------------------------------------------------------
 def _which_section(which: dict, no_gap: bool) -> list[str]:
     lines = ["", "## 2. Which effect", ""]
+    if which is None:
+        return lines + ["There is no significant gap to explain: nothing was fitted."]
     if no_gap:
         lines += ["There is no significant gap to explain: what follows is for reference only.", ""]
     lines += _baseline_refit(which["baseline_refit"])
@@ -151,9 +180,17 @@ def _baseline_refit(refit: dict) -> list[str]:
     if "all_conditions_deg" in refit:  # only drops have a fitted baseline parameter
         lines.append(f"Refitted on all conditions: {refit['all_conditions_deg']:g} deg; per fold:")
         lines += [
-            f"- {h['fold']}: {h['refit_tilt_deg']:g} deg, held-out G {_fmt(h['gap'])} "
-            f"(null mean {_fmt(h['null_mean'])}, p {_fmt(h['p_value'])})"
+            f"- {h['fold']}, {h['condition']}: {h['refit_tilt_deg']:g} deg, held-out energy "
+            f"distance {_fmt(h['gap'])}, consistency test p {_fmt(h['p_value'])} "
+            f"(Holm {_fmt(h['p_holm'])})"
             for h in refit["held_out"]
+        ]
+        return lines + [
+            "",
+            f"Held-out energy distance of the refitted baseline: "
+            f"{_fmt(refit['held_out_excess'])} {_interval(refit['held_out_excess_ci95'])}; "
+            f"reduction {percent(refit['held_out_reduction'])}; the held-out drops are "
+            f"{'' if refit['adequate'] else 'not '}consistent with it.",
         ]
     return lines + [
         "",
@@ -207,9 +244,10 @@ def _telling_apart(which: dict) -> list[str]:
 
 
 # -- 3. how far ------------------------------------------------------------------------
-def _how_far_section(how: dict) -> list[str]:
+def _how_far_section(how: dict, drop: bool) -> list[str]:
     if not how:
         return []
+    gap = "energy distance" if drop else "G"
     return [
         "",
         "## 3. How far the best effect closes the gap",
@@ -218,12 +256,12 @@ def _how_far_section(how: dict) -> list[str]:
         f"held-out reduction {percent(how['reduction'])} "
         f"{_interval(how['reduction_ci95'], percent)}.",
         "",
-        "| held-out condition | strength | G before | G after | null mean | p before | p after |",
-        "|---|---|---|---|---|---|---|",
+        f"| held-out condition | strength | {gap} before | {gap} after | p before | p after |",
+        "|---|---|---|---|---|---|",
         *(
             f"| {c['condition']} | {_fmt(c['strength'])} "
             f"| {_fmt(c['gap_before'])} | {_fmt(c['gap_after'])} | "
-            f"{_fmt(c['null_mean'])} | {_fmt(c['p_before'])} | {_fmt(c['p_after'])} |"
+            f"{_fmt(c['p_before'])} | {_fmt(c['p_after'])} |"
             for c in how["conditions"]
         ),
         "",
@@ -322,7 +360,7 @@ def write_diagnosis(run, result: dict) -> list[str]:
         files.append("fig_scatter.png")
     plot_discrepancies(run.path("fig_discrepancies.png"), result["where"]["observables"])
     files.append("fig_discrepancies.png")
-    if result["which"]["ranking"]:
+    if result["which"] and result["which"]["ranking"]:
         plot_ranking(run.path("fig_effects.png"), result["which"]["ranking"])
         files.append("fig_effects.png")
     return files

@@ -11,11 +11,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import SMALL_SCENARIO, drop_spec, run_cli
+from scipy.spatial.distance import cdist
 
 from core.errors import InputError
 from core.schema import ChipSpec
-from diagnosis.observables import drop_observables, observable_names
-from diagnosis.statistics import energy_test, gap_statistic, holm
+from diagnosis.observables import FeatureMetric, drop_features, drop_observables, observable_names
+from diagnosis.statistics import (
+    energy_statistics,
+    exceedance_p,
+    max_t,
+    mean_cross,
+    mean_within,
+    permutation_masks,
+    resample_weights,
+)
 from packing.effects import AIR_DENSITY_G_MM3, EFFECTS, FlightState, check_effects
 from packing.shapes import make_shape
 
@@ -57,19 +66,85 @@ def test_yaw_spread_of_uniform_yaw_is_one():
     assert dict(zip(NAMES, values, strict=True))["yaw_spread"] == pytest.approx(1.0, abs=1e-9)
 
 
-def test_holm_and_gap_statistic():
-    assert holm([0.01, 0.04, 0.03]) == pytest.approx([0.03, 0.06, 0.06])
-    assert holm([0.5]) == [0.5]
-    assert gap_statistic(np.array([1.0, 2.0]), np.array([0.0, 0.0]), np.array([1.0, 2.0])) == 1.0
+def _energy_p(a: np.ndarray, b: np.ndarray, rng, permutations: int = 199) -> float:
+    masks = permutation_masks(len(a), len(b), permutations, rng)
+    pooled = np.vstack([a, b])
+    stats = energy_statistics(cdist(pooled, pooled), masks)
+    return exceedance_p(stats[1:], stats[0])
 
 
-def test_energy_test_separates_shifted_samples_only():
+def test_energy_test_separates_shifted_and_wider_samples_only():
     rng = np.random.default_rng(0)
     a, b = rng.normal(size=(60, 2)), rng.normal(size=(80, 2))
-    _, p_same = energy_test(a, b, 200, rng)
-    _, p_shifted = energy_test(a + [1.0, 0.0], b, 200, rng)
-    assert p_same > 0.05
-    assert p_shifted < 0.01
+    assert _energy_p(a, b, rng) > 0.05
+    assert _energy_p(a + [1.0, 0.0], b, rng) < 0.01
+    assert _energy_p(3.0 * a, b, rng) < 0.01  # a scale change, as a bouncier chip makes
+
+
+def test_permutation_null_is_exact_for_small_unequal_samples():
+    """Under no difference the p-value is uniform whatever the sample sizes (here 12
+    against 40 heavy-tailed drops): the false-alarm rate at 5 % is 5 % within the
+    binomial spread of 400 trials (99.9 % band: 1.8 % to 9.0 %)."""
+    rng = np.random.default_rng(1)
+    p = np.array(
+        [
+            _energy_p(rng.standard_t(2, (12, 2)), rng.standard_t(2, (40, 2)), rng, 99)
+            for _ in range(400)
+        ]
+    )
+    assert 0.018 <= np.mean(p <= 0.05) <= 0.09
+    assert 0.4 <= np.mean(p <= 0.5) <= 0.6
+
+
+def test_energy_distance_u_statistic_and_bootstrap_pairs():
+    """The U-statistic of the energy distance averages 0 when the samples share their
+    distribution (unlike the V-statistic, biased up by the within-sample terms), and a
+    resample's copies of one drop are not counted as a pair."""
+    rng = np.random.default_rng(2)
+
+    def energy_u(a, b):
+        ones_a, ones_b = np.ones((1, len(a))), np.ones((1, len(b)))
+        between = mean_cross(cdist(a, b), ones_a, ones_b)[0]
+        return (
+            2 * between - mean_within(cdist(a, a), ones_a)[0] - mean_within(cdist(b, b), ones_b)[0]
+        )
+
+    same = [energy_u(rng.normal(size=(10, 2)), rng.normal(size=(15, 2))) for _ in range(800)]
+    assert abs(np.mean(same)) < 3 * np.std(same) / np.sqrt(len(same))
+    shifted = [energy_u(rng.normal(size=(10, 2)) + 2, rng.normal(size=(15, 2))) for _ in range(50)]
+    assert np.mean(shifted) > 1.0
+    points = np.array([[0.0], [1.0], [3.0]])
+    # Drop 0 twice and drop 2 once: the pairs are (0, 2) twice each way, distance 3.
+    assert mean_within(cdist(points, points), np.array([[2.0, 0.0, 1.0]]))[0] == pytest.approx(3.0)
+    weights = resample_weights(5, 30, rng)
+    assert weights.shape == (31, 5) and (weights.sum(axis=1) == 5).all() and (weights[0] == 1).all()
+
+
+def test_max_t_pays_for_several_statistics_at_once():
+    rng = np.random.default_rng(3)
+    null = rng.normal(size=(4, 2000))
+    t = max_t(null)
+    # The largest of 4 independent standard normals exceeds 1.645 far more often than 5 %.
+    assert np.mean(t[1:] > 1.645) == pytest.approx(1 - 0.95**4, abs=0.03)
+    shifted = null.copy()
+    shifted[2, 0] = 10.0
+    assert exceedance_p(max_t(shifted)[1:], max_t(shifted)[0]) < 0.002
+
+
+def test_feature_metric_compresses_tails_and_keeps_directions():
+    positions = np.array([[3.0, 4.0], [0.0, 0.0], [-2000.0, 0.0], [0.0, 10.0]])
+    tilt = np.array([0.5, 90.0, 0.5, 1.0])
+    raw = drop_features(positions, np.zeros(4), tilt, 0.0, 4)
+    metric = FeatureMetric.of(raw, has_yaw=True, has_tilt=True)
+    squeezed = metric.compress(raw)
+    r0 = metric.r0_mm  # the median distance, 7.5 mm
+    assert r0 == pytest.approx(7.5)
+    assert np.hypot(*squeezed[0, :2]) == pytest.approx(r0 * np.log1p(5.0 / r0))
+    assert squeezed[0, 0] / squeezed[0, 1] == pytest.approx(0.75)  # the direction kept
+    assert np.hypot(*squeezed[2, :2]) < 50  # a 2 m slide no longer dominates
+    assert metric.scale[2] == metric.scale[3]  # the yaw circle stays round
+    assert list(metric.blocks) == ["position", "yaw", "tilt"]
+    assert metric.distances(metric.apply(raw)).shape == (3, 4, 4)
 
 
 # -- effects -------------------------------------------------------------------------------
