@@ -10,7 +10,8 @@ Parts:
 
 * ``nulls``: effect-free datasets (varied conditions, 30 to 100 drops, measurement
   noise): "no significant gap" in >= 95 %, with its Clopper-Pearson interval.
-* ``effects``: 5 cases per drop effect, strength drawn from the upper half of its prior:
+* ``effects`` (this and the parts below on 3 conditions x 50 drops: 200 mm, 500 mm,
+  1000 mm turned 30 deg): 5 cases per drop effect, strength drawn from the upper half of its prior:
   verdict "explained" with the true effect first or in a tie set of at most 2 in
   >= 90 %; mean tie-set size; confusion; coverage of the 95 % strength intervals.
 * ``outside``: for each drop effect, two datasets made with it and diagnosed with it
@@ -53,7 +54,8 @@ DROP_EFFECTS = (
     "warp",
 )
 PLANNED = {"nulls": 100, "effects": 35, "outside": 17, "seeds": 5}
-# The release conditions cases draw from: (height mm, yaw deg).
+STANDARD_CONDITIONS = ((200, 0), (500, 0), (1000, 30))
+# The release conditions null cases draw from: (height mm, yaw deg).
 CONDITION_POOL = ((150, 0), (200, 0), (300, 15), (500, 0), (700, 30), (1000, 30), (1000, 0))
 
 
@@ -76,6 +78,9 @@ def case_plan(part: str, index: int) -> dict:
         seed=1000 + index,
         diagnosis_seeds=[index],
     )
+    if part != "nulls":
+        # The setting of the speed target: 3 conditions x 50 drops.
+        plan["conditions"] = list(STANDARD_CONDITIONS)
     if part == "effects":
         effect = DROP_EFFECTS[index % len(DROP_EFFECTS)]
         plan["truth"] = {effect: _upper_half(effect, rng)}

@@ -27,7 +27,12 @@ from diagnosis.statistics import holm, interval
 from diagnosis.verdicts import applicable_effects, how_far
 from packing.effects import EFFECTS
 
-__all__ = ["TILT_GRID_DEG", "EffectRanking", "Fold", "how_far_best"]
+__all__ = ["TILT_GRID_DEG", "EffectRanking", "Fold", "how_far_best", "vertex"]
+
+TILT_RESOLUTION_DEG = 0.1
+# Fitted strengths are rounded to this share of the prior's range (one setting for
+# fits that land within it of each other).
+STRENGTH_RESOLUTION = 1e-3
 
 
 @dataclass
@@ -51,14 +56,39 @@ class HeldOut:
     rows: list[dict]  # per fold and held-out condition
 
 
-def best_tilt(sims: DropSimulations, datasets: list[Dataset]) -> float:
-    """The release tilt of ``sims.tilt_grid`` closest to ``datasets`` (summed energy
-    distance)."""
+def vertex(grid: list[float], curve: np.ndarray, resolution: float) -> np.ndarray:
+    """The minimum of a discrepancy curve (S, R) over ``grid`` (S,), per column: the
+    vertex of the parabola through the lowest grid point and its two neighbours, kept
+    between those neighbours (at an end of the grid, the end's three points, kept
+    between the end and its neighbour), rounded to ``resolution``. A smooth surrogate of
+    the curve, not the argmin of the grid: strengths between grid points are found, and
+    one noisy grid point moves the estimate a little, not by a whole grid step."""
+    x = np.asarray(grid, dtype=float)
+    curve = np.asarray(curve, dtype=float).reshape(len(x), -1)
+    k = curve.argmin(axis=0)
+    if len(x) < 3:
+        return x[k]
+    centre = np.clip(k, 1, len(x) - 2)
+    cols = np.arange(curve.shape[1])
+    x0, x1, x2 = x[centre - 1], x[centre], x[centre + 1]
+    y0, y1, y2 = curve[centre - 1, cols], curve[centre, cols], curve[centre + 1, cols]
+    num = (x1 - x0) ** 2 * (y1 - y2) - (x1 - x2) ** 2 * (y1 - y0)
+    den = (x1 - x0) * (y1 - y2) - (x1 - x2) * (y1 - y0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # den < 0: the three points bend upwards (a minimum between them).
+        v = np.where(den < 0, x1 - 0.5 * num / den, x[k])
+    v = np.clip(v, x[np.maximum(k - 1, 0)], x[np.minimum(k + 1, len(x) - 1)])
+    return np.round(np.round(v / resolution) * resolution, 12)
+
+
+def best_tilt(sims: DropSimulations, datasets: list[Dataset]) -> np.ndarray:
+    """The release tilt closest to ``datasets`` (summed energy distance, vertex over
+    ``sims.tilt_grid``): the estimate, then one per resample (1 + B,)."""
     grid = sims.tilt_grid
-    gaps = [
-        sum(sims.energy(ds, sims.baseline(ds.condition, t))[0] for ds in datasets) for t in grid
-    ]
-    return float(grid[int(np.argmin(gaps))])
+    curve = np.array(
+        [sum(sims.energy(ds, sims.baseline(ds.condition, t)) for ds in datasets) for t in grid]
+    )
+    return vertex(list(grid), curve, TILT_RESOLUTION_DEG)
 
 
 class StrengthGrids:
@@ -86,13 +116,14 @@ class StrengthGrids:
         values.add(round(e.neutral(self.sims.contact), 12))
         return sorted(values)
 
-    def simulate(self) -> None:
+    def keys(self) -> list[tuple]:
+        """The settings of every grid, at every condition."""
         keys = []
         for effect, grid in self.grids.items():
             keys += [
                 self.sims.setting(c, self.tilt, effect, s) for s in grid for c in self.conditions
             ]
-        self.sims.ensure(keys)
+        return keys
 
     def curve(
         self, datasets: list[Dataset], tilt: float, effect: str, grid: list[float] | None = None
@@ -107,20 +138,12 @@ class StrengthGrids:
             ]
         )
 
-    def refine(self, fits: list[tuple[list[Dataset], float]]) -> None:
-        """Add the midpoints on either side of the minimum of every fit (datasets, tilt)
-        and simulate them: twice the resolution where it matters, for the cost of a few
-        more simulations than the coarse grid."""
-        for effect, grid in list(self.grids.items()):
-            refined = set(grid)
-            for datasets, tilt in fits:
-                k = int(self.curve(datasets, tilt, effect, grid)[:, 0].argmin())
-                if k > 0:
-                    refined.add(round((grid[k - 1] + grid[k]) / 2, 12))
-                if k < len(grid) - 1:
-                    refined.add(round((grid[k] + grid[k + 1]) / 2, 12))
-            self.grids[effect] = sorted(refined)
-        self.simulate()
+    def fit(self, datasets: list[Dataset], tilt: float | None, effect: str) -> np.ndarray:
+        """The strength fitted on ``datasets``: the estimate, then one per resample of
+        the observed and simulated drops (1 + B,)."""
+        lo, hi = EFFECTS.get(effect).prior
+        curve = self.curve(datasets, tilt, effect)
+        return vertex(self.grids[effect], curve, STRENGTH_RESOLUTION * (hi - lo))
 
 
 class EffectRanking:
@@ -144,22 +167,22 @@ class EffectRanking:
         self.rng = rng
 
     def run(self) -> dict:
-        self.sims.ensure(
-            [self.sims.baseline(c, t) for c in self.conditions for t in self.sims.tilt_grid]
-        )
+        effects, skipped = applicable_effects(self.x)
+        points = self.x.settings.grid_points
+        grids = StrengthGrids(self.sims, effects, self.conditions, None, points)
+        # Three batches: every grid (tilts and strengths); every model fitted per fold,
+        # at its held-out conditions; the second pools of the adequacy tests.
+        tilts = [self.sims.baseline(c, t) for c in self.conditions for t in self.sims.tilt_grid]
+        self.sims.ensure(tilts + grids.keys())
         tilt_all = self._refit_tilt()
+        refits = [self.sims.baseline(ds.condition, f.refit_tilt) for f, ds in self._held_pairs()]
+        self.sims.ensure(refits + self._fit_folds(effects, grids))
         base = self._held_out(lambda ds, fold: self.sims.baseline(ds.condition, None))
         refit = self._held_out(lambda ds, fold: self.sims.baseline(ds.condition, fold.refit_tilt))
-        effects, skipped = applicable_effects(self.x)
         ranked, results, held = [], {}, {}
         if effects:
-            grids = StrengthGrids(
-                self.sims, effects, self.conditions, None, self.x.settings.grid_points
-            )
-            grids.simulate()
-            grids.refine([(f.calibration, f.tilt) for f in self.folds] + [(self.everything, None)])
             for effect in effects:
-                held[effect] = self._fit_and_score(effect, grids)
+                held[effect] = self._fit_and_score(effect)
                 closed = base.energy - held[effect].energy
                 reduction = held_out_reduction(held[effect].energy, base.energy)
                 fitted = self._fit_on_everything(effect, grids)
@@ -184,9 +207,9 @@ class EffectRanking:
         calibration conditions and judged on the held-out ones. The effects are fitted at
         the release tilt the spec states."""
         for fold in self.folds:
-            fold.refit_tilt = best_tilt(self.sims, fold.calibration)
+            fold.refit_tilt = float(best_tilt(self.sims, fold.calibration)[0])
             fold.tilt = None
-        return best_tilt(self.sims, self.everything)
+        return float(best_tilt(self.sims, self.everything)[0])
 
     def _held_out(self, model) -> HeldOut:
         """Score the model ``model(dataset, fold) -> simulation key`` on every fold's
@@ -202,12 +225,23 @@ class EffectRanking:
                 rows.append(dict(fold=fold.name, condition=ds.condition, held_out_gap=float(e[0])))
         return HeldOut(np.concatenate(scores), energy, rows)
 
-    def _fit_and_score(self, effect: str, grids: StrengthGrids) -> HeldOut:
-        """Fit the effect's strength on each fold's calibration data (the minimum of the
-        calibration curve), then score it on the fold's held-out drops."""
+    def _fit_folds(self, effects: list[str], grids: StrengthGrids) -> list[tuple]:
+        """Fit every effect's strength on each fold's calibration data; the settings of
+        each fitted model at the fold's held-out conditions."""
+        keys = []
         for fold in self.folds:
-            k = int(grids.curve(fold.calibration, fold.tilt, effect)[:, 0].argmin())
-            fold.chosen[effect] = grids.grids[effect][k]
+            for effect in effects:
+                strength = float(grids.fit(fold.calibration, fold.tilt, effect)[0])
+                fold.chosen[effect] = strength
+                keys += [
+                    self.sims.setting(ds.condition, fold.tilt, effect, strength)
+                    for ds in fold.held_out
+                ]
+        return keys
+
+    def _fit_and_score(self, effect: str) -> HeldOut:
+        """Score the effect, fitted on each fold's calibration data, on the fold's
+        held-out drops."""
         held = self._held_out(
             lambda ds, fold: self.sims.setting(ds.condition, fold.tilt, effect, fold.chosen[effect])
         )
@@ -235,8 +269,7 @@ class EffectRanking:
     def _fit_on_everything(self, effect: str, grids: StrengthGrids) -> list[float]:
         """The strength fitted on all conditions, then refitted on each resample of the
         observed and the simulated drops: its interval carries the fit's noise."""
-        curve = grids.curve(self.everything, None, effect)
-        return np.array(grids.grids[effect])[curve.argmin(axis=0)].tolist()
+        return grids.fit(self.everything, None, effect).tolist()
 
     def _baseline_refit(self, tilt_all: float, base: HeldOut, refit: HeldOut) -> dict:
         """The refitted baseline on held-out data, with its adequacy test (held-out drops

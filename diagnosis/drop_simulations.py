@@ -24,7 +24,7 @@ BASELINE_POOL = "A"
 NOISE_POOL = "B"
 
 
-TILT_GRID_DEG = (0.0, 2.5, 5.0, 7.5, 10.0, 15.0, 20.0)
+TILT_GRID_DEG = (0.0, 2.5, 10.0, 15.0, 20.0)
 
 
 class DropSimulations:

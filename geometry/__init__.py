@@ -4,7 +4,25 @@
 given as one :class:`Arrangement` per deposited batch.
 """
 
-from geometry.arrangement import Arrangement, arrangements_from_stack
-from geometry.describe import DESCRIPTORS, Description, describe
+from typing import TYPE_CHECKING
+
+from core.lazy import lazy_attributes
+
+if TYPE_CHECKING:
+    from geometry.arrangement import Arrangement, arrangements_from_stack
+    from geometry.describe import DESCRIPTORS, Description, describe
 
 __all__ = ["Arrangement", "DESCRIPTORS", "Description", "arrangements_from_stack", "describe"]
+
+# Imported on first use: every command-line start imports geometry.stage, hence this
+# package, and these modules bring numpy, scipy and manifold3d.
+__getattr__ = lazy_attributes(
+    globals(),
+    {
+        "Arrangement": "geometry.arrangement",
+        "arrangements_from_stack": "geometry.arrangement",
+        "DESCRIPTORS": "geometry.describe",
+        "Description": "geometry.describe",
+        "describe": "geometry.describe",
+    },
+)

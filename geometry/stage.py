@@ -5,14 +5,15 @@ from __future__ import annotations
 import json
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from core.schema import Scenario
 from core.stages import Stage, StageInputs, StageOptions, StageOutput
-from export.descriptors import write_description
-from geometry.arrangement import stack_history
-from geometry.contacts import KINDS
-from geometry.describe import Description, check_names, describe
+
+# The descriptors and their writers are imported where used: every command-line start
+# registers this stage, and they bring numpy, scipy and manifold3d (~1 s).
+if TYPE_CHECKING:
+    from geometry.describe import Description
 
 __all__ = ["GeometryStage", "STAGE", "write_geometry"]
 
@@ -27,6 +28,8 @@ class GeometryStage(Stage):
     repeat_statistics = True
 
     def check_options(self, options: StageOptions) -> None:
+        from geometry.describe import check_names
+
         check_names(options.descriptors)
 
     def key_extra(self, scenario: Scenario, options: StageOptions) -> dict[str, Any]:
@@ -36,6 +39,9 @@ class GeometryStage(Stage):
         }
 
     def compute(self, inputs: StageInputs) -> Description:
+        from geometry.arrangement import stack_history
+        from geometry.describe import describe
+
         history = stack_history(inputs.result("packing"))
         report = inputs.options.progress
         if report is not None:
@@ -46,6 +52,8 @@ class GeometryStage(Stage):
         return description
 
     def write(self, result: Description, folder: Path, inputs: StageInputs) -> StageOutput:
+        from geometry.arrangement import stack_history
+
         history = stack_history(inputs.result("packing"))
         summary = write_geometry(folder, result, history, inputs.scenario, inputs.options.figures)
         return StageOutput(summary)
@@ -55,6 +63,8 @@ class GeometryStage(Stage):
         return json.loads((folder / "descriptors.json").read_text())
 
     def report(self, summary: Mapping[str, Any], folder: Path) -> list[str]:
+        from geometry.contacts import KINDS
+
         data = json.loads((folder / "descriptors.json").read_text())
         d = data["descriptors"]
         parts = []
@@ -98,6 +108,8 @@ def write_geometry(
     folder: Path, description: Description, history, scenario: Scenario, figures: bool
 ) -> dict[str, Any]:
     """Write a computed description's files into ``folder``; returns the manifest entry."""
+    from export.descriptors import write_description
+
     extra = {"scenario": scenario.name, "seed": scenario.seed, "chips": history[-1].n_chips}
     files = write_description(folder, description, history[-1], extra)
     if figures:

@@ -5,10 +5,15 @@
 returning a :class:`VolumeMesh`; ``check_mesh`` reports their validity.
 """
 
-from meshing.checks import assert_valid, check_mesh
-from meshing.conformal import GmshSession, MeshingError, conformal_mesh
-from meshing.mesh import PORE, VolumeMesh
-from meshing.voxel import voxel_mesh
+from typing import TYPE_CHECKING
+
+from core.lazy import lazy_attributes
+
+if TYPE_CHECKING:
+    from meshing.checks import assert_valid, check_mesh
+    from meshing.conformal import GmshSession, MeshingError, conformal_mesh
+    from meshing.mesh import PORE, VolumeMesh
+    from meshing.voxel import voxel_mesh
 
 __all__ = [
     "GmshSession",
@@ -20,3 +25,19 @@ __all__ = [
     "conformal_mesh",
     "voxel_mesh",
 ]
+
+# Imported on first use: every command-line start imports meshing.stage, hence this
+# package, and these modules bring numpy, scipy and gmsh.
+__getattr__ = lazy_attributes(
+    globals(),
+    {
+        "GmshSession": "meshing.conformal",
+        "MeshingError": "meshing.conformal",
+        "PORE": "meshing.mesh",
+        "VolumeMesh": "meshing.mesh",
+        "assert_valid": "meshing.checks",
+        "check_mesh": "meshing.checks",
+        "conformal_mesh": "meshing.conformal",
+        "voxel_mesh": "meshing.voxel",
+    },
+)

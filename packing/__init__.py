@@ -1,14 +1,18 @@
 """Packing stage: PyBullet batch deposition of chips into a settled :class:`Stack`."""
 
 import logging
+from typing import TYPE_CHECKING
 
 from core.errors import ChipstackError, InputError, SimulationError
+from core.lazy import lazy_attributes
 from core.schema import Scenario, scenario_from_dict, scenario_to_dict
-from packing.deposition import deposit
 from packing.presets import PRESETS, PhysicsPreset
-from packing.shapes import SHAPES, ChipShape, make_shape
-from packing.stack import BatchResult, Stack
-from packing.world import GROUND, MM_PER_UNIT, ChipWorld, ContactRecord
+
+if TYPE_CHECKING:
+    from packing.deposition import deposit
+    from packing.shapes import SHAPES, ChipShape, make_shape
+    from packing.stack import BatchResult, Stack
+    from packing.world import GROUND, MM_PER_UNIT, ChipWorld, ContactRecord
 
 __all__ = [
     "BatchResult",
@@ -30,5 +34,23 @@ __all__ = [
     "scenario_from_dict",
     "scenario_to_dict",
 ]
+
+# Imported on first use: every command-line start imports packing.stage, hence this
+# package, and these modules bring numpy, scipy, trimesh and pybullet (~1 s).
+__getattr__ = lazy_attributes(
+    globals(),
+    {
+        "deposit": "packing.deposition",
+        "SHAPES": "packing.shapes",
+        "ChipShape": "packing.shapes",
+        "make_shape": "packing.shapes",
+        "BatchResult": "packing.stack",
+        "Stack": "packing.stack",
+        "GROUND": "packing.world",
+        "MM_PER_UNIT": "packing.world",
+        "ChipWorld": "packing.world",
+        "ContactRecord": "packing.world",
+    },
+)
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())  # the application decides

@@ -7,31 +7,20 @@ import logging
 import zipfile
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from core.errors import InputError, brief
 from core.files import file_sha256
 from core.provenance import code_versions
 from core.schema import Scenario
 from core.stages import Stage, StageInputs, StageOutput
-from export import stack_polydata, write_contacts_csv, write_poses_csv, write_pvd, write_stack_vtp
-from export.tables import write_drops_csv
-from packing.checkpoint import (
-    stack_from_arrays,
-    stack_to_arrays,
-    state_from_arrays,
-    state_to_arrays,
-)
-from packing.deposition import deposit
-from packing.drop import DropResult, drop_chips
-from packing.fill import container_fill
-from packing.overlap import vertex_heights_mm
 from packing.presets import PRESETS
-from packing.scatter import drop_statistics
-from packing.shapes import check_chip, shape_record
-from packing.stack import BatchResult, Stack
+
+# The simulation, its records and writers are imported where used: every command-line
+# start registers this stage, and they bring numpy, scipy, trimesh and pybullet (~1 s).
+if TYPE_CHECKING:
+    from packing.drop import DropResult
+    from packing.stack import BatchResult, Stack
 
 __all__ = ["PackingStage", "STAGE", "top_mm"]
 
@@ -79,6 +68,10 @@ class PackingStage(Stage):
         return extra
 
     def compute(self, inputs: StageInputs) -> Stack | DropResult:
+        from packing.checkpoint import state_from_arrays, state_to_arrays
+        from packing.deposition import deposit
+        from packing.drop import drop_chips
+
         scenario = inputs.scenario
         if scenario.kind == "drop":
             return drop_chips(scenario)
@@ -105,6 +98,8 @@ class PackingStage(Stage):
         return deposit(scenario, progress=progress, resume=resume, on_batch=on_batch)
 
     def write(self, result: Stack | DropResult, folder: Path, inputs: StageInputs) -> StageOutput:
+        from packing.drop import DropResult
+
         scenario = inputs.scenario
         if isinstance(result, DropResult):
             statistics = write_drop_files(folder, scenario, result, inputs.options.figures)
@@ -118,6 +113,10 @@ class PackingStage(Stage):
     def load(self, folder: Path, scenario: Scenario) -> Stack | None:
         if scenario.kind == "drop":
             return None
+        import numpy as np
+
+        from packing.checkpoint import stack_from_arrays
+
         path = folder / "stack.npz"
         try:
             with np.load(path, allow_pickle=False) as arrays:
@@ -146,6 +145,8 @@ STAGE = PackingStage()
 def check_packing(scenario: Scenario) -> None:
     """The scenario values the packing stage needs: preset, chip shapes and sizes, and
     chips that fit the target and clear the floor at release."""
+    from packing.shapes import check_chip  # numpy: when a scenario is checked, not at start
+
     PRESETS.get(scenario.physics.preset, key="physics.preset")
     d = scenario.deposition
     largest_radius = 0.0
@@ -179,6 +180,18 @@ def check_packing(scenario: Scenario) -> None:
 def write_stack_files(folder: Path, stack: Stack) -> None:
     """The exact record (``stack.npz``), shapes, poses and contacts after each batch, and
     a VTK time series of the stack."""
+    import numpy as np
+
+    from export import (
+        stack_polydata,
+        write_contacts_csv,
+        write_poses_csv,
+        write_pvd,
+        write_stack_vtp,
+    )
+    from packing.checkpoint import stack_to_arrays
+    from packing.shapes import shape_record
+
     shapes = {"schema": "chipstack.shapes/1", "shapes": [shape_record(s) for s in stack.shapes]}
     (folder / "shapes.json").write_text(json.dumps(shapes) + "\n")
     # The exact record (float64 poses, contacts) later stages start from.
@@ -203,6 +216,9 @@ def write_stack_files(folder: Path, stack: Stack) -> None:
 
 def write_drop_files(folder: Path, scenario: Scenario, drops: DropResult, figures: bool) -> dict:
     """Every final pose, the statistics and Fig. 15; returns the statistics."""
+    from export.tables import write_drops_csv
+    from packing.scatter import drop_statistics
+
     write_drops_csv(folder / "drops.csv", drops)
     statistics = drop_statistics(drops.positions[:, :2], scenario.drop.yaw_deg)
     statistics["settled"] = int(drops.settled.sum())
@@ -249,6 +265,10 @@ def packing_summary(stack: Stack) -> dict[str, Any]:
 
 def container_summary(stack: Stack, scenario: Scenario) -> dict[str, Any]:
     """How full the container is (volume fraction by centres of mass)."""
+    import numpy as np
+
+    from packing.fill import container_fill
+
     volumes = np.array([stack.shapes[k].volume_mm3 for k in stack.shape_index])
     c = scenario.container
     return container_fill(stack.positions, volumes, c.radius_mm, c.height_mm)
@@ -256,6 +276,8 @@ def container_summary(stack: Stack, scenario: Scenario) -> dict[str, Any]:
 
 def top_mm(stack: Stack, result: BatchResult) -> float:
     """Height of the highest point of any chip after ``result``'s batch (mm)."""
+    from packing.overlap import vertex_heights_mm
+
     n = len(result.positions)
     top = 0.0
     for k, shape in enumerate(stack.shapes):

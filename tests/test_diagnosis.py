@@ -131,6 +131,22 @@ def test_max_t_pays_for_several_statistics_at_once():
     assert exceedance_p(max_t(shifted)[1:], max_t(shifted)[0]) < 0.002
 
 
+def test_strength_fit_finds_the_minimum_between_grid_points():
+    """The vertex of a parabola sampled on a coarse grid is found exactly, off the grid;
+    at the grid's end it stays between the end and its neighbour; a curve with no
+    bend keeps the grid's minimum; every column (resample) is fitted."""
+    from diagnosis.drop_effects import vertex
+
+    grid = [0.0, 0.2, 0.4, 0.6, 0.8]
+    x = np.array(grid)
+    curves = np.column_stack([(x - 0.33) ** 2, (x - 0.05) ** 2, -x, np.abs(x - 0.6)])
+    fitted = vertex(grid, curves, 1e-4)
+    assert fitted[0] == pytest.approx(0.33)
+    assert 0.0 <= fitted[1] <= 0.2 and fitted[1] == pytest.approx(0.05)
+    assert fitted[2] == pytest.approx(0.8)  # still falling at the end: the end
+    assert 0.4 <= fitted[3] <= 0.8
+
+
 def test_feature_metric_compresses_tails_and_keeps_directions():
     positions = np.array([[3.0, 4.0], [0.0, 0.0], [-2000.0, 0.0], [0.0, 10.0]])
     tilt = np.array([0.5, 90.0, 0.5, 1.0])
