@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.stats import ttest_1samp
 
+from diagnosis.drop_separation import separating_releases
 from diagnosis.drop_simulations import TILT_GRID_DEG, Dataset, DropSimulations
 from diagnosis.drop_where import energy_test
 from diagnosis.ranking import effect_entry, held_out_reduction
@@ -199,7 +200,7 @@ class EffectRanking:
             best=best,
             indistinguishable=tied,
             tie_set_size=len(tied),
-            telling_apart={e: self._separating_observation(best, e) for e in tied if e != best},
+            telling_apart=self._telling_apart(best, tied, results),
         )
 
     def _refit_tilt(self) -> float:
@@ -304,6 +305,20 @@ class EffectRanking:
             gap_closed_ci95=list(interval(closed[1:])),
             adequate=bool(all(p >= self.alpha for p in adjusted)),
         )
+
+    def _telling_apart(self, best: str | None, tied: list[str], results: dict) -> dict:
+        """For each effect tied with the best: the observable that separates their
+        held-out predictions most, and the candidate release (height, yaw) that would
+        separate them with the fewest drops."""
+        if len(tied) < 2:
+            return {}
+        strengths = {e: results[e]["strength"] for e in tied}
+        releases = separating_releases(self.sims, strengths, best)
+        return {
+            e: {**self._separating_observation(best, e), "release": releases[e]}
+            for e in tied
+            if e != best
+        }
 
     def _separating_observation(self, best: str, other: str) -> dict:
         """Where the two effects' held-out predictions differ most, in units of the

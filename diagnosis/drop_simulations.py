@@ -130,7 +130,10 @@ class DropSimulations:
     # -- whole-distribution comparisons -----------------------------------------------------
     def raw_features(self, d: DropData, condition: str) -> np.ndarray:
         """Per-drop features (n, d), with only the columns the experiment records."""
-        yaw0 = self.x.condition(condition).protocol.yaw_deg
+        return self.release_features(d, self.x.condition(condition).protocol.yaw_deg)
+
+    def release_features(self, d: DropData, yaw0: float) -> np.ndarray:
+        """Per-drop features of drops released at yaw ``yaw0`` (deg)."""
         yaw = d.yaw_deg if "yaw_spread" in self.names else None
         tilt = d.tilt_deg if "tilt_q50" in self.names else None
         return drop_features(d.positions, yaw, tilt, yaw0, self.order)

@@ -240,6 +240,14 @@ def _telling_apart(which: dict) -> list[str]:
             f"{_fmt(t['best_predicts'])}, {name} {_fmt(t['other_predicts'])}, "
             f"{_fmt(t['z'], 2)} standard errors apart{extra})."
         )
+        release = t.get("release")
+        if release:
+            needed = release["drops_needed_per_condition"]
+            lines.append(
+                f"  A new condition would separate them best at {_fmt(release['height_mm'])} mm, "
+                f"yaw {_fmt(release['yaw_deg'])} deg, tilt {_fmt(release['tilt_deg'])} deg: "
+                + (f"about {needed} drops." if needed else "no candidate release separates them.")
+            )
     return lines
 
 

@@ -147,6 +147,32 @@ def test_strength_fit_finds_the_minimum_between_grid_points():
     assert 0.4 <= fitted[3] <= 0.8
 
 
+def test_drops_needed_to_separate_two_models_falls_with_their_distance():
+    """Two models' drops at a candidate release: the farther apart, the fewer drops the
+    detection test needs; two samples of one model differ only by noise, which takes
+    hundreds of drops (or no number) to "separate"."""
+    from types import SimpleNamespace
+
+    from diagnosis.drop_separation import _drops_needed
+
+    rng = np.random.default_rng(4)
+    sims = SimpleNamespace(names=NAMES)
+
+    def model(spread_mm):
+        positions = rng.normal(scale=spread_mm, size=(300, 2))
+        yaw = rng.uniform(0, 360, 300)
+        return np.column_stack(
+            [positions, np.cos(np.radians(4 * yaw)), np.sin(np.radians(4 * yaw)), np.full(300, 1.0)]
+        )
+
+    _, close = _drops_needed(sims, model(10.0), model(12.0), rng)
+    _, far = _drops_needed(sims, model(10.0), model(30.0), rng)
+    _, same = _drops_needed(sims, model(10.0), model(10.0), rng)
+    assert far < close
+    assert far <= 20  # a threefold spread: a handful of drops
+    assert same >= 100
+
+
 def test_feature_metric_compresses_tails_and_keeps_directions():
     positions = np.array([[3.0, 4.0], [0.0, 0.0], [-2000.0, 0.0], [0.0, 10.0]])
     tilt = np.array([0.5, 90.0, 0.5, 1.0])
