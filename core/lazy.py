@@ -1,4 +1,4 @@
-"""Package attributes imported on first use (PEP 562).
+"""Packages whose re-exported names are imported on first use.
 
 The stage registry imports every stage module, hence its package's ``__init__``, at each
 command-line start; a package that re-exported its numerical modules eagerly would make
@@ -8,23 +8,38 @@ even ``python -m pipeline --help`` import numpy, scipy, pybullet and gmsh (over 
 from __future__ import annotations
 
 import importlib
-from collections.abc import Callable, Mapping
+import sys
+import types
+from collections.abc import Mapping
 from typing import Any
 
-__all__ = ["lazy_attributes"]
+__all__ = ["lazy_package"]
 
 
-def lazy_attributes(namespace: dict[str, Any], sources: Mapping[str, str]) -> Callable[[str], Any]:
-    """A module ``__getattr__`` for the module whose ``globals()`` is ``namespace``:
-    attribute ``name`` is imported from module ``sources[name]`` when first asked for,
-    and kept in the module afterwards."""
-    package = namespace["__name__"]
+class _LazyPackage(types.ModuleType):
+    """A package module whose names in ``_lazy_sources`` are imported when first read."""
 
-    def __getattr__(name: str) -> Any:
-        if name not in sources:
-            raise AttributeError(f"module {package!r} has no attribute {name!r}")
-        value = getattr(importlib.import_module(sources[name]), name)
-        namespace[name] = value  # found directly from now on
+    def __getattr__(self, name: str) -> Any:  # only called for names not bound yet
+        source = self.__dict__["_lazy_sources"].get(name)
+        if source is None:
+            raise AttributeError(f"module {self.__name__!r} has no attribute {name!r}")
+        value = getattr(importlib.import_module(source), name)
+        self.__dict__[name] = value  # found directly from now on
         return value
 
-    return __getattr__
+    def __setattr__(self, name: str, value: Any) -> None:
+        # The import system binds each submodule it loads in its package. A name the
+        # package re-exports from the submodule of the same name (``geometry.describe``,
+        # the function) stays the re-exported object, as the eager import left it.
+        if isinstance(value, types.ModuleType):
+            if self.__dict__["_lazy_sources"].get(name) == value.__name__:
+                value = getattr(value, name)
+        super().__setattr__(name, value)
+
+
+def lazy_package(name: str, sources: Mapping[str, str]) -> None:
+    """Make package ``name`` (call it from its ``__init__`` with ``__name__``) import
+    attribute ``attr`` from module ``sources[attr]`` when it is first read."""
+    module = sys.modules[name]
+    module.__dict__["_lazy_sources"] = dict(sources)
+    module.__class__ = _LazyPackage

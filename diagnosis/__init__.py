@@ -1,9 +1,14 @@
 """Sim-to-real gap diagnosis: where a simulation departs from experiments, which
 unmodelled effect causes it, and how much of the gap that effect closes on held-out data."""
 
-from diagnosis.drops import diagnose_drops, simulate_condition
-from diagnosis.spec import Experiment, load_experiment, read_drop_observations
-from diagnosis.synth import synthesize_drops
+from typing import TYPE_CHECKING
+
+from core.lazy import lazy_package
+
+if TYPE_CHECKING:
+    from diagnosis.drops import diagnose_drops, simulate_condition
+    from diagnosis.spec import Experiment, load_experiment, read_drop_observations
+    from diagnosis.synth import synthesize_drops
 
 __all__ = [
     "Experiment",
@@ -13,3 +18,17 @@ __all__ = [
     "simulate_condition",
     "synthesize_drops",
 ]
+
+# Imported on first use: `pipeline diagnose` and `synth` import this package before
+# they check their input, and the diagnosis brings scipy and pybullet (~2 s).
+lazy_package(
+    __name__,
+    {
+        "diagnose_drops": "diagnosis.drops",
+        "simulate_condition": "diagnosis.drops",
+        "Experiment": "diagnosis.spec",
+        "load_experiment": "diagnosis.spec",
+        "read_drop_observations": "diagnosis.spec",
+        "synthesize_drops": "diagnosis.synth",
+    },
+)

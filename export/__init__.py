@@ -1,8 +1,13 @@
 """Writers of files and pictures. Every function takes the path to write; the run directory
 manager in :mod:`pipeline` decides where that is."""
 
-from export.tables import write_contacts_csv, write_poses_csv
-from export.vtk import stack_polydata, write_pvd, write_stack_vtp
+from typing import TYPE_CHECKING
+
+from core.lazy import lazy_package
+
+if TYPE_CHECKING:
+    from export.tables import write_contacts_csv, write_poses_csv
+    from export.vtk import stack_polydata, write_pvd, write_stack_vtp
 
 __all__ = [
     "stack_polydata",
@@ -11,3 +16,16 @@ __all__ = [
     "write_pvd",
     "write_stack_vtp",
 ]
+
+# Imported on first use: checking a scenario's mesh formats (export.mesh_files) imports
+# this package at every run, and these writers bring scipy and the packing world (~0.6 s).
+lazy_package(
+    __name__,
+    {
+        "stack_polydata": "export.vtk",
+        "write_contacts_csv": "export.tables",
+        "write_poses_csv": "export.tables",
+        "write_pvd": "export.vtk",
+        "write_stack_vtp": "export.vtk",
+    },
+)

@@ -6,7 +6,7 @@ given as one :class:`Arrangement` per deposited batch.
 
 from typing import TYPE_CHECKING
 
-from core.lazy import lazy_attributes
+from core.lazy import lazy_package
 
 if TYPE_CHECKING:
     from geometry.arrangement import Arrangement, arrangements_from_stack
@@ -16,8 +16,8 @@ __all__ = ["Arrangement", "DESCRIPTORS", "Description", "arrangements_from_stack
 
 # Imported on first use: every command-line start imports geometry.stage, hence this
 # package, and these modules bring numpy, scipy and manifold3d.
-__getattr__ = lazy_attributes(
-    globals(),
+lazy_package(
+    __name__,
     {
         "Arrangement": "geometry.arrangement",
         "arrangements_from_stack": "geometry.arrangement",

@@ -7,7 +7,7 @@ returning a :class:`VolumeMesh`; ``check_mesh`` reports their validity.
 
 from typing import TYPE_CHECKING
 
-from core.lazy import lazy_attributes
+from core.lazy import lazy_package
 
 if TYPE_CHECKING:
     from meshing.checks import assert_valid, check_mesh
@@ -28,8 +28,8 @@ __all__ = [
 
 # Imported on first use: every command-line start imports meshing.stage, hence this
 # package, and these modules bring numpy, scipy and gmsh.
-__getattr__ = lazy_attributes(
-    globals(),
+lazy_package(
+    __name__,
     {
         "GmshSession": "meshing.conformal",
         "MeshingError": "meshing.conformal",

@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from geometry.arrangement import Arrangement
-from geometry.orientation import fibre_directions_world
 from meshing.boundaries import PeriodicPairs
+
+# The arrangement (scipy) only when attributes are computed: export.mesh_files imports this
+# module to check a scenario's mesh formats at every run.
+if TYPE_CHECKING:
+    from geometry.arrangement import Arrangement
 
 __all__ = ["VolumeMesh", "PORE", "chip_attributes", "element_attributes"]
 
@@ -80,6 +84,8 @@ def _tet_volumes(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -> 
 def chip_attributes(arrangement: Arrangement, layer_mm: float) -> tuple[np.ndarray, ...]:
     """Per chip: batch (n,), layer by centre of mass (n,), two fibre directions (n, 2, 3)
     and the chip's normal (n, 3), in the world frame."""
+    from geometry.orientation import fibre_directions_world
+
     n = arrangement.n_chips
     layer = np.maximum(np.floor(arrangement.positions[:, 2] / layer_mm), 0).astype(np.int64)
     vectors, owners = fibre_directions_world(arrangement)

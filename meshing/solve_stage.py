@@ -12,15 +12,16 @@ import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from core.errors import InputError
 from core.schema import Scenario
 from core.stages import Stage, StageInputs, StageOutput
-from export.calculix import write_volume_compaction
-from meshing.calculix import SolverError, ccx_path, frd_to_vtu, read_node_prints, run_ccx
+
+# The solver's driver, readers and writers are imported where used: every command-line
+# start registers this stage, and they bring numpy and scipy.
+if TYPE_CHECKING:
+    import numpy as np
 
 __all__ = ["SolveStage", "STAGE", "Compaction"]
 
@@ -65,9 +66,14 @@ class SolveStage(Stage):
             raise InputError(
                 "--to solve: the voxel volume is solved from its .inp; add inp to mesh.formats"
             )
+        from meshing.calculix import ccx_path
+
         ccx_path()
 
     def compute(self, inputs: StageInputs) -> Compaction:
+        from export.calculix import write_volume_compaction
+        from meshing.calculix import SolverError, read_node_prints, run_ccx
+
         mesh = inputs.result("mesh")
         scratch = Path(tempfile.mkdtemp(prefix="chipstack-solve-"))
         solve = inputs.scenario.solve
@@ -146,6 +152,8 @@ STAGE = SolveStage()
 def _write_results(result: Compaction, folder: Path, figures: bool) -> list[str]:
     """The deck, the solver's log and .dat, the last increment as VTU, and the force
     against the press as CSV (and a figure)."""
+    from meshing.calculix import frd_to_vtu
+
     files = []
     for suffix in (".inp", ".dat", ".log"):
         shutil.copy(result.scratch / f"{JOB}{suffix}", folder / f"{JOB}{suffix}")
@@ -174,6 +182,7 @@ def _contact_summary(vtu: Path, inputs: StageInputs) -> dict[str, Any]:
     pressure (MPa). CalculiX writes the contact state at slave nodes, which are chip
     nodes: COPEN, CSLIP1, CSLIP2, CPRESS, CSHEAR1, CSHEAR2."""
     import meshio
+    import numpy as np
 
     if not vtu.is_file():
         return {"chips_in_contact": 0, "contact_pressure_max_mpa": 0.0}
@@ -194,6 +203,7 @@ def _chip_of_node(inputs: StageInputs, points: np.ndarray) -> np.ndarray:
     """(N,) the chip of every node of the solved mesh (-1: platens). The converter keeps
     the deck's node order, chips first; the coordinates are checked to be sure."""
     import meshio
+    import numpy as np
 
     model = meshio.read(inputs.result("mesh").folder / "stack_contact.vtu")
     cells = model.cells[0].data

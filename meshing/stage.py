@@ -9,22 +9,18 @@ import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from core.errors import InputError, printable
 from core.schema import Scenario
 from core.stages import Stage, StageInputs, StageOptions, StageOutput
-from export.calculix import press_mm, write_contact_deck
-from export.mesh_files import MESH_FORMATS, write_mesh
-from geometry.arrangement import Arrangement, stack_history
-from geometry.contacts import KINDS, find_contacts
-from meshing.checks import assert_valid, check_mesh, split_warning
-from meshing.conformal import MeshingError, conformal_mesh
-from meshing.contact_model import ContactModel, contact_model
-from meshing.mesh import VolumeMesh, element_attributes
-from meshing.voxel import voxel_mesh
+
+# The meshers, checks and writers are imported where used: every command-line start
+# registers this stage, and they bring numpy, scipy, manifold3d and gmsh (~1 s).
+if TYPE_CHECKING:
+    from geometry.arrangement import Arrangement
+    from meshing.contact_model import ContactModel
+    from meshing.mesh import VolumeMesh
 
 __all__ = ["MeshStage", "STAGE", "MESH_KINDS", "check_formats"]
 
@@ -83,6 +79,14 @@ class MeshStage(Stage):
         return {"figures": options.figures}
 
     def compute(self, inputs: StageInputs) -> MeshedStack:
+        import numpy as np
+
+        from geometry.arrangement import stack_history
+        from geometry.contacts import KINDS, find_contacts
+        from meshing.checks import assert_valid, check_mesh, split_warning
+        from meshing.conformal import MeshingError
+        from meshing.contact_model import contact_model
+
         arrangement = stack_history(inputs.result("packing"))[-1]
         spec, g = inputs.scenario.mesh, inputs.scenario.geometry
         if spec.kind == "contact":
@@ -146,6 +150,9 @@ class MeshStage(Stage):
 
     @staticmethod
     def _mesh(kind: str, arrangement: Arrangement, scenario: Scenario, result: MeshedStack):
+        from meshing.conformal import conformal_mesh
+        from meshing.voxel import voxel_mesh
+
         spec, layer_mm = scenario.mesh, scenario.geometry.layer_mm
         if kind == "voxel":
             _check_voxel_size(spec.voxel_mm, arrangement)
@@ -219,6 +226,8 @@ def check_contact_model(
 ) -> dict[str, Any]:
     """Every element (``mesh``: the model's chips) has positive volume, every chip's
     meshed volume is its exact volume, and every chip has an outer surface."""
+    import numpy as np
+
     volumes = mesh.element_volumes()
     exact = np.array([s.volume_mm3 for s in arrangement.shapes])[arrangement.shape_index]
     meshed = np.bincount(model.chip, weights=volumes, minlength=model.n_chips)
@@ -247,6 +256,10 @@ def check_contact_model(
 
 def contact_volume_mesh(model: ContactModel, arrangement: Arrangement) -> VolumeMesh:
     """The chips of a contact model as a :class:`VolumeMesh` (for checks and files)."""
+    import numpy as np
+
+    from meshing.mesh import VolumeMesh, element_attributes
+
     n = len(model.cells)
     attributes = element_attributes(arrangement, model.chip, 2.0)
     return VolumeMesh(
@@ -265,6 +278,10 @@ def contact_volume_mesh(model: ContactModel, arrangement: Arrangement) -> Volume
 
 def _write_contact(folder: Path, result: MeshedStack, inputs: StageInputs) -> dict[str, Any]:
     """The CalculiX deck, a VTU of the chips and the check report; the manifest entry."""
+    from export.calculix import press_mm, write_contact_deck
+    from export.mesh_files import write_mesh
+    from meshing.conformal import MeshingError
+
     model = result.contact
     spec = inputs.scenario.mesh
     write_contact_deck(folder / "stack_contact.inp", model, inputs.scenario.solve, spec.element)
@@ -316,6 +333,8 @@ def _check_voxel_size(voxel_mm: float, arrangement: Arrangement) -> None:
 
 def check_formats(formats: tuple[str, ...], key: str) -> None:
     """Refuse an empty list or an unknown mesh format, listing the valid ones."""
+    from export.mesh_files import MESH_FORMATS  # numpy: when a scenario is checked
+
     valid = ", ".join(MESH_FORMATS.names())
     if not formats:
         raise InputError(f"{key}: give at least one format ({valid})")
@@ -339,6 +358,8 @@ def _volume_tolerance(kind: str, arrangement: Arrangement, voxel_mm: float) -> f
 
 def _write_kind(folder: Path, kind: str, mesh: VolumeMesh, result: MeshedStack, inputs) -> dict:
     """One mesh's files, picture and check report; returns its manifest entry."""
+    from export.mesh_files import write_mesh
+
     stem = f"stack_{kind}"
     spec = inputs.scenario.mesh
     native = [f for f in NATIVE_FORMATS.get(kind, ()) if f in spec.formats]

@@ -4,7 +4,7 @@ import logging
 from typing import TYPE_CHECKING
 
 from core.errors import ChipstackError, InputError, SimulationError
-from core.lazy import lazy_attributes
+from core.lazy import lazy_package
 from core.schema import Scenario, scenario_from_dict, scenario_to_dict
 from packing.presets import PRESETS, PhysicsPreset
 
@@ -37,8 +37,8 @@ __all__ = [
 
 # Imported on first use: every command-line start imports packing.stage, hence this
 # package, and these modules bring numpy, scipy, trimesh and pybullet (~1 s).
-__getattr__ = lazy_attributes(
-    globals(),
+lazy_package(
+    __name__,
     {
         "deposit": "packing.deposition",
         "SHAPES": "packing.shapes",

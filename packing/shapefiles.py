@@ -27,7 +27,6 @@ import numpy as np
 from core.errors import InputError, brief, printable
 from core.files import check_geometry_file
 from core.schema import LENGTH_UNITS_MM, ChipSpec
-from packing.bullet import vhacd
 from packing.chipshape import ChipShape, _fibres, _frozen
 from packing.polygons import convex_partition, counter_clockwise
 
@@ -143,6 +142,9 @@ def _prism_outline(mesh) -> np.ndarray | None:
 
 def _decompose(mesh, shown: str) -> list[np.ndarray]:
     import trimesh
+
+    # pybullet (~0.1 s) only for a concave file: every scenario check imports this module
+    from packing.bullet import vhacd
 
     with tempfile.TemporaryDirectory(prefix="chipstack-vhacd-") as tmp:
         source, target = os.path.join(tmp, "in.obj"), os.path.join(tmp, "out.obj")

@@ -9,7 +9,6 @@ from typing import Any
 from core.errors import InputError
 from core.files import read_json
 from core.schema import printable
-from geometry.ensemble import compare_ensembles
 from pipeline.rundir import RunDirectory
 
 __all__ = ["load_ensemble", "compare_runs", "comparison_table"]
@@ -117,11 +116,14 @@ def compare_runs(
     command: list[str] | None = None,
 ) -> tuple[dict[str, Any], str]:
     """Compare two ensembles; writes compare.json, compare.md and Fig. 12 into ``out``."""
-    from export.run_figures import comparison_figures
-
     run = RunDirectory(out, overwrite=overwrite)
     run.check()
     ensembles = (load_ensemble(run_a), load_ensemble(run_b))
+    # Imported once the inputs are checked: scipy.stats and matplotlib take ~1.5 s, too
+    # long to wait for a one-line error about a missing directory.
+    from export.run_figures import comparison_figures
+    from geometry.ensemble import compare_ensembles
+
     labels = (Path(run_a).name or str(run_a), Path(run_b).name or str(run_b))
     if labels[0] == labels[1]:
         labels = (f"A: {labels[0]}", f"B: {labels[1]}")

@@ -14,8 +14,6 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from core.errors import InputError, printable
 from core.provenance import code_versions
 from core.schema import Scenario, scenario_to_dict
@@ -39,6 +37,8 @@ def derive_seed(seed: int, index: int) -> int:
 
     Depends only on (seed, index), never on how many repeats run or in which order.
     """
+    import numpy as np  # here: every ``pipeline run`` imports this module before any check
+
     return int(np.random.SeedSequence([seed, index]).generate_state(1, dtype=np.uint32)[0])
 
 

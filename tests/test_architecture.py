@@ -6,6 +6,8 @@ from __future__ import annotations
 import ast
 import json
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -114,6 +116,42 @@ def test_stages_come_from_the_registry_in_dependency_order():
     for stage in load_stages():
         for upstream in stage.upstream:
             assert names.index(upstream) < names.index(stage.name)
+
+
+HEAVY = (
+    "numpy",
+    "scipy",
+    "trimesh",
+    "pybullet",
+    "gmsh",
+    "manifold3d",
+    "meshio",
+    "matplotlib",
+    "pyvista",
+    "dask",
+    "distributed",
+)
+
+
+def _heavy_imported(code: str) -> list[str]:
+    """The heavy libraries a fresh interpreter has imported after running ``code``."""
+    probe = f"import sys\n{code}\nprint(*sorted({{m.split('.')[0] for m in sys.modules}}))"
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    return [m for m in HEAVY if m in out.stdout.split()]
+
+
+def test_command_line_start_imports_no_heavy_library():
+    """Every command-line start loads the stage registry (``--help`` lists the stages) and
+    every run checks its scenario: the stage modules import their numerical libraries
+    where they use them (scipy, gmsh, pybullet... cost a second at each start)."""
+    assert _heavy_imported("import pipeline.cli, core.stages; core.stages.load_stages()") == []
+    loaded = _heavy_imported(
+        "import pipeline.run\n"
+        "from pipeline.scenario_files import load_scenario\n"
+        "load_scenario('paper-squares')"
+    )
+    assert loaded == ["numpy"]  # the chip shapes are checked with numpy
 
 
 def test_every_scenario_table_is_in_some_stage_key():
