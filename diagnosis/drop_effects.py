@@ -87,7 +87,10 @@ def best_tilt(sims: DropSimulations, datasets: list[Dataset]) -> np.ndarray:
     ``sims.tilt_grid``): the estimate, then one per resample (1 + B,)."""
     grid = sims.tilt_grid
     curve = np.array(
-        [sum(sims.energy(ds, sims.baseline(ds.condition, t)) for ds in datasets) for t in grid]
+        [
+            sum(sims.energy(ds, sims.grid_setting(ds.condition, t, None, 0.0)) for ds in datasets)
+            for t in grid
+        ]
     )
     return vertex(list(grid), curve, TILT_RESOLUTION_DEG)
 
@@ -122,7 +125,9 @@ class StrengthGrids:
         keys = []
         for effect, grid in self.grids.items():
             keys += [
-                self.sims.setting(c, self.tilt, effect, s) for s in grid for c in self.conditions
+                self.sims.grid_setting(c, self.tilt, effect, s)
+                for s in grid
+                for c in self.conditions
             ]
         return keys
 
@@ -131,7 +136,7 @@ class StrengthGrids:
     ) -> np.ndarray:
         """Energy distance summed over ``datasets``, (strengths, 1 + B): the estimate,
         then per resample of both the observed and the simulated drops."""
-        setting = self.sims.setting
+        setting = self.sims.grid_setting
         return np.array(
             [
                 sum(self.sims.energy(ds, setting(ds.condition, tilt, effect, s)) for ds in datasets)
@@ -173,7 +178,8 @@ class EffectRanking:
         grids = StrengthGrids(self.sims, effects, self.conditions, None, points)
         # Three batches: every grid (tilts and strengths); every model fitted per fold,
         # at its held-out conditions; the second pools of the adequacy tests.
-        tilts = [self.sims.baseline(c, t) for c in self.conditions for t in self.sims.tilt_grid]
+        grid = self.sims.tilt_grid
+        tilts = [self.sims.grid_setting(c, t, None, 0.0) for c in self.conditions for t in grid]
         self.sims.ensure(tilts + grids.keys())
         tilt_all = self._refit_tilt()
         refits = [self.sims.baseline(ds.condition, f.refit_tilt) for f, ds in self._held_pairs()]
@@ -193,7 +199,7 @@ class EffectRanking:
         best = ranked[0] if ranked else None
         tied = [e for e in ranked if results[e]["indistinguishable_from_best"]]
         return dict(
-            baseline_refit=self._baseline_refit(tilt_all, base, refit),
+            baseline_refit=self._baseline_refit(tilt_all, base, refit, best and held[best]),
             ranking=[results[e] for e in ranked],
             not_applicable=skipped,
             folds=[f.name for f in self.folds],
@@ -272,9 +278,12 @@ class EffectRanking:
         observed and the simulated drops: its interval carries the fit's noise."""
         return grids.fit(self.everything, None, effect).tolist()
 
-    def _baseline_refit(self, tilt_all: float, base: HeldOut, refit: HeldOut) -> dict:
+    def _baseline_refit(
+        self, tilt_all: float, base: HeldOut, refit: HeldOut, best: HeldOut | None
+    ) -> dict:
         """The refitted baseline on held-out data, with its adequacy test (held-out drops
-        against an independent simulation at the refitted tilt, Holm across them)."""
+        against an independent simulation at the refitted tilt, Holm across them) and its
+        comparison with the best effect (``best``): a candidate like the effects."""
         pairs = self._held_pairs()
         keys = [self.sims.baseline(ds.condition, fold.refit_tilt) for fold, ds in pairs]
         self.sims.ensure([self.sims.second_pool(k) for k in keys])
@@ -304,6 +313,9 @@ class EffectRanking:
             held_out_reduction=float(held_out_reduction(refit.energy, base.energy)[0]),
             gap_closed_ci95=list(interval(closed[1:])),
             adequate=bool(all(p >= self.alpha for p in adjusted)),
+            # Closes more of the held-out gap than the best effect (or no effect applies).
+            beats_best_effect=bool(best is None or refit.energy[0] < best.energy[0]),
+            p_worse_than_best_effect=1.0 if best is None else _p_worse(refit.scores - best.scores),
         )
 
     def _telling_apart(self, best: str | None, tied: list[str], results: dict) -> dict:

@@ -22,6 +22,12 @@ __all__ = ["Dataset", "DropSimulations", "NOISE_POOL"]
 # independently, to test a fitted model on data it was not chosen with.
 BASELINE_POOL = "A"
 NOISE_POOL = "B"
+# Grid settings (the curves strengths and tilts are fitted on) are simulated with half
+# the drops: the curve's smooth surrogate pools the grid points, and their drops are the
+# first of pool A's (each drop has its own random stream), so the grid stays paired with
+# the fitted models.
+GRID_POOL = "G"
+GRID_MIN_DROPS = 60  # below that a grid point's curve is too rough to fit on
 
 
 TILT_GRID_DEG = (0.0, 2.5, 10.0, 15.0, 20.0)
@@ -52,13 +58,14 @@ class DropSimulations:
         self.drops: dict[tuple, DropData] = {}
         self.observables: dict[tuple, np.ndarray] = {}
         self.metric: dict[str, FeatureMetric] = {}  # condition -> how drops compare
-        self.sim_weights: dict[str, np.ndarray] = {}  # condition -> (1 + B, n) counts
+        self._sim_weights: dict[tuple, np.ndarray] = {}  # (condition, m) -> (1 + B, m)
         self._features: dict[tuple, np.ndarray] = {}
         self._within: dict[tuple, np.ndarray] = {}
         self._cross: dict[tuple, np.ndarray] = {}
         # condition -> (K,) sd of each observable's difference when there is no gap
         self.observable_sd: dict[str, np.ndarray] = {}
         self.n = experiment.settings.sim_drops
+        self.grid_n = min(self.n, max(GRID_MIN_DROPS, self.n // 2))
         preset = PRESETS.get(experiment.scenario.physics.preset, key="physics.preset")
         self.contact = contact_model(preset, experiment.scenario.physics)
         # The release tilts the baseline refit may choose: a fixed grid and every
@@ -90,6 +97,12 @@ class DropSimulations:
             return self.baseline(condition, tilt)
         return self.key(condition, tilt, effect, strength, BASELINE_POOL)
 
+    def grid_setting(self, condition: str, tilt: float | None, effect: str | None, strength):
+        """The key of a grid point: ``setting``'s, simulated with ``grid_n`` drops,
+        except the condition's own baseline (the detection's, simulated in full)."""
+        key = self.setting(condition, tilt, effect, strength)
+        return key if key == self.baseline(condition, None) else key[:4] + (GRID_POOL,)
+
     @staticmethod
     def second_pool(key: tuple) -> tuple:
         """The same setting simulated again, independently (its noise-floor twin)."""
@@ -111,7 +124,7 @@ class DropSimulations:
         return dict(
             scenario=self.x.scenario,
             protocol=replace(self.x.condition(condition).protocol, tilt_deg=tilt),
-            n=self.n,
+            n=self.grid_n if pool == GRID_POOL else self.n,
             strengths={effect: strength} if effect else {},
             seed=self._seed(condition, pool),
             position_sd_mm=self.x.position_sd_mm,
@@ -120,7 +133,7 @@ class DropSimulations:
 
     def _seed(self, condition: str, pool: str) -> int:
         # Common random numbers: every setting of a condition uses the same draws.
-        pool_offset = 1 if pool == BASELINE_POOL else 2
+        pool_offset = 2 if pool == NOISE_POOL else 1
         return int(self.seed) * 1000 + 10 * self.index[condition] + pool_offset
 
     def observe(self, d: DropData, condition: str) -> np.ndarray:
@@ -140,9 +153,7 @@ class DropSimulations:
 
     def set_metric(self, condition: str, experiment: DropData) -> None:
         """Fix the condition's feature scale from the experiment pooled with the baseline
-        (a scale of the pooled drops leaves the permutation tests exact), and the
-        bootstrap weights of its simulated samples (the same for every setting: their
-        drops share the release draws, so settings stay paired)."""
+        (a scale of the pooled drops leaves the permutation tests exact)."""
         pooled = np.vstack(
             [
                 self.raw_features(experiment, condition),
@@ -152,8 +163,17 @@ class DropSimulations:
         self.metric[condition] = FeatureMetric.of(
             pooled, "yaw_spread" in self.names, "tilt_q50" in self.names
         )
-        rng = np.random.default_rng([self.seed, 19, self.index[condition]])
-        self.sim_weights[condition] = resample_weights(self.n, self.x.settings.bootstrap, rng)
+
+    def sim_weights(self, key: tuple) -> np.ndarray:
+        """Bootstrap weights (1 + B, m) of the simulation ``key``: the same for every
+        setting of a condition with as many drops (their drops share the release draws,
+        so settings stay paired)."""
+        condition, m = key[0], self.drops[key].n
+        if (condition, m) not in self._sim_weights:
+            rng = np.random.default_rng([self.seed, 19, self.index[condition], m])
+            weights = resample_weights(m, self.x.settings.bootstrap, rng)
+            self._sim_weights[condition, m] = weights
+        return self._sim_weights[condition, m]
 
     def features(self, key: tuple) -> np.ndarray:
         """Standardised features (m, d) of the simulation ``key``."""
@@ -167,7 +187,7 @@ class DropSimulations:
         if key not in self._within:
             f = self.features(key)
             distances = self.metric[key[0]].distances(f).sum(axis=0)
-            self._within[key] = mean_within(distances, self.sim_weights[key[0]])
+            self._within[key] = mean_within(distances, self.sim_weights(key))
         return self._within[key]
 
     def cross(self, ds: Dataset, key: tuple) -> np.ndarray:
@@ -183,7 +203,7 @@ class DropSimulations:
         simulation ``key``, then of each resample (1 + B,): a resample draws both the
         observed drops and the simulated ones, so intervals carry both noises. About 0
         when ``key`` is right, positive when it is not."""
-        between = mean_cross(self.cross(ds, key), ds.weights, self.sim_weights[key[0]])
+        between = mean_cross(self.cross(ds, key), ds.weights, self.sim_weights(key))
         return 2.0 * between - ds.within - self.within(key)
 
     def scores(self, ds: Dataset, key: tuple) -> np.ndarray:

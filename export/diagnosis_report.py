@@ -165,7 +165,7 @@ def _regions(regions: list[dict] | None) -> list[str]:
 def _which_section(which: dict, no_gap: bool) -> list[str]:
     lines = ["", "## 2. Which effect", ""]
     if which is None:
-        return lines + ["There is no significant gap to explain: nothing was fitted."]
+        return lines + ["Nothing was fitted (see the verdict)."]
     if no_gap:
         lines += ["There is no significant gap to explain: what follows is for reference only.", ""]
     lines += _baseline_refit(which["baseline_refit"])
