@@ -115,7 +115,8 @@ class DropSimulations:
         if not keys:
             return
         calls = [self._call(*key) for key in keys]
-        self.progress(f"simulating {len(keys)} x {self.n} drops")
+        drops = sum(c["n"] for c in calls)
+        self.progress(f"simulating {len(keys)} settings, {drops} drops")
         for key, result in zip(keys, self.run_many(self.simulate, calls), strict=True):
             self.drops[key] = result
             self.observables[key] = self.observe(result, key[0])
