@@ -95,32 +95,35 @@ class _DropDiagnosis:
             self.sims.set_metric(c, self.data[c])
         full = dict(zip(conditions, self._datasets([(c, None) for c in conditions]), strict=True))
         where = locate_gap(full, self.sims, self.rng, self.settings.alpha)
-        report = {**self._description(), "where": where}
-        if not where["overall"]["significant"]:
-            # Nothing to explain: no effect is fitted (that is what keeps an effect-free
-            # experiment's diagnosis to seconds).
-            verdict = dict(
-                kind="no significant gap",
-                text="The experiment is consistent with the baseline simulation: the "
-                "overall energy test of every condition's drops (position, yaw, tilt) "
-                f"gives p = {where['overall']['p_value']:.3g} >= {self.settings.alpha}.",
-            )
-            scatter = self._scatter([], full, None)
-            return {"scatter": scatter, **report, "which": None, "how_far": {}, "verdict": verdict}
-        if detect_only:
-            verdict = dict(
-                kind="gap detected",
-                text=f"Overall test p = {where['overall']['p_value']:.3g}; no effect fitted.",
-            )
-            scatter = self._scatter([], full, None)
-            return {"scatter": scatter, **report, "which": None, "how_far": {}, "verdict": verdict}
+        p = where["overall"]["p_value"]
+        if not where["overall"]["significant"] or detect_only:
+            # Nothing (more) to do: no effect is fitted, which keeps an effect-free
+            # experiment's diagnosis to seconds.
+            if where["overall"]["significant"]:
+                verdict = dict(
+                    kind="gap detected", text=f"Overall test p = {p:.3g}; no effect fitted."
+                )
+            else:
+                verdict = dict(
+                    kind="no significant gap",
+                    text="The experiment is consistent with the baseline simulation: the "
+                    "overall energy test of every condition's drops (position, yaw, tilt) "
+                    f"gives p = {p:.3g} >= {self.settings.alpha}.",
+                )
+            return self._report(where, [], full, None, {}, verdict)
         folds = self._folds(full)
         which = EffectRanking(self.sims, folds, full, self.rng).run()
         how_far = how_far_best(which, folds, self.sims, self.rng)
-        verdict = self._verdict(where, which, how_far)
+        return self._report(
+            where, folds, full, which, how_far, self._verdict(where, which, how_far)
+        )
+
+    def _report(self, where, folds, full, which, how_far, verdict) -> dict:
+        best = which["best"] if which else None
         return {
-            "scatter": self._scatter(folds, full, which["best"]),
-            **report,
+            "scatter": self._scatter(folds, full, best),
+            **self._description(),
+            "where": where,
             "which": which,
             "how_far": how_far,
             "verdict": verdict,
