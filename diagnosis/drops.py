@@ -214,7 +214,7 @@ class _DropDiagnosis:
                 f"({refit['all_conditions_deg']:g} deg) closes it: the held-out drops are "
                 "consistent with the refitted baseline.",
             )
-        return effect_verdict(gap, which, how_far, self.settings.alpha)
+        return effect_verdict(gap, which, how_far, self.settings.alpha, where)
 
 
 def diagnose_drops(

@@ -301,7 +301,7 @@ class _StackDiagnosis:
                 text="The measurements lie within the simulation's "
                 "noise in every condition (chi-square tests, Holm-adjusted).",
             )
-        return effect_verdict(significant, which, how_far, self.x.settings.alpha)
+        return effect_verdict(significant, which, how_far, self.x.settings.alpha, where)
 
 
 def diagnose_stacks(

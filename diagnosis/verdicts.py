@@ -38,15 +38,19 @@ def applicable_effects(experiment: Experiment) -> tuple[list[str], dict[str, str
     return usable, skipped
 
 
-def effect_verdict(significant: list[str], which: dict, how_far: dict, alpha: float) -> dict:
+def effect_verdict(
+    significant: list[str], which: dict, how_far: dict, alpha: float, where: dict | None = None
+) -> dict:
     """``unexplained`` when the gap the best effect closes on held-out data has an
     interval reaching 0; ``partly explained`` when it closes a significant part but the
     held-out data are still not consistent with it (the residual gap after it, tested
     against the noise floor per held-out condition, Holm-adjusted, is significant);
-    else ``explained``, with the effects tied with it."""
+    else ``explained``, with the effects tied with it. An unexplained gap names the
+    observables and regions of ``where`` still off (significant after adjustment)."""
     gap = ", ".join(significant)
+    off = _off(where)
     if not which["ranking"]:
-        return dict(kind="unexplained", text=f"Gap in {gap}; no candidate effect applies.")
+        return dict(kind="unexplained", text=f"Gap in {gap}; no candidate effect applies.{off}")
     top = which["ranking"][0]
     lo, hi = top["held_out_reduction_ci95"]
     shown = f"{percent(top['held_out_reduction'])} [{percent(lo)}, {percent(hi)}]"
@@ -55,7 +59,7 @@ def effect_verdict(significant: list[str], which: dict, how_far: dict, alpha: fl
         return dict(
             kind="unexplained",
             text=f"Gap in {gap}; no candidate effect closes a significant part of it on "
-            f"held-out data (best: {top['effect']}, {shown}).",
+            f"held-out data (best: {top['effect']}, {shown}).{off}",
         )
     others = [e for e in which["indistinguishable"] if e != top["effect"]]
     text = (
@@ -81,6 +85,27 @@ def effect_verdict(significant: list[str], which: dict, how_far: dict, alpha: fl
         still_off=remaining,
         text=text,
     )
+
+
+def _off(where: dict | None, most: int = 8) -> str:
+    """ " Still off: ..." naming the observables and regions of ``where`` beyond the
+    noise (at most ``most`` of them), or nothing."""
+    if not where:
+        return ""
+    names = [
+        f"{r['observable']} in {r['condition']}"
+        for r in where.get("observables", [])
+        if r.get("beyond_noise")
+    ]
+    names += [
+        f"{r['region']} {r['where']} in {r['condition']}"
+        for r in where.get("regions", [])
+        if r.get("notable")
+    ]
+    if not names:
+        return ""
+    more = f" and {len(names) - most} more" if len(names) > most else ""
+    return f" Still off: {', '.join(names[:most])}{more}."
 
 
 def _still_off(conditions: list[dict], alpha: float) -> list[str]:

@@ -284,6 +284,18 @@ def test_an_effect_that_leaves_a_significant_gap_is_only_partly_explained():
     assert "remains after it in c0" in partly["text"]
     # Holm across the held-out conditions: 0.03 and 0.04 are not both below 0.05 / 2.
     assert residual(0.03, 0.6)["kind"] == "explained"
+    # An effect that closes nothing for sure: unexplained, naming what is still off.
+    weak = dict(top, gap_closed_ci95=[-0.1, 0.5])
+    where = dict(
+        observables=[
+            dict(condition="c0", observable="r_q90", beyond_noise=True),
+            dict(condition="c1", observable="r_q50", beyond_noise=False),
+        ],
+        regions=[dict(condition="c1", region="ring", where="> 40 mm", notable=True)],
+    )
+    verdict = effect_verdict(["c0"], dict(which, ranking=[weak]), dict(conditions=[]), 0.05, where)
+    assert verdict["kind"] == "unexplained"
+    assert verdict["text"].endswith("Still off: r_q90 in c0, ring > 40 mm in c1.")
 
 
 def test_rounded_chip_volume_matches_the_minkowski_formula():
