@@ -170,7 +170,13 @@ def _summary(result: dict, plan: dict, seconds: float) -> dict:
         verdict=result["verdict"]["kind"],
         detection_p=result["where"]["overall"]["p_value"],
         best=which.get("best"),
-        tie_set=which.get("indistinguishable", []),
+        # The refitted baseline, when tied with the best effect, is in the tie set too.
+        tie_set=which.get("indistinguishable", [])
+        + (
+            ["baseline refit"]
+            if which.get("baseline_refit", {}).get("tied_with_best_effect")
+            else []
+        ),
         ranking=[e["effect"] for e in ranking],
         seconds=round(seconds, 1),
     )

@@ -313,9 +313,23 @@ class EffectRanking:
             held_out_reduction=float(held_out_reduction(refit.energy, base.energy)[0]),
             gap_closed_ci95=list(interval(closed[1:])),
             adequate=bool(all(p >= self.alpha for p in adjusted)),
-            # Closes more of the held-out gap than the best effect (or no effect applies).
-            beats_best_effect=bool(best is None or refit.energy[0] < best.energy[0]),
-            p_worse_than_best_effect=1.0 if best is None else _p_worse(refit.scores - best.scores),
+            **self._refit_against(refit, best),
+        )
+
+    def _refit_against(self, refit: HeldOut, best: HeldOut | None) -> dict:
+        """The refit against the best effect on the held-out drops' scores (one-sided
+        paired tests both ways): better (the effect significantly worse), tied (neither
+        significantly worse), or worse. A tie is not broken by the point estimate, which
+        would make the verdict hang on the seed."""
+        if best is None:
+            return dict(better_than_effects=True, tied_with_best_effect=False)
+        refit_worse = _p_worse(refit.scores - best.scores)
+        effect_worse = _p_worse(best.scores - refit.scores)
+        return dict(
+            p_worse_than_best_effect=refit_worse,
+            p_best_effect_worse=effect_worse,
+            better_than_effects=bool(effect_worse < self.alpha),
+            tied_with_best_effect=bool(refit_worse >= self.alpha and effect_worse >= self.alpha),
         )
 
     def _telling_apart(self, best: str | None, tied: list[str], results: dict) -> dict:

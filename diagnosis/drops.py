@@ -205,15 +205,19 @@ class _DropDiagnosis:
         significant = [t["condition"] for t in where["tests"] if t["significant"]]
         gap = significant or ["the conditions taken together"]
         refit = which["baseline_refit"]
-        # The refit is a candidate like the effects: chosen when it closes more of the
-        # held-out gap than the best effect and the held-out drops are consistent with it.
-        if refit["adequate"] and refit["beats_best_effect"] and refit["held_out_reduction"] > 0:
+        # The refit is a candidate like the effects: chosen when the best effect scores
+        # significantly worse on the held-out drops and the drops are consistent with it;
+        # tied with the best effect, it is named among the indistinguishable.
+        if refit["adequate"] and refit["better_than_effects"] and refit["held_out_reduction"] > 0:
             return dict(
                 kind="baseline refit",
                 text=f"Gap in {', '.join(gap)}; refitting the baseline's release tilt "
                 f"({refit['all_conditions_deg']:g} deg) closes it: the held-out drops are "
                 "consistent with the refitted baseline.",
             )
+        if refit["tied_with_best_effect"]:
+            tilt = f"the baseline refit (release tilt {refit['all_conditions_deg']:g} deg)"
+            which = dict(which, indistinguishable=[*which["indistinguishable"], tilt])
         return effect_verdict(gap, which, how_far, self.settings.alpha, where)
 
 
