@@ -180,6 +180,18 @@ def _summary(result: dict, plan: dict, seconds: float) -> dict:
         ranking=[e["effect"] for e in ranking],
         seconds=round(seconds, 1),
     )
+    # Enough of each effect's entry to judge other verdict rules from the cache.
+    record["effects"] = {
+        e["effect"]: dict(
+            strength=e["strength"],
+            gap_closed=e["gap_closed"],
+            gap_closed_ci95=e["gap_closed_ci95"],
+            p_worse_than_best=e.get("p_worse_than_best"),
+            p_better_than_baseline=e.get("p_better_than_baseline"),
+        )
+        for e in ranking
+    }
+    record["p_after"] = [c["p_after"] for c in (result.get("how_far") or {}).get("conditions", [])]
     if len(truth) == 1 and ranking:
         entry = {e["effect"]: e for e in ranking}.get(truth[0])
         if entry is not None:

@@ -194,6 +194,11 @@ class EffectRanking:
                 reduction = held_out_reduction(held[effect].energy, base.energy)
                 fitted = self._fit_on_everything(effect, grids)
                 results[effect] = effect_entry(effect, fitted, reduction, closed, held[effect].rows)
+                # Reported beside the bootstrap interval of the gap closed: the paired
+                # per-drop test the tie set uses, against the baseline.
+                results[effect]["p_better_than_baseline"] = _p_worse(
+                    base.scores - held[effect].scores
+                )
             ranked = sorted(effects, key=lambda e: -results[e]["gap_closed"])
             self._tie_set(ranked, results, held)
         best = ranked[0] if ranked else None
