@@ -220,7 +220,6 @@ class EffectRanking:
         the release tilt the spec states."""
         for fold in self.folds:
             fold.refit_tilt = float(best_tilt(self.sims, fold.calibration)[0])
-            fold.tilt = None
         return float(best_tilt(self.sims, self.everything)[0])
 
     def _held_out(self, model) -> HeldOut:

@@ -18,7 +18,13 @@ import numpy as np
 
 from diagnosis.drop_simulations import DropSimulations
 from diagnosis.observables import FeatureMetric
-from diagnosis.statistics import energy_statistics, mean_cross, mean_within, permutation_masks
+from diagnosis.statistics import (
+    energy_distance,
+    energy_statistics,
+    mean_cross,
+    mean_within,
+    permutation_masks,
+)
 
 __all__ = ["CANDIDATE_HEIGHTS_MM", "CANDIDATE_YAWS_DEG", "separating_releases"]
 
@@ -91,9 +97,11 @@ def _drops_needed(sims: DropSimulations, a: np.ndarray, b: np.ndarray, rng) -> t
     n = len(a)
     one_a, one_b = np.ones((1, n)), np.ones((1, len(b)))
     distance = float(
-        2 * mean_cross(distances[:n, n:], one_a, one_b)[0]
-        - mean_within(distances[:n, :n], one_a)[0]
-        - mean_within(distances[n:, n:], one_b)[0]
+        energy_distance(
+            mean_cross(distances[:n, n:], one_a, one_b),
+            mean_within(distances[:n, :n], one_a),
+            mean_within(distances[n:, n:], one_b),
+        )[0]
     )
     null = energy_statistics(distances, permutation_masks(n, len(b), NULL_PERMUTATIONS, rng))[1:]
     if distance <= 0:

@@ -12,7 +12,7 @@ import numpy as np
 
 from diagnosis.observables import FeatureMetric, drop_features, drop_observables, symmetry_order
 from diagnosis.spec import DropData, Experiment
-from diagnosis.statistics import mean_cross, mean_within, resample_weights
+from diagnosis.statistics import energy_distance, mean_cross, mean_within, resample_weights
 from packing.effects import EFFECTS, contact_model
 from packing.presets import PRESETS
 
@@ -205,7 +205,7 @@ class DropSimulations:
         observed drops and the simulated ones, so intervals carry both noises. About 0
         when ``key`` is right, positive when it is not."""
         between = mean_cross(self.cross(ds, key), ds.weights, self.sim_weights(key))
-        return 2.0 * between - ds.within - self.within(key)
+        return energy_distance(between, ds.within, self.within(key))
 
     def scores(self, ds: Dataset, key: tuple) -> np.ndarray:
         """Each observed drop's energy score under the simulation ``key`` (n,): lower is a

@@ -34,6 +34,7 @@ from geometry.stats import holm
 
 __all__ = [
     "PERMUTATIONS",
+    "energy_distance",
     "energy_statistics",
     "exceedance_p",
     "holm",
@@ -72,6 +73,13 @@ def mean_within(distances: np.ndarray, weights: np.ndarray) -> np.ndarray:
     distance, 0, would bias the resamples' within-sample distance down)."""
     pairs = weights.sum(axis=1) ** 2 - (weights**2).sum(axis=1)
     return ((weights @ distances) * weights).sum(axis=1) / pairs
+
+
+def energy_distance(cross: np.ndarray, within_a: np.ndarray, within_b: np.ndarray) -> np.ndarray:
+    """The energy distance (U-statistic) from the mean cross distance and the two mean
+    within-sample distances (each (R,), from ``mean_cross`` and ``mean_within``): about
+    0 when the samples share their distribution, positive when they do not."""
+    return 2.0 * cross - within_a - within_b
 
 
 def permutation_masks(n: int, m: int, permutations: int, rng: np.random.Generator) -> np.ndarray:
