@@ -41,8 +41,8 @@ def applicable_effects(experiment: Experiment) -> tuple[list[str], dict[str, str
 def effect_verdict(
     significant: list[str], which: dict, how_far: dict, alpha: float, where: dict | None = None
 ) -> dict:
-    """``unexplained`` when the gap the best effect closes on held-out data has an
-    interval reaching 0; ``partly explained`` when it closes a significant part but the
+    """``unexplained`` when the best effect does not close a significant part of the gap
+    on held-out data; ``partly explained`` when it closes a significant part but the
     held-out data are still not consistent with it (the residual gap after it, tested
     against the noise floor per held-out condition, Holm-adjusted, is significant);
     else ``explained``, with the effects tied with it. An unexplained gap names the
@@ -54,8 +54,7 @@ def effect_verdict(
     top = which["ranking"][0]
     lo, hi = top["held_out_reduction_ci95"]
     shown = f"{percent(top['held_out_reduction'])} [{percent(lo)}, {percent(hi)}]"
-    closed_lo = top["gap_closed_ci95"][0]
-    if not np.isfinite(closed_lo) or closed_lo <= 0:
+    if not _closes_significantly(top, alpha):
         return dict(
             kind="unexplained",
             text=f"Gap in {gap}; no candidate effect closes a significant part of it on "
@@ -85,6 +84,17 @@ def effect_verdict(
         still_off=remaining,
         text=text,
     )
+
+
+def _closes_significantly(top: dict, alpha: float) -> bool:
+    """Whether the best effect closes a significant part of the gap on held-out data: its
+    paired per-drop test against the baseline, Holm-adjusted across the effects, where
+    the drops are scored one by one (drop experiments); else the bootstrap interval of
+    the gap closed must exclude 0 (stack summaries have no per-drop score)."""
+    if "p_better_than_baseline_holm" in top:
+        return top["p_better_than_baseline_holm"] < alpha
+    low = top["gap_closed_ci95"][0]
+    return bool(np.isfinite(low) and low > 0)
 
 
 def _off(where: dict | None, most: int = 8) -> str:

@@ -33,23 +33,16 @@ class ChipLoads:
         """Forces (k, 3) g mm/s^2 through the centres of mass at ``positions_mm`` and
         torques (k, 3) g mm^2/s^2, world frame, for the next step only."""
         c = self._session.client
-        for i, force, torque, at in zip(chips, forces, torques, positions_mm, strict=False):
+        # One conversion to lists for all chips: per-chip numpy-to-list calls cost more
+        # than the engine's step when many chips are in flight.
+        forces = (np.asarray(forces, dtype=float) / MM_PER_UNIT).tolist()
+        torques = (np.asarray(torques, dtype=float) / MM_PER_UNIT**2).tolist()
+        positions = (np.asarray(positions_mm, dtype=float) / MM_PER_UNIT).tolist()
+        frame = pybullet.WORLD_FRAME
+        for i, force, torque, at in zip(chips, forces, torques, positions, strict=False):
             body = self._chips.body_ids[i]
-            pybullet.applyExternalForce(
-                body,
-                -1,
-                (force / MM_PER_UNIT).tolist(),
-                (at / MM_PER_UNIT).tolist(),
-                pybullet.WORLD_FRAME,
-                physicsClientId=c,
-            )
-            pybullet.applyExternalTorque(
-                body,
-                -1,
-                (torque / MM_PER_UNIT**2).tolist(),
-                pybullet.WORLD_FRAME,
-                physicsClientId=c,
-            )
+            pybullet.applyExternalForce(body, -1, force, at, frame, physicsClientId=c)
+            pybullet.applyExternalTorque(body, -1, torque, frame, physicsClientId=c)
 
     def pull_contacts(self, chips: list[int], force: float) -> None:
         """Pull each of ``chips`` towards every chip it touches with ``force`` (g mm/s^2)

@@ -241,6 +241,21 @@ def test_air_drag_holds_a_flat_chip_at_its_terminal_speed():
     assert torques[0, 0] < 0  # the tilt is +20 deg about x
 
 
+def test_air_drag_face_normals_and_moments_agree_with_scipy():
+    """The flight loads' written-out face normal and cross product (they run every step
+    of a drop) against scipy's Rotation and numpy's cross on random states."""
+    from scipy.spatial.transform import Rotation
+
+    from packing.effects import _cross, _face_normals
+
+    rng = np.random.default_rng(4)
+    quaternions = Rotation.random(50, random_state=5).as_quat()
+    expected = Rotation.from_quat(quaternions).apply([0.0, 0.0, 1.0])
+    np.testing.assert_allclose(_face_normals(quaternions), expected, atol=1e-12)
+    a, b = rng.normal(size=(2, 50, 3))
+    np.testing.assert_allclose(_cross(a, b), np.cross(a, b), atol=1e-12)
+
+
 def test_each_drop_is_independent_of_the_others_simulated_with_it():
     """Drop k lands where it lands whatever else is dropped beside it: its own random
     stream (spin and tilt), and the air's loads until it has landed itself (a drop that
@@ -296,6 +311,12 @@ def test_an_effect_that_leaves_a_significant_gap_is_only_partly_explained():
     verdict = effect_verdict(["c0"], dict(which, ranking=[weak]), dict(conditions=[]), 0.05, where)
     assert verdict["kind"] == "unexplained"
     assert verdict["text"].endswith("Still off: r_q90 in c0, ring > 40 mm in c1.")
+    # Drop experiments decide on the paired per-drop test (Holm across the effects), not
+    # on the bootstrap interval, which resamples the simulations too.
+    paired = dict(weak, p_better_than_baseline_holm=0.01)
+    assert effect_verdict(["c0"], dict(which, ranking=[paired]), {}, 0.05)["kind"] == "explained"
+    luck = dict(top, p_better_than_baseline_holm=0.2)
+    assert effect_verdict(["c0"], dict(which, ranking=[luck]), {}, 0.05)["kind"] == "unexplained"
 
 
 def test_rounded_chip_volume_matches_the_minkowski_formula():
