@@ -19,6 +19,8 @@ Parts:
   taken out of the library, two two-effect mixtures and a measurement distortion:
   never "explained" in >= 80 %.
 * ``seeds``: three diagnosis seeds on each of 5 datasets agree on verdict and top effect.
+* ``sweep``: two effects at six strengths each over their whole prior: where each
+  becomes undetectable, and where it stops being identified.
 
 Usage: ``python benchmarks/bench_diagnosis.py --part nulls [--cases N] [--minutes M]
 [--workers N]``; ``--report`` prints the tables of every part from the cache only.
@@ -54,12 +56,17 @@ DROP_EFFECTS = (
     "restitution",
     "warp",
 )
-PLANNED = {"nulls": 100, "effects": 35, "outside": 17, "seeds": 5}
+PLANNED = {"nulls": 100, "effects": 35, "outside": 17, "seeds": 5, "sweep": 12}
+# The strength sweep: each effect at SWEEP_POINTS strengths spread over its whole prior
+# (k / SWEEP_POINTS of the range, k = 1..SWEEP_POINTS), to find where it stops being
+# detectable and identifiable.
+SWEEP_EFFECTS = ("air_drag", "edge_rounding")
+SWEEP_POINTS = 6
 # The method each part's cached cases must have been made by: raised when a change to the
 # diagnosis moves that part's verdicts, so older cases are rerun, not mixed in. 2: the
 # best effect must beat the baseline in the paired per-drop test, Holm across effects
 # (the detection, all null cases see, is unchanged).
-METHOD = {"nulls": 1, "effects": 2, "outside": 2, "seeds": 2}
+METHOD = {"nulls": 1, "effects": 2, "outside": 2, "seeds": 2, "sweep": 2}
 STANDARD_CONDITIONS = ((200, 0), (500, 0), (1000, 30))
 # The release conditions null cases draw from: (height mm, yaw deg).
 CONDITION_POOL = ((150, 0), (200, 0), (300, 15), (500, 0), (700, 30), (1000, 30), (1000, 0))
@@ -101,6 +108,12 @@ def case_plan(part: str, index: int) -> dict:
             plan["truth"] = {e: _upper_half(e, rng) for e in pair}
         else:
             plan["distortion"] = dict(position_scale=1.25)
+        plan["drops"] = 50
+    elif part == "sweep":
+        effect = SWEEP_EFFECTS[(index // SWEEP_POINTS) % len(SWEEP_EFFECTS)]
+        lo, hi = EFFECTS.get(effect).prior
+        fraction = (index % SWEEP_POINTS + 1) / SWEEP_POINTS
+        plan["truth"] = {effect: float(lo + fraction * (hi - lo))}
         plan["drops"] = 50
     elif part == "seeds":
         effect = DROP_EFFECTS[(3 * index) % len(DROP_EFFECTS)]
@@ -260,6 +273,7 @@ def report(part: str) -> None:
             "95 % strength intervals covering the truth: "
             f"{_rate(sum(covered), len(covered))}; target 90 to 98 %"
         )
+        _confusion(truth, [r["best"] or "none" for r in runs])
         print("\n| true effect | strength | verdict | best | tie set |")
         print("|---|---|---|---|---|")
         for c, r, t in zip(cases, runs, truth, strict=True):
@@ -272,9 +286,27 @@ def report(part: str) -> None:
         for c, r in zip(cases, runs, strict=True):
             what = c["plan"]["distortion"] or c["plan"]["truth"]
             print(f"- {what}: {r['verdict']} (best {r['best']})")
+    elif part == "sweep":
+        print("\n| effect | strength | detection p | verdict | best | tie set |")
+        print("|---|---|---|---|---|---|")
+        for c, r in zip(cases, runs, strict=True):
+            ((effect, strength),) = c["plan"]["truth"].items()
+            tied = ", ".join(r["tie_set"])
+            row = [effect, f"{strength:.3g}", f"{r['detection_p']:.3g}", r["verdict"], r["best"]]
+            print("| " + " | ".join(map(str, [*row, tied])) + " |")
     elif part == "seeds":
         agree = [len({(r["verdict"], r["best"]) for r in c["runs"]}) == 1 for c in cases]
         print(f"three seeds agree on verdict and best effect: {_rate(sum(agree), len(agree))}")
+
+
+def _confusion(truth: list[str], best: list[str]) -> None:
+    """The confusion matrix: true effect (rows) against the effect ranked first."""
+    columns = sorted(set(best))
+    print("\n| true \\ ranked first | " + " | ".join(columns) + " |")
+    print("|---" * (len(columns) + 1) + "|")
+    for t in sorted(set(truth)):
+        counts = [sum(a == t and b == c for a, b in zip(truth, best, strict=True)) for c in columns]
+        print(f"| {t} | " + " | ".join(map(str, counts)) + " |")
 
 
 def main() -> int:
