@@ -253,6 +253,13 @@ class SettlingSpec:
     max_time_s: float = _key(
         10.0, "s", "simulated-time cap per batch; hitting it is a warning", _duration
     )
+    buried_depth: float = _key(
+        2.0,
+        "chip lengths",
+        "a settled chip whose top lies this far below the pile's surface over it is buried: "
+        "never woken, static support only (1e6: every chip stays wakeable)",
+        _between(0.5, 1e6),
+    )
 
 
 @dataclass(frozen=True)

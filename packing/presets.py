@@ -7,8 +7,8 @@ in :mod:`packing.world` and nowhere else.
   * density 1.70 g/cm3: PA6 (1.14 g/cm3) with 60 wt % E-glass (2.54 g/cm3) by the rule of
     mixtures on volume, 1 / (0.6 / 2.54 + 0.4 / 1.14) = 1.70; a 20 x 20 x 2 mm chip is 1.36 g.
   * rolling resistance with a 1 um lever arm (a coefficient of 0.001 for a 1 mm radius
-    rod, the order of hard plastics and glass on hard surfaces); it matters only for
-    round rods, which would otherwise roll for ever.
+    rod, the order of hard plastics and glass on hard surfaces), on round chips (and the
+    floor and walls) only: they would otherwise roll for ever; a flat chip cannot roll.
   * rigid (non-penetrating) contacts, Coulomb friction 0.5 (smooth nylon 6 is about 0.3 in
     handbooks; the twill texture and sheared, glass-rich edges of a chip put it higher)
     and restitution 0.3 (an estimate for a thin stiff plate; no measurement found). Both

@@ -94,3 +94,23 @@ def test_reference_stack_has_no_tunnelling_and_settles():
     assert stack.positions[:, 2].min() > 0.9
     assert np.isfinite(stack.positions).all()
     assert stack.positions[:, 2].max() < 40.0
+
+
+def test_chips_deep_under_the_surface_are_buried_and_the_rest_are_not():
+    """A column of 12 rods (reach 10 mm, length 20 mm), one every 5 mm of height, and a
+    lone rod on the floor 100 mm away: with a depth of 2 lengths (40 mm) the rods whose top
+    is more than 40 mm under the column's top (65 mm: tops below 25 mm, centres 0 to 10 mm)
+    are buried; the lone rod, with nothing over it, is not; a depth deeper than the column
+    buries nothing."""
+    from packing.deposition import buried_under
+
+    column = np.array([[0.0, 0.0, 5.0 * k] for k in range(12)])
+    lone = np.array([[100.0, 0.0, 0.0]])
+    positions = np.vstack([column, lone])
+    reach = np.full(13, 10.0)
+    buried = buried_under(positions, reach, 2.0)
+    assert buried.tolist() == [True] * 3 + [False] * 10
+    assert not buried_under(positions, reach, 10.0).any()
+    # The column is the surface over the cells next to its own too (25 mm away).
+    beside = np.vstack([column, [[25.0, 0.0, 0.0]]])
+    assert buried_under(beside, np.full(13, 10.0), 2.0)[-1]
