@@ -210,13 +210,18 @@ def _volume_owners(chip_volumes: list, rank) -> dict[int, int]:
 
 def _volume_groups(model, owner: dict[int, int], pores: list[int], n: int) -> None:
     """Physical volumes: ``chip_<k>`` (tag k + 1) for every chip, ``pore`` (n + 1)."""
+    kept = set(owner.values())
+    lost = [chip for chip in range(n) if chip not in kept]
+    if lost:
+        # The same first words as every other conformal failure: with mesh.kind = "both"
+        # this is a warning, and it must say which mesh failed.
+        raise MeshingError(
+            f"conformal mesh failed near chips {', '.join(map(str, lost[:12]))}: lost when "
+            "the stack was fragmented (each nearly coincides with another chip); use the "
+            "voxel mesh (mesh.kind = 'voxel')"
+        )
     for chip in range(n):
         volumes = [v for v, k in owner.items() if k == chip]
-        if not volumes:
-            raise MeshingError(
-                f"chip {chip}: lost when the stack was fragmented (it nearly coincides "
-                "with another chip); use the voxel mesh (mesh.kind = 'voxel')"
-            )
         model.setPhysicalName(3, model.addPhysicalGroup(3, volumes, chip + 1), f"chip_{chip}")
     if pores:
         model.setPhysicalName(3, model.addPhysicalGroup(3, pores, n + 1), "pore")
