@@ -55,11 +55,19 @@ def effect_verdict(
     lo, hi = top["held_out_reduction_ci95"]
     shown = f"{percent(top['held_out_reduction'])} [{percent(lo)}, {percent(hi)}]"
     if not _closes_significantly(top, alpha):
-        return dict(
-            kind="unexplained",
-            text=f"Gap in {gap}; no candidate effect closes a significant part of it on "
-            f"held-out data (best: {top['effect']}, {shown}).{off}",
-        )
+        if top["gap_closed"] <= 0:
+            # The top of the ranking then closes nothing: usually an effect fitted to its
+            # neutral strength, the baseline itself, which is no candidate to name.
+            text = (
+                f"Gap in {gap}; no candidate effect closes any of it on held-out data "
+                "(each, at its fitted strength, leaves the held-out gap as large or larger)."
+            )
+        else:
+            text = (
+                f"Gap in {gap}; no candidate effect closes a significant part of it on "
+                f"held-out data (best: {top['effect']}, {shown})."
+            )
+        return dict(kind="unexplained", text=text + off)
     others = [e for e in which["indistinguishable"] if e != top["effect"]]
     text = (
         f"Gap in {gap}; {top['effect']} closes {shown} of it on held-out conditions at "

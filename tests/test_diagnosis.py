@@ -283,6 +283,7 @@ def test_an_effect_that_leaves_a_significant_gap_is_only_partly_explained():
         effect="warp",
         held_out_reduction=0.6,
         held_out_reduction_ci95=[0.3, 0.8],
+        gap_closed=1.2,
         gap_closed_ci95=[0.5, 2.0],
         strength=0.4,
         unit="mm",
@@ -317,6 +318,15 @@ def test_an_effect_that_leaves_a_significant_gap_is_only_partly_explained():
     assert effect_verdict(["c0"], dict(which, ranking=[paired]), {}, 0.05)["kind"] == "explained"
     luck = dict(top, p_better_than_baseline_holm=0.2)
     assert effect_verdict(["c0"], dict(which, ranking=[luck]), {}, 0.05)["kind"] == "unexplained"
+    assert (
+        "(best: warp, 60 % [30 %, 80 %])"
+        in effect_verdict(["c0"], dict(which, ranking=[luck]), {}, 0.05)["text"]
+    )
+    # When even the top of the ranking closes nothing (an effect fitted to its neutral
+    # strength is the baseline itself), no effect is named as the best.
+    none = dict(luck, gap_closed=0.0, held_out_reduction=0.0, held_out_reduction_ci95=[0, 0])
+    text = effect_verdict(["c0"], dict(which, ranking=[none]), {}, 0.05)["text"]
+    assert "no candidate effect closes any of it" in text and "warp" not in text
 
 
 def test_rounded_chip_volume_matches_the_minkowski_formula():
