@@ -388,7 +388,7 @@ def settle(
             ]
             woken = world.within(chip, near, reach)
             if woken and speed <= s.wake_speed_mm_s:
-                heights = world.states(woken)[0][:, 2]
+                heights = world.kinematics(woken)[0][:, 2]  # no energy bookkeeping
                 floor = tracker.positions[chip][2]
                 woken = [c for c, z in zip(woken, heights, strict=True) if z > floor]
             for other in woken:
