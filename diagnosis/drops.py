@@ -139,9 +139,14 @@ class _DropDiagnosis:
         return self.data[condition] if index is None else self.data[condition].take(index)
 
     def _folds(self, full: dict[str, Dataset]) -> list[Fold]:
-        """Leave one condition out; with a single condition, split its drops in halves."""
+        """Cross-fitting folds. ``held_out = "halves"`` (the default, and always with one
+        condition): every condition's drops split in two halves at random; each half of
+        every condition calibrates, the other halves are judged. ``"conditions"``: leave
+        one condition out, so each fitted model must carry over to a condition it never
+        saw (a harder test, and one that punishes effects whose strength is hard to pin
+        down from the other conditions, air drag's most of all)."""
         conditions = list(full)
-        if len(conditions) > 1:
+        if self.settings.held_out == "conditions" and len(conditions) > 1:
             return [
                 Fold(
                     f"hold out {h}",
@@ -150,14 +155,18 @@ class _DropDiagnosis:
                 )
                 for h in conditions
             ]
-        (c,) = conditions
-        n = full[c].data.n
-        order = np.random.default_rng([self.seed, 13]).permutation(n)
-        halves = [np.sort(order[: n // 2]), np.sort(order[n // 2 :])]
-        a, b = self._datasets([(c, h) for h in halves])
+        rng = np.random.default_rng([self.seed, 13])
+        halves = {}
+        for c in conditions:
+            order = rng.permutation(full[c].data.n)
+            half = len(order) // 2
+            halves[c] = (np.sort(order[:half]), np.sort(order[half:]))
+        a = self._datasets([(c, halves[c][0]) for c in conditions])
+        b = self._datasets([(c, halves[c][1]) for c in conditions])
+        every = "" if len(conditions) == 1 else " of every condition"
         return [
-            Fold("calibrate on half A, judge half B", calibration=[a], held_out=[b]),
-            Fold("calibrate on half B, judge half A", calibration=[b], held_out=[a]),
+            Fold(f"calibrate on half A{every}, judge half B", calibration=a, held_out=b),
+            Fold(f"calibrate on half B{every}, judge half A", calibration=b, held_out=a),
         ]
 
     def _scatter(self, folds: list[Fold], full: dict[str, Dataset], best: str | None) -> dict:

@@ -72,7 +72,10 @@ class DiagnosisSettings:
 
     sim_drops: int = 120  # simulated drops per condition and setting
     bootstrap: int = 200  # resamples of the observations for intervals
-    grid_points: int = 6  # strengths tried across each effect's prior range
+    grid_points: int = 11  # strengths tried across each effect's prior range
+    # What each fitted model is judged on (drop experiments): "halves" of every
+    # condition's drops, or whole "conditions" left out one at a time.
+    held_out: str = "halves"
     effects: tuple[str, ...] = ()  # candidates; () = every effect for this kind
     alpha: float = 0.05
 
@@ -281,6 +284,8 @@ def _settings(data: dict, kind: str) -> DiagnosisSettings:
         values["bootstrap"] = _integer(data["bootstrap"], "diagnosis.bootstrap", 50, 100_000)
     if "grid_points" in data:
         values["grid_points"] = _integer(data["grid_points"], "diagnosis.grid_points", 3, 50)
+    if "held_out" in data:
+        values["held_out"] = _held_out(data["held_out"], kind)
     if "alpha" in data:
         values["alpha"] = _number(data["alpha"], "diagnosis.alpha", 1e-6, 0.5)
     if "effects" in data:
@@ -295,6 +300,22 @@ def _settings(data: dict, kind: str) -> DiagnosisSettings:
                 )
         values["effects"] = tuple(dict.fromkeys(effects))
     return DiagnosisSettings(**values)
+
+
+HELD_OUT = ("halves", "conditions")
+
+
+def _held_out(value, kind: str) -> str:
+    if value not in HELD_OUT:
+        raise InputError(
+            f"diagnosis.held_out: {value!r} is not one of {', '.join(map(repr, HELD_OUT))}"
+        )
+    if kind != "drop" and value != "conditions":
+        raise InputError(
+            f"diagnosis.held_out: {kind} experiments hold out whole conditions; "
+            '"halves" splits the drops of a drop experiment'
+        )
+    return value
 
 
 def _drop_condition(entry, key: str, scenario: Scenario) -> Condition:

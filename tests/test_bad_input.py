@@ -361,6 +361,15 @@ BAD_SPECS = {
         'kind = "drop"\nobservations = "data.csv"\n[diagnosis]\neffects = ["wind"]\n' + CONDITION,
         "diagnosis.effects: unknown effect 'wind'; valid names:",
     ),
+    "unknown held-out scheme": (
+        'kind = "drop"\nobservations = "data.csv"\n[diagnosis]\nheld_out = "thirds"\n' + CONDITION,
+        "diagnosis.held_out: 'thirds' is not one of 'halves', 'conditions'",
+    ),
+    "halves of a stack experiment": (
+        'kind = "stack"\nobservations = "data.csv"\n[diagnosis]\nheld_out = "halves"\n'
+        '[[condition]]\nname = "a"\nscenario = "paper-squares"\n',
+        "diagnosis.held_out: stack experiments hold out whole conditions",
+    ),
 }
 
 

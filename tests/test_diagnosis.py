@@ -147,6 +147,36 @@ def test_strength_fit_finds_the_minimum_between_grid_points():
     assert 0.4 <= fitted[3] <= 0.8
 
 
+def test_plausible_strengths_are_the_grid_points_within_the_fits_interval():
+    """The adequacy test also tries the grid's strengths inside the 95 % interval of the
+    fit's resamples: none outside it, all inside (its ends included)."""
+    from diagnosis.drop_effects import within
+
+    resamples = np.linspace(0.9, 2.1, 401)  # 95 % interval 0.93 to 2.07
+    fitted = np.concatenate([[1.5], resamples])
+    assert within([0.0, 0.8, 1.0, 1.6, 2.0, 2.4], fitted) == [1.0, 1.6, 2.0]
+    assert within([0.0, 0.5], fitted) == []
+
+
+def test_a_gap_every_held_out_half_sees_a_little_of_is_not_adjusted_away():
+    """Four held-out datasets at p = 0.03 each: a Holm adjustment over them would call
+    none significant (4 x 0.03 = 0.12), Fisher's combination (p = 0.0005) finds the model
+    inadequate; a condition seen in two folds is named when its own combination is
+    significant; p-values that look like noise leave nothing still off."""
+    from diagnosis.verdicts import _still_off, combined_p
+
+    rows = [dict(condition=c, p_after=0.03) for c in ("low", "high") for _fold in ("A", "B")]
+    assert combined_p([0.03] * 4) == pytest.approx(0.000464, rel=0.01)
+    assert _still_off(rows, 0.05) == ["high", "low"]  # each: Fisher of 0.03, 0.03 = 0.0075
+    spread = [dict(condition=c, p_after=0.12) for c in ("a", "b", "c", "d", "e", "f")]
+    assert combined_p([0.12] * 6) < 0.05  # together off, but no condition alone
+    assert _still_off(spread, 0.05) == ["the held-out conditions taken together"]
+    calm = [
+        dict(condition=c, p_after=p) for c, p in zip("abcd", (0.3, 0.6, 0.9, 0.45), strict=True)
+    ]
+    assert _still_off(calm, 0.05) == []
+
+
 def test_drops_needed_to_separate_two_models_falls_with_their_distance():
     """Two models' drops at a candidate release: the farther apart, the fewer drops the
     detection test needs; two samples of one model differ only by noise, which takes
