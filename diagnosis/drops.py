@@ -7,9 +7,9 @@ Three questions, answered with numbers and intervals:
    and sector of the scatter with its permutation p-value, Holm-adjusted as one family.
    Without a significant overall gap the diagnosis stops there.
 2. Which: the refitted baseline (its release tilt range) and every candidate effect,
-   each fitted on calibration conditions and scored drop by drop on held-out ones
-   (leave one condition out; split halves with one condition), with the tie set of the
-   best effect.
+   each fitted on calibration drops and scored drop by drop on held-out ones (halves of
+   every condition's drops, or whole conditions left out: ``[diagnosis] held_out``),
+   with the tie set of the best effect.
 3. How far: the held-out gap before and after the best effect, per observable, and
    whether the held-out drops are consistent with it.
 

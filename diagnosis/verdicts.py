@@ -44,8 +44,8 @@ def effect_verdict(
 ) -> dict:
     """``unexplained`` when the best effect does not close a significant part of the gap
     on held-out data; ``partly explained`` when it closes a significant part but the
-    held-out data are still not consistent with it (the residual gap after it, tested
-    against the noise floor per held-out condition, Holm-adjusted, is significant);
+    held-out data are still not consistent with it (its adequacy tests, combined over
+    the held-out datasets by Fisher's method, are significant: ``_still_off``);
     else ``explained``, with the effects tied with it. An unexplained gap names the
     observables and regions of ``where`` still off (significant after adjustment)."""
     gap = ", ".join(significant)

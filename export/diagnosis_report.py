@@ -182,7 +182,8 @@ def _baseline_refit(refit: dict) -> list[str]:
         lines += [
             f"- {h['fold']}, {h['condition']}: {h['refit_tilt_deg']:g} deg, held-out energy "
             f"distance {_fmt(h['gap'])}, consistency test p {_fmt(h['p_value'])} "
-            f"(Holm {_fmt(h['p_holm'])})"
+            f"(most consistent tilt {_fmt(h['most_consistent_tilt_deg'])} deg; at the "
+            f"refitted tilt alone p {_fmt(h['p_at_refit_tilt'])})"
             for h in refit["held_out"]
         ]
         return lines + [
@@ -190,7 +191,8 @@ def _baseline_refit(refit: dict) -> list[str]:
             f"Held-out energy distance of the refitted baseline: "
             f"{_fmt(refit['held_out_excess'])} {_interval(refit['held_out_excess_ci95'])}; "
             f"reduction {percent(refit['held_out_reduction'])}; the held-out drops are "
-            f"{'' if refit['adequate'] else 'not '}consistent with it.",
+            f"{'' if refit['adequate'] else 'not '}consistent with it (Fisher's "
+            f"combination of the consistency tests: p {_fmt(refit['adequacy_p'])}).",
         ]
     return lines + [
         "",
@@ -264,19 +266,27 @@ def _how_far_section(how: dict, drop: bool) -> list[str]:
         f"held-out reduction {percent(how['reduction'])} "
         f"{_interval(how['reduction_ci95'], percent)}.",
         "",
-        f"| held-out condition | strength | {gap} before | {gap} after | p before | p after |",
-        "|---|---|---|---|---|---|",
+        f"| fold | held-out condition | strength | {gap} before | {gap} after | p before "
+        "| p after | most consistent strength |",
+        "|---|---|---|---|---|---|---|---|",
         *(
-            f"| {c['condition']} | {_fmt(c['strength'])} "
+            f"| {c.get('fold', '')} | {c['condition']} | {_fmt(c['strength'])} "
             f"| {_fmt(c['gap_before'])} | {_fmt(c['gap_after'])} | "
-            f"{_fmt(c['p_before'])} | {_fmt(c['p_after'])} |"
+            f"{_fmt(c['p_before'])} | {_fmt(c['p_after'])} "
+            f"| {_fmt(c.get('most_consistent_strength', c['strength']))} |"
             for c in how["conditions"]
         ),
         "",
-        "| held-out condition | observable | experiment | before | after | z before | z after |",
-        "|---|---|---|---|---|---|---|",
+        "p after: the held-out drops against independent simulations of the effect at "
+        "every strength within the fold's 95 % interval, the largest p-value (for drops; "
+        "the strength it was largest at is the most consistent one); the model is "
+        "adequate when Fisher's combination of them is not significant.",
+        "",
+        "| fold | held-out condition | observable | experiment | before | after | z before "
+        "| z after |",
+        "|---|---|---|---|---|---|---|---|",
         *(
-            f"| {r['condition']} | {r['observable']} "
+            f"| {r.get('fold', '')} | {r['condition']} | {r['observable']} "
             f"| {_fmt(r['experiment'])} | {_fmt(r['before'])} | "
             f"{_fmt(r['after'])} | {_fmt(r['z_before'], 2)} | {_fmt(r['z_after'], 2)} |"
             for r in how["observables"]
