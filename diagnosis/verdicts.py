@@ -71,8 +71,8 @@ def effect_verdict(
         return dict(kind="unexplained", text=text + off)
     others = [e for e in which["indistinguishable"] if e != top["effect"]]
     text = (
-        f"Gap in {gap}; {top['effect']} closes {shown} of it on held-out conditions at "
-        f"strength {top['strength']:.3g} {top['unit']}."
+        f"Gap in {gap}; {top['effect']} closes {shown} of it on held-out data at "
+        f"strength {top['strength']:.3g}{' ' + top['unit'] if top['unit'] else ''}."
     )
     remaining = _still_off(how_far.get("conditions", []), alpha)
     if others:
