@@ -24,8 +24,8 @@ from diagnosis.drop_separation import separating_releases
 from diagnosis.drop_simulations import NOISE_POOL, TILT_GRID_DEG, Dataset, DropSimulations
 from diagnosis.drop_where import energy_test
 from diagnosis.ranking import effect_entry, held_out_reduction
-from diagnosis.statistics import holm, interval
-from diagnosis.verdicts import applicable_effects, combined_p, how_far
+from diagnosis.statistics import combined_p, holm, interval
+from diagnosis.verdicts import applicable_effects, how_far
 from packing.effects import EFFECTS
 
 __all__ = ["TILT_GRID_DEG", "EffectRanking", "Fold", "how_far_best", "vertex", "within"]
@@ -325,9 +325,9 @@ class EffectRanking:
     def _baseline_refit(
         self, tilt_all: float, base: HeldOut, refit: HeldOut, best: HeldOut | None
     ) -> dict:
-        """The refitted baseline on held-out data, with its adequacy test (held-out drops
-        against an independent simulation at the refitted tilt, Holm across them) and its
-        comparison with the best effect (``best``): a candidate like the effects."""
+        """The refitted baseline on held-out data, with its adequacy test (``adequacy_test``
+        over the plausible tilts, Fisher's combination across the held-out datasets) and
+        its comparison with the best effect (``best``): a candidate like the effects."""
         pairs = self._held_pairs()
         keys = [self.sims.baseline(ds.condition, fold.refit_tilt) for fold, ds in pairs]
         self.sims.ensure([self.sims.second_pool(k) for k in keys])
@@ -348,9 +348,6 @@ class EffectRanking:
                     most_consistent_tilt_deg=test["most_consistent"][1],
                 )
             )
-        adjusted = holm([r["p_value"] for r in rows])
-        for row, p in zip(rows, adjusted, strict=True):
-            row["p_holm"] = float(p)
         adequacy_p = combined_p([r["p_value"] for r in rows])
         closed = base.energy - refit.energy
         return dict(

@@ -29,11 +29,13 @@ null is exact for any sample sizes, and it does not hinge on one pool of simulat
 from __future__ import annotations
 
 import numpy as np
+from scipy.stats import combine_pvalues
 
 from geometry.stats import holm
 
 __all__ = [
     "PERMUTATIONS",
+    "combined_p",
     "energy_distance",
     "energy_statistics",
     "exceedance_p",
@@ -141,3 +143,12 @@ def interval(samples: np.ndarray, level: float = 0.95) -> tuple[float, float]:
     lo = np.percentile(np.where(undefined, -np.inf, samples), tail, method="lower")
     hi = np.percentile(np.where(undefined, np.inf, samples), 100 - tail, method="higher")
     return float(lo), float(hi)
+
+
+def combined_p(p_values: list[float]) -> float:
+    """Fisher's combination of independent p-values (one when there are none)."""
+    if not p_values:
+        return 1.0
+    if len(p_values) == 1:
+        return float(p_values[0])
+    return float(combine_pvalues(p_values, method="fisher").pvalue)

@@ -6,14 +6,13 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.stats import combine_pvalues
 
 from core.errors import InputError
 from diagnosis.spec import Experiment
 from packing.deposition import draw_shapes
 from packing.effects import EFFECTS, shaped
 
-__all__ = ["applicable_effects", "combined_p", "effect_verdict", "how_far", "percent"]
+__all__ = ["applicable_effects", "effect_verdict", "how_far", "percent"]
 
 
 def percent(value: float) -> str:
@@ -137,7 +136,7 @@ def _still_off(conditions: list[dict], alpha: float) -> list[str]:
     adjusted across conditions (or "the held-out conditions taken together" when the
     evidence is spread over them). Splitting the held-out drops into small tests and
     adjusting for their number would hide a gap that every one of them sees a little of."""
-    from diagnosis.statistics import holm
+    from diagnosis.statistics import combined_p, holm
 
     if not conditions or combined_p([row["p_after"] for row in conditions]) >= alpha:
         return []
@@ -149,15 +148,6 @@ def _still_off(conditions: list[dict], alpha: float) -> list[str]:
     adjusted = holm(per_condition)
     named = sorted(n for n, p in zip(names, adjusted, strict=True) if p < alpha)
     return named or ["the held-out conditions taken together"]
-
-
-def combined_p(p_values: list[float]) -> float:
-    """Fisher's combination of independent p-values (one when there are none)."""
-    if not p_values:
-        return 1.0
-    if len(p_values) == 1:
-        return float(p_values[0])
-    return float(combine_pvalues(p_values, method="fisher").pvalue)
 
 
 def how_far(best: str, top: dict, rows: list, conditions: list) -> dict:

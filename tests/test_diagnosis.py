@@ -163,7 +163,8 @@ def test_a_gap_every_held_out_half_sees_a_little_of_is_not_adjusted_away():
     none significant (4 x 0.03 = 0.12), Fisher's combination (p = 0.0005) finds the model
     inadequate; a condition seen in two folds is named when its own combination is
     significant; p-values that look like noise leave nothing still off."""
-    from diagnosis.verdicts import _still_off, combined_p
+    from diagnosis.statistics import combined_p
+    from diagnosis.verdicts import _still_off
 
     rows = [dict(condition=c, p_after=0.03) for c in ("low", "high") for _fold in ("A", "B")]
     assert combined_p([0.03] * 4) == pytest.approx(0.000464, rel=0.01)
