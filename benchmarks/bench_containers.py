@@ -5,10 +5,20 @@ the container with each seed on one core and prints, per fill, the wall time, th
 poured and inside, the volume fraction (centres of mass inside, as the paper counts),
 phi * L / D and the mean number of rod-rod contacts per rod inside; then the mean, sd
 and 95 % interval over the seeds beside the paper's model and Freeman et al.'s
-measurement. Targets: AR 25 <= 5 min, AR 10 <= 2 min per fill. ``--dynamic`` fills with
-every rod kept wakeable (``settling.buried_depth = 1e6``) for comparison.
+measurement. Targets: AR 25 <= 5 min, AR 10 <= 2 min per fill.
 
-    .venv/bin/python benchmarks/bench_containers.py [--ar 10 25] [--seeds 0 1 2] [--dynamic]
+``--compare-dynamic`` fills each container twice per seed, with settled rods frozen (the
+default) and with every rod kept dynamic (``settling.freeze = false``, the reference the
+freezing must reproduce), and prints both beside the difference of their means and the
+pooled sd. ``--height`` sets the container's height in rod lengths (the paper's 4) and
+``--ar`` any aspect ratio (rods 2 mm across): a small container keeps the dynamic fills
+affordable. Besides the paper's fraction, the lower half's fraction (rods whose centre lies
+in the lower half of the container) is printed: it does not depend on the one rod that
+ends the fill by reaching the rim.
+
+    .venv/bin/python benchmarks/bench_containers.py [--ar 10 25] [--seeds 0 1 2]
+    .venv/bin/python benchmarks/bench_containers.py --ar 5 --height 2 --seeds 0 1 2 3 \
+        --compare-dynamic
 """
 
 from __future__ import annotations
@@ -30,11 +40,31 @@ PAPER = {10: (0.286, 0.0052), 25: (0.148, 0.0026)}
 FREEMAN = {10: 0.37, 25: 0.18}
 
 
-def fill(aspect: int, seed: int, dynamic: bool) -> dict:
-    scenario = dataclasses.replace(load_scenario(f"container-ar{aspect}"), seed=seed)
-    if dynamic:
-        settling = dataclasses.replace(scenario.settling, buried_depth=1e6)
-        scenario = dataclasses.replace(scenario, settling=settling)
+def container_scenario(aspect: int, height_lengths: float, seed: int, dynamic: bool):
+    """The paper's container for rods of ``aspect`` (built in for 10 and 25 at 4 L high;
+    otherwise the AR-10 scenario's rods lengthened or shortened, radius L)."""
+    if aspect in PAPER and height_lengths == 4:
+        scenario = load_scenario(f"container-ar{aspect}")
+    else:
+        base = load_scenario("container-ar10")
+        chip = dataclasses.replace(base.chip, length_mm=aspect * base.chip.thickness_mm)
+        length = chip.length_mm
+        scenario = dataclasses.replace(
+            base,
+            name=f"container-ar{aspect}-h{height_lengths:g}",
+            chip=chip,
+            container=dataclasses.replace(
+                base.container, radius_mm=length, height_mm=height_lengths * length
+            ),
+            deposition=dataclasses.replace(base.deposition, chips=100_000),
+        )
+    settling = dataclasses.replace(scenario.settling, freeze=not dynamic)
+    return dataclasses.replace(scenario, seed=seed, settling=settling)
+
+
+def fill(aspect: int, height_lengths: float, seed: int, dynamic: bool) -> dict:
+    """One fill: wall time, rods, the two volume fractions, phi L/D, contacts per rod."""
+    scenario = container_scenario(aspect, height_lengths, seed, dynamic)
     start = time.perf_counter()
     stack = deposit(scenario)
     seconds = time.perf_counter() - start
@@ -58,12 +88,15 @@ def fill(aspect: int, seed: int, dynamic: bool) -> dict:
     for a, b in pairs:
         touching[a] += 1
         touching[b] += 1
-    chip = scenario.chips[0]
+    chip = scenario.chip
+    lower = inside & (last.positions[:, 2] < c.height_mm / 2)
+    lower_half = volumes[lower].sum() / (np.pi * c.radius_mm**2 * c.height_mm / 2)
     return dict(
         seconds=seconds,
         poured=result["chips_poured"],
         inside=result["chips_inside"],
         phi=result["volume_fraction"],
+        lower_half=float(lower_half),
         phi_l_over_d=result["volume_fraction"] * chip.length_mm / chip.thickness_mm,
         contacts_per_rod=float(touching[inside].mean()) if inside.any() else float("nan"),
         full=result["full"],
@@ -79,31 +112,61 @@ def summary(values: list[float]) -> str:
     return f"{mean:.4f} ± {sd:.4f} (95 % interval {mean - half:.4f} to {mean + half:.4f})"
 
 
+def report(label: str, rows: list[dict], aspect: int) -> None:
+    wall = statistics.median(r["seconds"] for r in rows)
+    print(f"{label}: wall time median {wall:.0f} s")
+    print(f"{label}: volume fraction {summary([r['phi'] for r in rows])}")
+    if label.startswith("AR") and aspect in PAPER:
+        mean, sd = PAPER[aspect]
+        print(f"  paper's model {mean:.3f} ± {sd:.4f}; Freeman et al. measured ~{FREEMAN[aspect]}")
+    print(f"{label}: lower half's volume fraction {summary([r['lower_half'] for r in rows])}")
+    print(f"{label}: phi L/D {summary([r['phi_l_over_d'] for r in rows])}")
+    print(f"{label}: contacts per rod {summary([r['contacts_per_rod'] for r in rows])}")
+
+
+def compare(frozen: list[dict], dynamic: list[dict]) -> None:
+    for key, name in (("phi", "volume fraction"), ("lower_half", "lower half's fraction")):
+        a, b = [r[key] for r in frozen], [r[key] for r in dynamic]
+        gap = statistics.mean(a) - statistics.mean(b)
+        pooled = np.sqrt((statistics.variance(a) + statistics.variance(b)) / 2)
+        verdict = "within" if abs(gap) <= pooled else "NOT within"
+        print(f"frozen - dynamic, {name}: {gap:+.4f}, pooled sd {pooled:.4f}: {verdict} the spread")
+    ratio = statistics.median(r["seconds"] for r in dynamic) / statistics.median(
+        r["seconds"] for r in frozen
+    )
+    print(f"dynamic fills took {ratio:.1f} times as long (medians)")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--ar", type=int, nargs="+", choices=(10, 25), default=[10, 25])
+    parser.add_argument("--ar", type=int, nargs="+", default=[10, 25])
+    parser.add_argument("--height", type=float, default=4.0, help="container height, in L")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
-    parser.add_argument("--dynamic", action="store_true", help="keep every rod wakeable")
+    parser.add_argument(
+        "--compare-dynamic", action="store_true", help="also fill with every rod dynamic"
+    )
     args = parser.parse_args()
+    modes = (False, True) if args.compare_dynamic else (False,)
     for aspect in args.ar:
-        rows = []
+        runs: dict[bool, list[dict]] = {mode: [] for mode in modes}
         for seed in args.seeds:
-            row = fill(aspect, seed, args.dynamic)
-            rows.append(row)
-            print(
-                f"AR {aspect} seed {seed}: {row['seconds']:.0f} s wall, {row['poured']} rods "
-                f"poured, {row['inside']} inside, full {row['full']}, volume fraction "
-                f"{row['phi']:.4f}, phi L/D {row['phi_l_over_d']:.2f}, "
-                f"{row['contacts_per_rod']:.2f} contacts per rod",
-                flush=True,
-            )
-        mean, sd = PAPER[aspect]
-        wall = statistics.median(r["seconds"] for r in rows)
-        print(f"AR {aspect}: wall time median {wall:.0f} s")
-        print(f"AR {aspect}: volume fraction {summary([r['phi'] for r in rows])}")
-        print(f"  paper's model {mean:.3f} ± {sd:.4f}; Freeman et al. measured ~{FREEMAN[aspect]}")
-        print(f"AR {aspect}: phi L/D {summary([r['phi_l_over_d'] for r in rows])}")
-        print(f"AR {aspect}: contacts per rod {summary([r['contacts_per_rod'] for r in rows])}")
+            for dynamic in modes:
+                row = fill(aspect, args.height, seed, dynamic)
+                runs[dynamic].append(row)
+                print(
+                    f"AR {aspect} seed {seed}{' dynamic' if dynamic else ''}: "
+                    f"{row['seconds']:.0f} s wall, {row['poured']} rods poured, "
+                    f"{row['inside']} inside, full {row['full']}, volume fraction "
+                    f"{row['phi']:.4f} (lower half {row['lower_half']:.4f}), "
+                    f"phi L/D {row['phi_l_over_d']:.2f}, "
+                    f"{row['contacts_per_rod']:.2f} contacts per rod",
+                    flush=True,
+                )
+        report(f"AR {aspect}", runs[False], aspect)
+        if args.compare_dynamic:
+            report(f"AR {aspect} dynamic", runs[True], aspect)
+            if len(args.seeds) > 1:
+                compare(runs[False], runs[True])
 
 
 if __name__ == "__main__":

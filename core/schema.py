@@ -260,6 +260,13 @@ class SettlingSpec:
         "never woken, static support only (1e6: every chip stays wakeable)",
         _between(0.5, 1e6),
     )
+    freeze: bool = _key(
+        True,
+        "",
+        "freeze chips at rest (false: every chip stays dynamic and a pour ends when all "
+        "are at rest; the reference that freezing is checked against, its cost grows with "
+        "the pile)",
+    )
 
 
 @dataclass(frozen=True)

@@ -257,9 +257,17 @@ class _RestTracker:
     """
 
     def __init__(
-        self, world: ChipWorld, stray_mm: float, hold_checks: int, domain_mm: float = np.inf
+        self,
+        world: ChipWorld,
+        stray_mm: float,
+        hold_checks: int,
+        domain_mm: float = np.inf,
+        freezes: bool = True,
     ) -> None:
         self.world, self.stray_mm, self.hold_checks = world, stray_mm, hold_checks
+        # Without freezing, a chip at rest stays dynamic and tracked (its count stays at
+        # or above hold_checks until it strays again, its window renewed every hold time).
+        self.freezes = freezes
         self.awake: dict[int, int] = {}  # chip -> checks spent inside its window
         self.positions: dict[int, np.ndarray] = {}  # where update() last saw each chip
         self._anchor: dict[int, tuple[np.ndarray, np.ndarray]] = {}
@@ -331,10 +339,22 @@ class _RestTracker:
                 self._anchor[chip] = (positions[k], quaternions[k])
                 continue
             self.awake[chip] += 1
-            if self.awake[chip] >= self.hold_checks:
+            if self.awake[chip] < self.hold_checks:
+                continue
+            if self.freezes:
                 self.world.freeze(chip)
                 del self.awake[chip], self._anchor[chip]
+            elif self.awake[chip] >= 2 * self.hold_checks:
+                # Still at rest, judged from here over the next hold time: a dynamic chip
+                # creeping slower than the rest speed must not be counted as moving only
+                # because its drift since a long-ago anchor has added up.
+                self.awake[chip] = self.hold_checks
+                self._anchor[chip] = (positions[k], quaternions[k])
         return moving
+
+    def moving(self) -> bool:
+        """Whether some tracked chip has not been at rest for the hold time."""
+        return any(count < self.hold_checks for count in self.awake.values())
 
     def remove(self, chip: int) -> None:
         """Freeze a chip now, whatever its speed."""
@@ -359,11 +379,14 @@ def settle(
     check_steps = max(1, round(CHECK_INTERVAL_S / scenario.physics.time_step_s))
     check_interval_s = check_steps * scenario.physics.time_step_s
     hold_checks = max(1, int(np.ceil(s.hold_time_s / check_interval_s)))
-    tracker = _RestTracker(world, s.speed_mm_s * s.hold_time_s, hold_checks, _domain_mm(scenario))
-    tracker.add(new)
-    buried = _buried(world, new, s.buried_depth)
+    tracker = _RestTracker(
+        world, s.speed_mm_s * s.hold_time_s, hold_checks, _domain_mm(scenario), s.freeze
+    )
+    # Without freezing every chip is dynamic, so every chip is watched until all rest.
+    tracker.add(new if s.freeze else list(range(world.n_chips)))
+    buried = _buried(world, new, s.buried_depth) if s.freeze else set()
     start_time, steps, wakes = world.time_s, 0, 0
-    while tracker.awake and world.time_s - start_time < s.max_time_s:
+    while tracker.moving() and world.time_s - start_time < s.max_time_s:
         if loads is None:
             world.step(check_steps)
         else:
@@ -397,9 +420,9 @@ def settle(
             wakes += len(woken)
         if scenario.kind == "container":
             _freeze_spilled(world, tracker, scenario.container)
-    awake = sorted(tracker.awake)
-    if awake:
-        for chip in awake:
+    still_moving = tracker.moving()
+    if still_moving and s.freeze:
+        for chip in sorted(tracker.awake):
             world.freeze(chip)
     if tracker.left_domain:
         message = (
@@ -410,7 +433,7 @@ def settle(
         log.warning(message)
         if warnings is not None:
             warnings.append(message)
-    return not awake, steps, wakes, start_time
+    return not still_moving, steps, wakes, start_time
 
 
 def _buried(world: ChipWorld, new: list[int], depth_lengths: float) -> set[int]:
@@ -701,7 +724,9 @@ def _rebuild_world(
         c = scenario.container
         world.add_container_wall(c.radius_mm, c.height_mm, c.wall_segments)
     for shape, p, q in zip(work.shapes_of, state.positions, state.quaternions, strict=True):
-        world.freeze(world.add_chip(shape, p, q))
+        chip = world.add_chip(shape, p, q)
+        if scenario.settling.freeze:
+            world.freeze(chip)
     if work.floor_reference_mass_g is not None:
         _soften_floor(world, contact, work.floor_reference_mass_g)
 
