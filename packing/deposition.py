@@ -547,6 +547,11 @@ def deposit(
             f"chips done, more than the scenario's {n_batches} batches of {d.chips} chips"
         )
     pours = POURS_PER_WORLD if scenario.kind == "container" else 1
+    if not scenario.settling.freeze:
+        # A dynamic pile rebuilt from saved poses loses the solver's contact history and
+        # sags (median 1.1 mm in 50 ms for rods 10 x 2 mm, measured): one world, start
+        # to end, so a run without freezing resumes from its start.
+        pours = n_batches
     while state.batches_done < n_batches and not state.full:
         state = _deposit_batches(
             scenario, preset, setup, strengths, state, n_batches, progress, pours
