@@ -77,6 +77,7 @@ _LONGEST_FIRST = (
     "test_diagnosis.py",
     "test_validation.py",
     "test_resume.py",
+    "test_freezing.py",
     "test_bad_input.py",
     "test_meshing.py",
     "test_geometry_cli.py",
