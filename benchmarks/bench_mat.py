@@ -33,13 +33,11 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from geometry.arrangement import arrangements_from_stack
 from geometry.contacts import find_contacts
 from geometry.rays import ray_maps
 from packing import deposit
-from packing.overlap import vertex_heights_mm
 from pipeline.scenario_files import load_scenario
 
 RESULTS = Path(__file__).parent / "results" / "mat"
@@ -62,16 +60,13 @@ def run(preset: str, seed: int) -> dict:
     on_target = maps.grid.on_target
     top_surface = maps.top_mm[on_target]
     solid = maps.solid_mm[on_target]
-    shape = stack.shapes[0]
-    top = float(vertex_heights_mm(stack.positions, stack.quaternions, shape.vertices).max())
+    bounds = arrangement.bounds  # every fibre's box, from its vertices
+    top = float(bounds[:, 1, 2].max())
     inside = stack.inside_target()
     area = scenario.deposition.target_size_mm**2
     volumes = np.array([stack.shapes[k].volume_mm3 for k in stack.shape_index])
     mean_top = float(top_surface.mean())
-    corners = Rotation.from_quat(np.repeat(stack.quaternions, len(shape.vertices), axis=0)).apply(
-        np.tile(shape.vertices, (stack.n_chips, 1))
-    ) + np.repeat(stack.positions, len(shape.vertices), axis=0)
-    box_area = float(np.prod(corners[:, :2].max(axis=0) - corners[:, :2].min(axis=0)))
+    box_area = float(np.prod(bounds[:, 1, :2].max(axis=0) - bounds[:, 0, :2].min(axis=0)))
     return {
         "preset": preset,
         "seed": seed,

@@ -354,6 +354,8 @@ class _RestTracker:
 
     def moving(self) -> bool:
         """Whether some tracked chip has not been at rest for the hold time."""
+        if self.freezes:  # a chip at rest is frozen and untracked at once
+            return bool(self.awake)
         return any(count < self.hold_checks for count in self.awake.values())
 
     def remove(self, chip: int) -> None:
