@@ -30,6 +30,7 @@ __all__ = [
     "SolveSpec",
     "DropSpec",
     "ContainerSpec",
+    "ConveyorSpec",
     "Scenario",
     "scenario_from_dict",
     "scenario_to_dict",
@@ -187,7 +188,12 @@ class DepositionSpec:
 
     chips: int = _key(270, "", "number of chips in the stack", _positive)
     batch_size: int = _key(54, "", "chips released together; next batch once settled", _positive)
-    target_size_mm: float = _key(150.0, "mm", "side of the square deposition target", _length)
+    target_size_mm: float = _key(
+        150.0,
+        "mm",
+        "side of the square deposition target (conveyor: of the panel cut from the mat)",
+        _length,
+    )
     release_area_mm: float = _key(
         0.0,
         "mm",
@@ -317,6 +323,76 @@ class ContainerSpec:
         "mm",
         "range of the clearance between the rim and a released chip's lowest possible point",
         _range(0.0, MAX_LENGTH_MM),
+    )
+
+
+@dataclass(frozen=True)
+class ConveyorSpec:
+    """A belt carrying the mat along +x, fed continuously (kind `conveyor`; see
+    docs/conveyor.md). Chips are released `deposition.batch_size` at a time, at
+    `deposition.release_height_mm` and `deposition.orientation`; the square panel of side
+    `deposition.target_size_mm` cut from the middle of the mat is the stack that later
+    stages take."""
+
+    belt_speed_mm_s: float = _key(
+        20.0,
+        "mm/s",
+        "speed of the belt along +x (0: the chips pile up under the pour zone)",
+        _between(0.0, 1e5),
+    )
+    pour_rate_chips_s: float = _key(
+        36.0, "chips/s", "chips released per second", _between(1e-6, 1e6)
+    )
+    zone_length_mm: float = _key(
+        40.0,
+        "mm",
+        "length along the belt of the pour zone (a falling curtain's thickness)",
+        _length,
+    )
+    zone_width_mm: float = _key(
+        150.0, "mm", "width across the belt of the pour zone, centred on the belt", _length
+    )
+    belt_width_mm: float = _key(
+        200.0,
+        "mm",
+        "width of the belt; without side guides, a chip whose centre goes past an edge has "
+        "fallen off (spilled)",
+        _length,
+    )
+    side_guides: bool = _key(
+        True,
+        "",
+        "walls along both edges of the belt, frictionless (a guide fixed in the line slides "
+        "along the moving mat; that friction is not modelled); false: chips can fall off",
+    )
+    feed_speed_mm_s: float = _key(
+        0.0,
+        "mm/s",
+        "horizontal speed along +x of a released chip, in the line's frame (an inclined "
+        "feeding belt's end; 0: a falling curtain)",
+        _between(-1e5, 1e5),
+    )
+    active_lengths: float = _key(
+        5.0,
+        "chip lengths",
+        "settled chips this far downstream of the pour zone, with no moving chip near, "
+        "leave the physics world (their poses are recorded): the cost per chip stays flat",
+        _between(1.0, 1e6),
+    )
+    run_in_mm: float = _key(
+        200.0,
+        "mm",
+        "the first this many mm of mat are left out of its steady part: the heap under the "
+        "pour zone is still forming there (the built-in line's thickness reaches its "
+        "plateau after about 200 mm; docs/conveyor.md)",
+        _between(0.0, MAX_LENGTH_MM),
+    )
+    cell_mm: float = _key(
+        50.0,
+        "mm",
+        "side of the square cells of the areal-weight map (its coefficient of variation is "
+        "taken over the cells of the mat's steady part)",
+        _length,
     )
 
 
@@ -461,8 +537,8 @@ class Scenario:
         "stack",
         "",
         "`stack`: batch deposition on a square target; `drop`: single-chip drops; "
-        "`container`: filling a cylinder",
-        _one_of("stack", "drop", "container"),
+        "`container`: filling a cylinder; `conveyor`: a mat poured onto a moving belt",
+        _one_of("stack", "drop", "container", "conveyor"),
     )
     seed: int = _key(0, "", "seed of every random draw (the CLI's --seed overrides it)")
     chip: ChipSpec = field(default_factory=ChipSpec)
@@ -481,6 +557,7 @@ class Scenario:
     solve: SolveSpec = field(default_factory=SolveSpec)
     drop: DropSpec = field(default_factory=DropSpec)
     container: ContainerSpec = field(default_factory=ContainerSpec)
+    conveyor: ConveyorSpec = field(default_factory=ConveyorSpec)
 
     @property
     def chips(self) -> tuple[ChipSpec, ...]:
@@ -502,6 +579,7 @@ _SECTIONS: dict[str, type] = {
     "solve": SolveSpec,
     "drop": DropSpec,
     "container": ContainerSpec,
+    "conveyor": ConveyorSpec,
 }
 
 

@@ -109,7 +109,8 @@ class Stage:
     name: ClassVar[str] = ""
     upstream: ClassVar[tuple[str, ...]] = ()
     sections: ClassVar[tuple[str, ...]] = ()
-    kinds: ClassVar[tuple[str, ...]] = ("stack",)
+    # A conveyor's packing leaves the panel cut from its mat: a stack like any other.
+    kinds: ClassVar[tuple[str, ...]] = ("stack", "conveyor")
     checkpointed: ClassVar[bool] = False
     in_ensembles: ClassVar[bool] = True
     repeat_statistics: ClassVar[bool] = False  # summarize_repeats gives an ensemble summary

@@ -38,6 +38,7 @@ __all__ = [
     "plot_contact_types",
     "plot_layer_comparison",
     "plot_layer_filling",
+    "plot_mat",
     "plot_neh_map",
     "plot_profile",
     "render_stack",
@@ -758,3 +759,53 @@ def plot_force_displacement(path: str | os.PathLike, press_mm, force_n) -> None:
     ax.set_title("Compaction of the stack")
     ax.grid(alpha=0.3)
     _save(figure, path)
+
+
+def plot_mat(path: object, record: Mapping) -> Path:
+    """A poured mat (``mat.json``'s record): areal-weight map over the belt (g/m^2), the
+    thickness profiles along and across the belt (mm), and the chips' in-plane angles
+    from the belt's direction of travel."""
+    path = _path(path)
+    weight, thickness = record["areal_weight"], record["thickness"]
+    orientation = record["orientation"]
+    figure = Figure(figsize=(11.0, 6.4), dpi=DPI, layout="constrained")
+    FigureCanvasAgg(figure)
+    grid = figure.add_gridspec(2, 3)
+    ax = figure.add_subplot(grid[0, :])
+    x_edges, y_edges = np.asarray(weight["x_edges_mm"]), np.asarray(weight["y_edges_mm"])
+    mesh = ax.pcolormesh(
+        x_edges, y_edges, np.asarray(weight["map_g_m2"]).T, cmap="viridis", shading="flat"
+    )
+    figure.colorbar(mesh, ax=ax, label="areal weight (g/m$^2$)")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x along the belt (mm)")
+    ax.set_ylabel("y across (mm)")
+    ax.set_title(
+        f"areal weight over {weight['cell_mm']:g} mm cells: mean {weight['mean_g_m2']:.0f} "
+        f"g/m$^2$, CV {weight['cv']:.3f}"
+    )
+    ax = figure.add_subplot(grid[1, 0])
+    ax.plot(thickness["along_x_mm"], thickness["along_mm"], color="tab:blue")
+    ax.set_xlabel("x along the belt (mm)")
+    ax.set_ylabel("mean top height (mm)")
+    ax.set_title(f"along the belt, CV {thickness['cv_along']:.3f}")
+    ax = figure.add_subplot(grid[1, 1])
+    ax.plot(thickness["across_y_mm"], thickness["across_mm"], color="tab:red")
+    ax.set_xlabel("y across the belt (mm)")
+    ax.set_ylabel("mean top height (mm)")
+    ax.set_title(f"across the belt, CV {thickness['cv_across']:.3f}")
+    ax = figure.add_subplot(grid[1, 2])
+    edges = np.asarray(orientation["angle_edges_deg"])
+    ax.bar(
+        edges[:-1],
+        orientation["angle_fraction"],
+        width=np.diff(edges),
+        align="edge",
+        color="tab:green",
+        edgecolor="white",
+    )
+    ax.set_xlabel("chip x axis from the belt direction (deg)")
+    ax.set_ylabel("fraction of chips")
+    ax.set_title(f"<cos 2θ> = {orientation['order_cos2']:.3f}")
+    _save(figure, path)
+    return path

@@ -397,29 +397,9 @@ def settle(
                 loads(awake)
                 world.step()
         steps += check_steps
-        for chip, speed in tracker.update(s.wake_speed_mm_s):
-            # A fast chip wakes every frozen chip it can reach before the next check, so
-            # an impact pushes what it hits instead of bouncing off a static chip. A slow
-            # one that crept out of its rest window wakes those above its centre only:
-            # a chip resting on one that slides away must not stay hanging in the air,
-            # but the chips under a creeping one hold it up as well static as moving
-            # (waking them too made every pour into a container wake its whole top layer,
-            # over and over: 1.5 times the cost of a fill).
-            reach = WAKE_MARGIN_MM + speed * check_interval_s
-            near = [
-                c
-                for c in world.chips_near(chip, reach)
-                if c not in tracker.awake and c not in buried
-            ]
-            woken = world.within(chip, near, reach)
-            if woken and speed <= s.wake_speed_mm_s:
-                heights = world.kinematics(woken)[0][:, 2]  # no energy bookkeeping
-                floor = tracker.positions[chip][2]
-                woken = [c for c, z in zip(woken, heights, strict=True) if z > floor]
-            for other in woken:
-                world.wake(other)
-            tracker.add(woken)
-            wakes += len(woken)
+        wakes += wake_near_movers(
+            world, tracker, tracker.update(s.wake_speed_mm_s), buried, s, check_interval_s
+        )
         if scenario.kind == "container":
             _freeze_spilled(world, tracker, scenario.container)
     still_moving = tracker.moving()
@@ -436,6 +416,41 @@ def settle(
         if warnings is not None:
             warnings.append(message)
     return not still_moving, steps, wakes, start_time
+
+
+def wake_near_movers(
+    world: ChipWorld,
+    tracker: _RestTracker,
+    moving: list[tuple[int, float]],
+    buried: set[int],
+    settling,
+    check_interval_s: float,
+) -> int:
+    """Wake the frozen chips the ``moving`` chips (chip, speed mm/s) can reach before the
+    next check; returns how many were woken."""
+    wakes = 0
+    for chip, speed in moving:
+        # A fast chip wakes every frozen chip it can reach before the next check, so an
+        # impact pushes what it hits instead of bouncing off a static chip. A slow one
+        # that crept out of its rest window wakes those above its centre only: a chip
+        # resting on one that slides away must not stay hanging in the air, but the chips
+        # under a creeping one hold it up as well static as moving (waking them too made
+        # every pour into a container wake its whole top layer, over and over: 1.5 times
+        # the cost of a fill).
+        reach = WAKE_MARGIN_MM + speed * check_interval_s
+        near = [
+            c for c in world.chips_near(chip, reach) if c not in tracker.awake and c not in buried
+        ]
+        woken = world.within(chip, near, reach)
+        if woken and speed <= settling.wake_speed_mm_s:
+            heights = world.kinematics(woken)[0][:, 2]  # no energy bookkeeping
+            floor = tracker.positions[chip][2]
+            woken = [c for c, z in zip(woken, heights, strict=True) if z > floor]
+        for other in woken:
+            world.wake(other)
+        tracker.add(woken)
+        wakes += len(woken)
+    return wakes
 
 
 def _buried(world: ChipWorld, new: list[int], depth_lengths: float) -> set[int]:

@@ -19,12 +19,15 @@ from packing.presets import PRESETS
 # The simulation, its records and writers are imported where used: every command-line
 # start registers this stage, and they bring numpy, scipy, trimesh and pybullet (~1 s).
 if TYPE_CHECKING:
+    from packing.conveyor import ConveyorResult, MatRecord
     from packing.drop import DropResult
     from packing.stack import BatchResult, Stack
 
 __all__ = ["PackingStage", "STAGE", "top_mm"]
 
 log = logging.getLogger(__name__)
+
+STEADY_DRIFT = 0.1  # a steady part whose thickness drifts more than this is flagged
 
 
 class PackingStage(Stage):
@@ -44,8 +47,9 @@ class PackingStage(Stage):
         "output",
         "drop",
         "container",
+        "conveyor",
     )
-    kinds = ("stack", "drop", "container")
+    kinds = ("stack", "drop", "container", "conveyor")
     checkpointed = True
 
     def check(self, scenario: Scenario) -> None:
@@ -67,7 +71,7 @@ class PackingStage(Stage):
             extra["figures"] = options.figures  # the drop stage draws Fig. 15
         return extra
 
-    def compute(self, inputs: StageInputs) -> Stack | DropResult:
+    def compute(self, inputs: StageInputs) -> Stack | DropResult | ConveyorResult:
         from packing.checkpoint import state_from_arrays, state_to_arrays
         from packing.deposition import deposit
         from packing.drop import drop_chips
@@ -75,6 +79,8 @@ class PackingStage(Stage):
         scenario = inputs.scenario
         if scenario.kind == "drop":
             return drop_chips(scenario)
+        if scenario.kind == "conveyor":
+            return _pour(scenario, inputs.options.progress, self.name)
         n_batches = -(-scenario.deposition.chips // scenario.deposition.batch_size)
         report = inputs.options.progress
 
@@ -104,6 +110,22 @@ class PackingStage(Stage):
         if isinstance(result, DropResult):
             statistics = write_drop_files(folder, scenario, result, inputs.options.figures)
             return StageOutput({"drop": statistics}, list(result.warnings))
+        if scenario.kind == "conveyor":
+            write_stack_files(folder, result.panel)
+            summary = write_mat_files(folder, scenario, result.mat, inputs.options.figures)
+            warnings = list(result.warnings)
+            drift = (summary["thickness"] or {}).get("drift", 0.0)
+            if abs(drift) > STEADY_DRIFT:
+                message = (
+                    f"the mat's steady part is not steady: its thickness changed by "
+                    f"{100 * drift:+.0f} % from its first third to its last; raise "
+                    "conveyor.run_in_mm (and deposition.chips)"
+                )
+                log.warning(message)
+                warnings.append(message)
+            return StageOutput(
+                {"packing": packing_summary(result.panel), "conveyor": summary}, warnings
+            )
         write_stack_files(folder, result)
         summary: dict[str, Any] = {"packing": packing_summary(result)}
         if scenario.kind == "container":
@@ -132,6 +154,19 @@ class PackingStage(Stage):
             return [f"{summary['drop']['settled']} settled drops written to {folder.parent}"]
         packing = summary["packing"]
         last = packing["batches"][-1]
+        if "conveyor" in summary:
+            mat = summary["conveyor"]
+            weight = mat.get("areal_weight") or {}
+            return [
+                f"{mat['chips']['released']} chips poured onto the belt "
+                f"({mat['chips']['on_belt']} on it, {mat['chips']['spilled']} spilled) in "
+                f"{mat['time']['wall_s']:.1f} s; mat {mat['mat_length_mm']:.0f} mm long, "
+                f"areal weight {weight.get('mean_g_m2', float('nan')):.0f} g/m^2 "
+                f"(CV {weight.get('cv', float('nan')):.3f} over "
+                f"{weight.get('cell_mm', float('nan')):g} mm cells)",
+                f"panel {mat['panel_mm']:g} mm square: {packing['chips']} chips, top "
+                f"{last['top_mm']:.1f} mm",
+            ]
         return [
             f"{packing['chips']} chips in {len(packing['batches'])} batches, "
             f"top {last['top_mm']:.1f} mm, {packing['outside_target']} outside the target, "
@@ -166,7 +201,11 @@ def check_packing(scenario: Scenario) -> None:
                 "container is wide (2 x container.radius_mm = "
                 f"{2 * scenario.container.radius_mm:g} mm)"
             )
-    if scenario.kind == "stack" and d.release_height_mm[0] <= largest_radius:
+    if scenario.kind == "conveyor":
+        from packing.conveyor import check_conveyor
+
+        check_conveyor(scenario, 2 * largest_radius)
+    if scenario.kind in ("stack", "conveyor") and d.release_height_mm[0] <= largest_radius:
         raise InputError(
             "deposition.release_height_mm: the lowest release height must clear the chip's "
             f"circumradius ({largest_radius:.1f} mm) so no release pose touches the floor"
@@ -288,3 +327,157 @@ def top_mm(stack: Stack, result: BatchResult) -> float:
             )
             top = max(top, float(heights.max()))
     return top
+
+
+def _pour(scenario: Scenario, report, name: str) -> ConveyorResult:
+    from packing.conveyor import pour_mat, pour_timing
+
+    def progress(done: int, pours: int) -> None:
+        if report is not None:
+            report(name, done, pours, {})
+
+    if report is not None:
+        report(name, 0, pour_timing(scenario)[0], {})
+    return pour_mat(scenario, progress)
+
+
+def mat_summary(scenario: Scenario, mat: MatRecord) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The mat's descriptors: (manifest entry of scalars, the full record with maps and
+    profiles for ``mat.json``). Areal weight, thickness and orientation are taken over
+    the mat's steady part (:func:`packing.conveyor.steady_range_mm`), across the belt."""
+    import numpy as np
+
+    from geometry.mat import (
+        areal_weight_map,
+        coefficient_of_variation,
+        orientation_distribution,
+        surface_samples,
+        thickness_map,
+    )
+    from packing.conveyor import LEFT_DOMAIN, ON_BELT, SPILLED
+
+    c = scenario.conveyor
+    low, high = mat.steady_mm
+    half = c.belt_width_mm / 2
+    on = mat.status == ON_BELT
+    steady = on & (mat.positions[:, 0] >= low) & (mat.positions[:, 0] <= high)
+    n = max(mat.n_chips, 1)
+    summary: dict[str, Any] = {
+        "chips": {
+            "released": int(mat.n_chips),
+            "on_belt": int(on.sum()),
+            "spilled": int((mat.status == SPILLED).sum()),
+            "left_domain": int((mat.status == LEFT_DOMAIN).sum()),
+        },
+        # From the first pour's zone to the last's (the mat's nominal extent).
+        "mat_length_mm": float(np.ptp(mat.zone_x_mm) + c.zone_length_mm)
+        if len(mat.zone_x_mm)
+        else 0.0,
+        "steady_mm": [float(low), float(high)],
+        "panel_mm": scenario.deposition.target_size_mm,
+        "panel_centre_mm": list(mat.panel_centre_mm),
+        "time": {
+            "wall_s": round(mat.wall_time_s, 3),
+            "ms_per_chip": round(1e3 * mat.wall_time_s / n, 3),
+            "sim_s": round(mat.sim_time_s, 4),
+            "steps": int(mat.steps),
+            "wakes": int(mat.wakes),
+            "most_chips_in_engine": int(mat.most_in_world),
+        },
+        "settled": bool(mat.settled),
+    }
+    record: dict[str, Any] = dict(summary)
+    if high - low >= c.cell_mm:
+        weights, x_edges, y_edges = areal_weight_map(
+            mat.positions[on, :2], mat.masses_g[on], (low, high), (-half, half), c.cell_mm
+        )
+        summary["areal_weight"] = {
+            "cell_mm": c.cell_mm,
+            "mean_g_m2": float(weights.mean()),
+            "cv": coefficient_of_variation(weights),
+            "cells": int(weights.size),
+        }
+        record["areal_weight"] = {
+            **summary["areal_weight"],
+            "map_g_m2": weights.tolist(),
+            "x_edges_mm": x_edges.tolist(),
+            "y_edges_mm": y_edges.tolist(),
+        }
+    else:
+        summary["areal_weight"] = None
+        record["areal_weight"] = None
+    if steady.any() and high > low:
+        pixel = scenario.geometry.pixel_mm
+        samples = [surface_samples(s.vertices, s.convex_pieces, pixel / 2) for s in mat.shapes]
+        near = on & (mat.positions[:, 0] >= low - 50) & (mat.positions[:, 0] <= high + 50)
+        heights, x_edges, y_edges = thickness_map(
+            mat.positions[near],
+            mat.quaternions[near],
+            samples,
+            mat.shape_index[near],
+            (low, high),
+            (-half, half),
+            pixel,
+        )
+        along, across = heights.mean(axis=1), heights.mean(axis=0)
+        # Whether the steady part is steady: the change of the mean thickness from its
+        # first third poured to its last third (x decreases as the mat is poured).
+        thirds = np.array_split(along[::-1], 3)
+        drift = (
+            float((thirds[2].mean() - thirds[0].mean()) / along.mean())
+            if len(along) >= 3 and along.mean() > 0
+            else float("nan")
+        )
+        summary["thickness"] = {
+            "pixel_mm": pixel,
+            "mean_mm": float(heights.mean()),
+            "cv_along": coefficient_of_variation(along),
+            "cv_across": coefficient_of_variation(across),
+            "bare_fraction": float((heights == 0).mean()),
+            "drift": drift,
+        }
+        record["thickness"] = {
+            **summary["thickness"],
+            "along_mm": along.tolist(),
+            "along_x_mm": (0.5 * (x_edges[1:] + x_edges[:-1])).tolist(),
+            "across_mm": across.tolist(),
+            "across_y_mm": (0.5 * (y_edges[1:] + y_edges[:-1])).tolist(),
+        }
+        orientation = orientation_distribution(mat.quaternions[steady])
+        summary["orientation"] = {
+            k: orientation[k]
+            for k in ("order_cos2", "order_cos4", "mean_tilt_deg", "flat_fraction")
+        }
+        record["orientation"] = orientation
+    else:
+        summary["thickness"] = summary["orientation"] = None
+        record["thickness"] = record["orientation"] = None
+    return summary, record
+
+
+def write_mat_files(folder: Path, scenario: Scenario, mat: MatRecord, figures: bool) -> dict:
+    """The whole mat (``mat.npz``, ``mat_shapes.json``), its descriptors (``mat.json``)
+    and, with figures, ``figures/mat.png``; returns the manifest entry."""
+    import numpy as np
+
+    from packing.shapes import shape_record
+
+    shapes = {"schema": "chipstack.shapes/1", "shapes": [shape_record(s) for s in mat.shapes]}
+    (folder / "mat_shapes.json").write_text(json.dumps(shapes) + "\n")
+    np.savez(
+        folder / "mat.npz",
+        positions=mat.positions,
+        quaternions=mat.quaternions,
+        shape_index=mat.shape_index,
+        pour=mat.pour,
+        status=mat.status,
+        zone_x_mm=mat.zone_x_mm,
+    )
+    summary, record = mat_summary(scenario, mat)
+    (folder / "mat.json").write_text(json.dumps(record, indent=1) + "\n")
+    if figures and record["areal_weight"] and record["thickness"]:
+        from export.figures import plot_mat
+
+        (folder / "figures").mkdir(exist_ok=True)
+        plot_mat(folder / "figures" / "mat.png", record)
+    return summary

@@ -160,6 +160,25 @@ class ChipWorld:
         self._apply_contact_model(wall)
         self._walls.append(wall)
 
+    def add_side_guides(self, half_width_mm: float) -> None:
+        """Two frictionless walls, planes at y = +-``half_width_mm`` facing inwards, along
+        the whole belt (guides fixed in the line slide along a moving mat; their friction
+        on it is not modelled)."""
+        c = self.client
+        for side in (1.0, -1.0):
+            plane = pybullet.createCollisionShape(
+                pybullet.GEOM_PLANE, planeNormal=[0.0, -side, 0.0], physicsClientId=c
+            )
+            wall = pybullet.createMultiBody(
+                0, plane, -1, [0.0, side * half_width_mm / MM_PER_UNIT, 0.0], physicsClientId=c
+            )
+            self._freezer.fixture(wall)
+            self._apply_contact_model(wall)
+            pybullet.changeDynamics(
+                wall, -1, lateralFriction=0.0, rollingFriction=0.0, physicsClientId=c
+            )
+            self._walls.append(wall)
+
     def set_floor_compliance(
         self, compliance_mm_n: float, damping_ratio: float, reference_mass_g: float
     ) -> None:
@@ -228,6 +247,16 @@ class ChipWorld:
         """Give a frozen chip back its mass (at rest)."""
         self._freezer.wake(chip)
 
+    def retire(self, chip: int) -> None:
+        """Take a frozen chip out of the engine for good, keeping its pose (read by
+        :meth:`poses`): a mat's chips far behind the pour zone cost nothing at all."""
+        position, quaternion = self._states.poses_of([chip])
+        body = self._chips.retire(chip, position[0], quaternion[0])
+        pybullet.removeBody(body, physicsClientId=self.client)
+
+    def is_retired(self, chip: int) -> bool:
+        return chip in self._chips.retired
+
     # -- motion ----------------------------------------------------------------------------
     @property
     def last_kinetic_energy(self) -> np.ndarray:
@@ -247,6 +276,10 @@ class ChipWorld:
         """Positions (k, 3) mm, quaternions (k, 4), velocities (k, 3) mm/s and angular
         velocities (k, 3) rad/s, in the world frame."""
         return self._states.kinematics(chips)
+
+    def poses_of(self, chips: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """Positions (k, 3) mm and quaternions (k, 4) of chips not retired."""
+        return self._states.poses_of(chips)
 
     def poses(self) -> tuple[np.ndarray, np.ndarray]:
         """Positions (n, 3) mm and quaternions (n, 4) x, y, z, w of all chips."""

@@ -15,7 +15,9 @@ from packing.bullet import pybullet
 from packing.chipshape import ChipShape
 from packing.world_engine import MM_PER_UNIT, EngineSession
 
-__all__ = ["CollisionShapes", "ChipBodies"]
+__all__ = ["CollisionShapes", "ChipBodies", "RETIRED"]
+
+RETIRED = -2  # the body id of a chip removed from the engine (no body has a negative id)
 
 
 class CollisionShapes:
@@ -110,7 +112,10 @@ class ChipBodies:
     them."""
 
     def __init__(self) -> None:
-        self.body_ids: list[int] = []  # chip index -> body id
+        self.body_ids: list[int] = []  # chip index -> body id (RETIRED once removed)
+        # Chips taken out of the engine for good: their last pose, position mm and
+        # quaternion (see :meth:`retire`).
+        self.retired: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._index_of: dict[int, int] = {}
         self.masses: list[float] = []
         self.shapes: list[ChipShape] = []
@@ -135,6 +140,15 @@ class ChipBodies:
             / MM_PER_UNIT
         )
         return index
+
+    def retire(self, chip: int, position_mm: np.ndarray, quaternion: np.ndarray) -> int:
+        """Unregister a chip's body (the caller removes it from the engine), keeping its
+        final pose; returns the body id it had."""
+        body = self.body_ids[chip]
+        del self._index_of[body]
+        self.body_ids[chip] = RETIRED
+        self.retired[chip] = (np.asarray(position_mm, float), np.asarray(quaternion, float))
+        return body
 
     def is_chip(self, body: int) -> bool:
         return body in self._index_of

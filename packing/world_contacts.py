@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from packing.bullet import pybullet
-from packing.world_bodies import ChipBodies
+from packing.world_bodies import RETIRED, ChipBodies
 from packing.world_engine import MM_PER_UNIT, EngineSession
 
 __all__ = ["GROUND", "ContactRecord", "ContactQueries"]
@@ -83,6 +83,8 @@ class ContactQueries:
         bodies = self._chips.body_ids
         rows = []
         for a, body in enumerate(bodies):
+            if body == RETIRED:  # out of the engine: no contacts read
+                continue
             for b in self.chips_near(a, distance_mm):
                 if b <= a:
                     continue

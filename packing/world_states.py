@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from core.errors import SimulationError
 from packing.bullet import pybullet
-from packing.world_bodies import ChipBodies
+from packing.world_bodies import RETIRED, ChipBodies
 from packing.world_engine import MM_PER_UNIT, EngineSession
 
 __all__ = ["ChipStates"]
@@ -51,9 +51,12 @@ class ChipStates:
     def poses(self, time_s: float) -> tuple[np.ndarray, np.ndarray]:
         """Positions (n, 3) mm and quaternions (n, 4) x, y, z, w of all chips."""
         c = self._session.client
+        retired = self._chips.retired
         states = [
-            pybullet.getBasePositionAndOrientation(b, physicsClientId=c)
-            for b in self._chips.body_ids
+            (np.asarray(retired[k][0]) / MM_PER_UNIT, retired[k][1])
+            if b == RETIRED
+            else pybullet.getBasePositionAndOrientation(b, physicsClientId=c)
+            for k, b in enumerate(self._chips.body_ids)
         ]
         if not states:
             return np.empty((0, 3)), np.empty((0, 4))
@@ -63,6 +66,18 @@ class ChipStates:
             bad = np.flatnonzero(~np.isfinite(positions).all(axis=1))
             raise SimulationError(f"chips {bad.tolist()[:10]}: NaN position at t = {time_s}")
         return positions, quaternions
+
+    def poses_of(self, chips: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """Positions (k, 3) mm and quaternions (k, 4) of chips still in the engine."""
+        c = self._session.client
+        poses = [
+            pybullet.getBasePositionAndOrientation(self._chips.body_ids[i], physicsClientId=c)
+            for i in chips
+        ]
+        return (
+            np.array([p[0] for p in poses], dtype=float).reshape(-1, 3) * MM_PER_UNIT,
+            np.array([p[1] for p in poses], dtype=float).reshape(-1, 4),
+        )
 
     def _read(self, chips: list[int]) -> tuple[np.ndarray, ...]:
         """Positions (k, 3) mm, quaternions (k, 4), and the velocities (k, 3) and angular
