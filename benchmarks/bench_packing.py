@@ -1,18 +1,32 @@
-"""Packing speed: the 270-chip reference deposition and a 2,700-chip stack.
+"""Packing speed: the 270-chip reference deposition and a 2,700-chip stack; with
+``--conveyor``, mats poured onto a moving belt.
 
 Prints the median wall time of 5 reference runs (target <= 4 s on one core), the peak
 resident memory of this process (target <= 500 MB), and seconds per chip at 270 and 2,700
 chips on a 475 mm target (same depth; target: ratio <= 1.5), all measured in this run.
 
+``--conveyor N [N ...]``: the line of a 440 x 540 mm panel (the paper's chips, the paper
+stack's areal density, a belt 540 mm wide at 20 mm/s, 136 chips/s) poured with N chips
+each, one process per mat (so each peak memory is its own); prints per N the wall time,
+ms per chip, the most chips the engine held and the peak memory, and the ratios to the
+smallest N (targets: 3,000 chips <= 60 s; ms per chip at 30,000 within 1.2 x that at
+300; memory growing no faster than the mat). Each mat's figures are kept in
+benchmarks/results/conveyor/<N>.json, so a long study resumes (``--fresh`` remeasures).
+
     .venv/bin/python benchmarks/bench_packing.py [--repeats 5] [--large-seeds 1]
+    .venv/bin/python benchmarks/bench_packing.py --conveyor 300 3000 30000
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import resource
 import statistics
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 from packing import deposit, scenario_from_dict
 
@@ -27,7 +41,16 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--large-seeds", type=int, default=1)
+    parser.add_argument("--conveyor", type=int, nargs="+", default=None, metavar="N")
+    parser.add_argument("--fresh", action="store_true", help="remeasure cached mats")
+    parser.add_argument("--one-mat", type=int, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.one_mat is not None:
+        print(json.dumps(one_mat(args.one_mat)))
+        return
+    if args.conveyor:
+        conveyor_study(args.conveyor, args.fresh)
+        return
 
     small = []
     for seed in range(args.repeats):
@@ -79,6 +102,81 @@ def main() -> None:
         f"{per_chip_large * 1e3:.2f} ms at 2700; ratio {per_chip_large / per_chip_small:.2f} "
         f"(target <= 1.5)"
     )
+
+
+RESULTS = Path(__file__).parent / "results" / "conveyor"
+
+
+def panel_line(chips: int):
+    """The line of a 440 x 540 mm panel: the paper's chips at the paper stack's areal
+    density (0.012 chips/mm^2), a belt 540 mm wide at 20 mm/s, so 136 chips/s."""
+    from core.schema import scenario_from_dict
+
+    return scenario_from_dict(
+        {
+            "kind": "conveyor",
+            "chip": {"fibre_directions_deg": [0.0, 90.0]},
+            "deposition": {"chips": chips, "batch_size": 4, "target_size_mm": 1.0},
+            "conveyor": {
+                "belt_speed_mm_s": 20.0,
+                "pour_rate_chips_s": 136.0,
+                "zone_length_mm": 40.0,
+                "zone_width_mm": 540.0,
+                "belt_width_mm": 540.0,
+                "run_in_mm": 0.0,
+            },
+        }
+    )
+
+
+def one_mat(chips: int) -> dict:
+    from packing.conveyor import pour_mat
+
+    start = time.perf_counter()
+    mat = pour_mat(panel_line(chips)).mat
+    wall = time.perf_counter() - start
+    return {
+        "chips": chips,
+        "wall_s": round(wall, 2),
+        "ms_per_chip": round(1e3 * wall / chips, 2),
+        "sim_s": round(mat.sim_time_s, 2),
+        "steps": mat.steps,
+        "wakes": mat.wakes,
+        "most_in_engine": mat.most_in_world,
+        "peak_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+        "settled": mat.settled,
+    }
+
+
+def conveyor_study(sizes: list[int], fresh: bool) -> None:
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for chips in sorted(sizes):
+        path = RESULTS / f"{chips}.json"
+        if fresh or not path.exists():
+            done = subprocess.run(
+                [sys.executable, __file__, "--one-mat", str(chips)],
+                capture_output=True,
+                text=True,
+                check=True,
+            )
+            path.write_text(done.stdout.strip().splitlines()[-1] + "\n")
+        row = json.loads(path.read_text())
+        rows.append(row)
+        print(
+            f"{chips:6d} chips: {row['wall_s']:8.1f} s wall, {row['ms_per_chip']:6.1f} ms per "
+            f"chip, {row['sim_s']:7.1f} s simulated, {row['wakes'] / chips:5.1f} wakes per chip, "
+            f"at most {row['most_in_engine']} chips in the engine, peak {row['peak_mb']:.0f} MB",
+            flush=True,
+        )
+    first = rows[0]
+    for row in rows[1:]:
+        print(
+            f"{row['chips']} against {first['chips']} chips: ms per chip x "
+            f"{row['ms_per_chip'] / first['ms_per_chip']:.2f}, peak memory x "
+            f"{row['peak_mb'] / first['peak_mb']:.2f} for x "
+            f"{row['chips'] / first['chips']:.0f} the chips"
+        )
 
 
 if __name__ == "__main__":

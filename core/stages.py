@@ -139,6 +139,11 @@ class Stage:
         """Write ``result`` into ``folder`` (built hidden, renamed into place when done)."""
         raise NotImplementedError
 
+    def handoff(self, result: Any) -> Any:
+        """What downstream stages read of a result :meth:`compute` returned (by default
+        all of it; :meth:`load` gives the same from the written folder)."""
+        return result
+
     def load(self, folder: Path, scenario: Scenario) -> Any:
         """The result back from a written folder (for downstream stages of a cached run)."""
         raise NotImplementedError

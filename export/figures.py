@@ -41,6 +41,7 @@ __all__ = [
     "plot_mat",
     "plot_neh_map",
     "plot_profile",
+    "plot_sweep",
     "render_stack",
 ]
 
@@ -807,5 +808,59 @@ def plot_mat(path: object, record: Mapping) -> Path:
     ax.set_xlabel("chip x axis from the belt direction (deg)")
     ax.set_ylabel("fraction of chips")
     ax.set_title(f"<cos 2θ> = {orientation['order_cos2']:.3f}")
+    _save(figure, path)
+    return path
+
+
+def plot_sweep(path: object, record: Mapping, key: str, columns: int = 5) -> Path:
+    """Every scalar of a sweep (``sweep.json``'s record) against the swept ``key``: the
+    mean over the repeats and its 95 % interval at each point, one line for each
+    combination of the other swept keys."""
+    path = _path(path)
+    points = record["points"]
+    others = [k for k in record["keys"] if k != key]
+    names = sorted({n for p in points for n, s in p["scalars"].items() if s["mean"] is not None})
+    if not names:
+        raise InputError("record: the sweep has no scalar to draw")
+    rows = math.ceil(len(names) / columns)
+    figure = Figure(figsize=(3.2 * columns, 2.4 * rows), dpi=DPI, layout="constrained")
+    FigureCanvasAgg(figure)
+    values = [p["values"][key] for p in points]
+    numeric = all(isinstance(v, int | float) and not isinstance(v, bool) for v in values)
+    order = sorted(set(values), key=lambda v: v if numeric else str(v))
+    groups: dict[tuple, list[Mapping]] = {}
+    for p in points:
+        groups.setdefault(tuple(p["values"][k] for k in others), []).append(p)
+    for index, name in enumerate(names):
+        ax = figure.add_subplot(rows, columns, index + 1)
+        for label, members in groups.items():
+            members = sorted(members, key=lambda p: order.index(p["values"][key]))
+            x = [p["values"][key] if numeric else order.index(p["values"][key]) for p in members]
+            stats = [p["scalars"].get(name, {}) for p in members]
+            mean = np.array([np.nan if s.get("mean") is None else s["mean"] for s in stats])
+            low = np.array([np.nan if s.get("ci_low") is None else s["ci_low"] for s in stats])
+            high = np.array([np.nan if s.get("ci_high") is None else s["ci_high"] for s in stats])
+            text = ", ".join(f"{k}={v}" for k, v in zip(others, label, strict=True))
+            ax.errorbar(
+                x,
+                mean,
+                yerr=[np.nan_to_num(mean - low), np.nan_to_num(high - mean)],
+                marker="o",
+                ms=3,
+                capsize=2,
+                label=text or None,
+            )
+        unit = next((p["scalars"][name].get("unit") for p in points if name in p["scalars"]), "")
+        ax.set_title(name + (f" ({unit})" if unit else ""), fontsize=7)
+        ax.tick_params(labelsize=6)
+        if not numeric:
+            ax.set_xticks(range(len(order)), [str(v) for v in order])
+        if others and index == 0:
+            ax.legend(fontsize=5)
+    figure.suptitle(
+        f"{record['scenario']}: every scalar against {key} (mean and 95 % interval over "
+        f"{record['repeats']} repeats)",
+        fontsize=9,
+    )
     _save(figure, path)
     return path

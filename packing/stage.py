@@ -132,6 +132,12 @@ class PackingStage(Stage):
             summary["container"] = container_summary(result, scenario)
         return StageOutput(summary, list(result.warnings))
 
+    def handoff(self, result: Stack | DropResult | ConveyorResult) -> Stack | DropResult:
+        from packing.conveyor import ConveyorResult
+
+        # A conveyor's later stages take the panel cut from its mat, as load() does.
+        return result.panel if isinstance(result, ConveyorResult) else result
+
     def load(self, folder: Path, scenario: Scenario) -> Stack | None:
         if scenario.kind == "drop":
             return None

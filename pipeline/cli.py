@@ -1,5 +1,5 @@
-"""Command line: ``pipeline run``, ``describe``, ``compare``, ``validate``, ``diagnose``
-and ``synth``.
+"""Command line: ``pipeline run``, ``sweep``, ``describe``, ``compare``, ``validate``,
+``diagnose`` and ``synth``.
 
 The only place that prints or exits. Every expected failure (bad input, a physics error)
 becomes one line on stderr and exit status 2.
@@ -55,7 +55,15 @@ SEED = _bounded(0, MAX_SEED)
 def _parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="pipeline", description="Chip-stack pipeline for composites recycling")
     commands = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
-    for add in (_add_run, _add_describe, _add_compare, _add_validate, _add_diagnose, _add_synth):
+    for add in (
+        _add_run,
+        _add_sweep,
+        _add_describe,
+        _add_compare,
+        _add_validate,
+        _add_diagnose,
+        _add_synth,
+    ):
         add(commands)
     return parser
 
@@ -126,6 +134,41 @@ def _add_compare(commands) -> None:
     compare.add_argument("--overwrite", action="store_true", help="replace an earlier comparison")
     compare.add_argument("--quiet", action="store_true", help="no table on stdout")
     compare.add_argument("-v", "--verbose", action="store_true", help="log progress details")
+
+
+def _add_sweep(commands) -> None:
+    sweep = commands.add_parser(
+        "sweep", help="an ensemble at every point of a grid of scenario values, and a table"
+    )
+    sweep.add_argument("scenario", help="scenario file or built-in name")
+    sweep.add_argument(
+        "--vary",
+        action="append",
+        required=True,
+        metavar="KEY=V1,V2,...",
+        help="a scenario key and its values (repeat for a grid), e.g. "
+        "conveyor.belt_speed_mm_s=10,20,40",
+    )
+    sweep.add_argument(
+        "--repeats",
+        type=_bounded(2, MAX_REPEATS),
+        required=True,
+        help=f"runs per point, 2 to {MAX_REPEATS}",
+    )
+    sweep.add_argument(
+        "--to",
+        default="geometry",
+        help=f"last stage of each run: {', '.join(stage_names())} (default: geometry)",
+    )
+    sweep.add_argument("--out", default=None, help="where to write (default: runs/sweep-<name>)")
+    sweep.add_argument("--seed", type=SEED, default=None, help=SEED_HELP)
+    sweep.add_argument(
+        "--workers", type=WORKERS, default=None, help=f"local Dask workers, 1 to {MAX_WORKERS}"
+    )
+    sweep.add_argument("--scheduler", default=None, help="address of a running Dask scheduler")
+    sweep.add_argument("--overwrite", action="store_true", help="replace earlier points")
+    sweep.add_argument("--quiet", action="store_true", help="no progress bar or table")
+    sweep.add_argument("-v", "--verbose", action="store_true", help="log progress details")
 
 
 def _add_validate(commands) -> None:
@@ -509,6 +552,77 @@ def _synth(args: argparse.Namespace) -> None:
     print(f"{rows} observations written to {path}")
 
 
+def _sweep(args: argparse.Namespace) -> None:
+    from tqdm import tqdm
+
+    from pipeline.scenario_files import load_scenario
+    from pipeline.sweep import parse_vary, run_sweep, sweep_points
+
+    scenario = load_scenario(args.scenario)
+    if args.seed is not None:
+        scenario = scenario.with_seed(args.seed)
+    vary = parse_vary(args.vary)
+    check_stage_name(args.to)
+    points = sweep_points(scenario, vary)  # every point checked before anything runs
+    out = args.out or f"runs/sweep-{scenario.name}"
+    bar = tqdm(
+        total=len(points) * args.repeats,
+        desc="sweep",
+        unit="run",
+        disable=args.quiet,
+        file=sys.stderr,
+    )
+
+    def progress(done: int, total: int) -> None:
+        bar.update(done - bar.n)
+
+    try:
+        path, record = run_sweep(
+            scenario,
+            vary,
+            out,
+            args.repeats,
+            to=args.to,
+            overwrite=args.overwrite,
+            progress=progress,
+            command=sys.argv,
+            workers=args.workers,
+            scheduler=args.scheduler,
+        )
+    except KeyboardInterrupt:
+        bar.close()
+        sys.stderr.write(
+            f"pipeline: interrupted; the points and runs already written are kept in {out}: "
+            "run the same command to resume\n"
+        )
+        raise SystemExit(130) from None
+    finally:
+        bar.close()
+    if args.quiet:
+        return
+    print(f"{len(record['points'])} points x {args.repeats} repeats; written to {path}")
+    shown = [
+        n
+        for n in (
+            "conveyor.areal_weight.mean_g_m2",
+            "conveyor.areal_weight.cv",
+            "conveyor.thickness.mean_mm",
+            "conveyor.orientation.order_cos2",
+            "stack.mean_height_mm",
+            "stack.volume_fraction",
+        )
+        if any(n in p["scalars"] for p in record["points"])
+    ]
+    for point in record["points"]:
+        cells = []
+        for name in shown:
+            s = point["scalars"].get(name)
+            if s and s["mean"] is not None:
+                half = "" if s["ci_high"] is None else f" +- {(s['ci_high'] - s['mean']):.3g}"
+                cells.append(f"{name.split('.', 1)[1]} {s['mean']:.4g}{half}")
+        print(f"{point['dir']}: " + "; ".join(cells))
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     # Warnings (an unsettled batch, ...) reach the user through the library's log records,
@@ -526,6 +640,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "run":
             _run(args)
+        elif args.command == "sweep":
+            _sweep(args)
         elif args.command == "describe":
             _describe(args)
         elif args.command == "compare":

@@ -222,12 +222,14 @@ def compute_run(
     started = datetime.now(UTC).isoformat(timespec="seconds")
     options = StageOptions(tuple(descriptors) if descriptors else None, False, progress)
     results: dict[str, Any] = {}
+    handed: dict[str, Any] = {}
     times: dict[str, float] = {}
     for stage in stages_to(to, scenario):
         if not stage.in_ensembles:
             break
         start = time.perf_counter()
-        results[stage.name] = stage.compute(StageInputs(scenario, options, results.__getitem__))
+        results[stage.name] = stage.compute(StageInputs(scenario, options, handed.__getitem__))
+        handed[stage.name] = stage.handoff(results[stage.name])
         times[stage.name] = round(time.perf_counter() - start, 3)
     return RepeatResult(scenario, results, times, started, to, options.descriptors)
 
@@ -252,8 +254,13 @@ def write_run(
     summaries: dict[str, dict[str, Any]] = {}
     warnings: list[str] = []
     stages = stages_to(to, scenario)
+    by_name = {stage.name: stage for stage in load_stages()}
+
+    def handed(name: str) -> Any:
+        return by_name[name].handoff(results[name])
+
     for stage in stages:
-        inputs = StageInputs(scenario, options, results.__getitem__)
+        inputs = StageInputs(scenario, options, handed)
         if stage.name not in results:
             start = time.perf_counter()
             results[stage.name] = stage.compute(inputs)

@@ -1,0 +1,239 @@
+"""Process sweeps: an ensemble at every point of a grid of scenario values, and every
+scalar descriptor against each swept key with 95 % intervals (``pipeline sweep``).
+
+Each point is an ordinary ensemble directory (``OUT/<key>=<value>...``), run on the
+execution layer (Dask: a local cluster, or ``--scheduler``) and resumed like one, so an
+interrupted sweep started again with the same arguments goes on where it stopped and
+``pipeline compare`` works between any two points. The sweep's table
+(``sweep.json``, ``sweep.csv``) and figures (``figures/sweep_<key>.png``) are written
+once every point is done.
+"""
+
+from __future__ import annotations
+
+import csv
+import itertools
+import json
+import logging
+import math
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from core.errors import InputError, brief, printable
+from core.schema import Scenario, scenario_from_dict, scenario_to_dict
+
+__all__ = ["parse_vary", "sweep_points", "run_sweep", "SWEEP_SCHEMA"]
+
+log = logging.getLogger(__name__)
+
+SWEEP_SCHEMA = "chipstack.sweep/1"
+MAX_POINTS = 1000
+# Manifest entries of the first stage whose numbers are descriptors of the result.
+_RESULT_ENTRIES = ("conveyor", "container")
+
+
+def parse_vary(texts: Sequence[str]) -> list[tuple[str, list[Any]]]:
+    """``KEY=V1,V2,...`` (``--vary``) as (key, values): numbers where they parse, else
+    strings, ``true``/``false`` as booleans."""
+    keys: list[tuple[str, list[Any]]] = []
+    for text in texts:
+        key, sep, values = text.partition("=")
+        key = key.strip()
+        if not sep or not key or not values.strip():
+            raise InputError(f"--vary {printable(text)}: expected KEY=VALUE[,VALUE...]")
+        if key in (k for k, _ in keys):
+            raise InputError(f"--vary {printable(key)}: given twice")
+        parsed = [_value(v.strip()) for v in values.split(",") if v.strip()]
+        if len(set(map(repr, parsed))) != len(parsed):
+            raise InputError(f"--vary {printable(key)}: a value is repeated")
+        keys.append((key, parsed))
+    if not keys:
+        raise InputError("--vary: give at least one KEY=VALUE[,VALUE...]")
+    return keys
+
+
+def _value(text: str) -> Any:
+    if text in ("true", "false"):
+        return text == "true"
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
+
+
+def _point_name(values: dict[str, Any]) -> str:
+    return ",".join(f"{key}={value}" for key, value in values.items())
+
+
+def sweep_points(
+    scenario: Scenario, vary: list[tuple[str, list[Any]]]
+) -> list[tuple[dict[str, Any], Scenario]]:
+    """Every point of the grid: (its values, its validated scenario). Any value the
+    scenario refuses is refused here, before anything runs, naming the key."""
+    base = scenario_to_dict(scenario)
+    points = []
+    grid = list(itertools.product(*[values for _, values in vary]))
+    if len(grid) > MAX_POINTS:
+        raise InputError(f"--vary: {len(grid)} points, more than {MAX_POINTS}")
+    for combination in grid:
+        values = dict(zip([key for key, _ in vary], combination, strict=True))
+        data = json.loads(json.dumps(base))  # a deep copy of plain values
+        for key, value in values.items():
+            section, _, name = key.rpartition(".")
+            table = data.get(section) if section else data
+            if not isinstance(table, dict) or name not in table:
+                raise InputError(
+                    f"--vary {printable(key)}: no such scenario key (see docs/scenarios.md; "
+                    "e.g. conveyor.belt_speed_mm_s)"
+                )
+            if isinstance(table[name], float) and isinstance(value, int):
+                value = float(value)
+            table[name] = value
+        if data.get("mix"):
+            data.pop("chip", None)
+        else:
+            data.pop("mix", None)
+        try:
+            points.append((values, scenario_from_dict(data)))
+        except InputError as exc:
+            raise InputError(f"--vary {_point_name(values)}: {exc}") from None
+    return points
+
+
+def run_sweep(
+    scenario: Scenario,
+    vary: list[tuple[str, list[Any]]],
+    out: str | Path,
+    repeats: int,
+    to: str | None = "geometry",
+    overwrite: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+    command: list[str] | None = None,
+    workers: int | None = None,
+    scheduler: str | None = None,
+) -> tuple[Path, dict[str, Any]]:
+    """An ensemble of ``repeats`` runs at every point of ``vary``'s grid, then the sweep's
+    table and figures in ``out``. Returns (out, the sweep record)."""
+    from pipeline.ensemble import run_ensemble
+
+    points = sweep_points(scenario, vary)
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: exists and is not a directory")
+    out.mkdir(parents=True, exist_ok=True)
+    total = len(points) * repeats
+    done = [0]
+
+    def step(finished: int, _repeats: int) -> None:
+        done[0] += finished
+        if progress is not None:
+            progress(done[0], total)
+
+    rows = []
+    for values, point in points:
+        folder = out / _point_name(values)
+        _, manifest = run_ensemble(
+            point,
+            folder,
+            repeats,
+            to=to,
+            overwrite=overwrite,
+            progress=step,
+            command=command,
+            workers=workers,
+            scheduler=scheduler,
+        )
+        rows.append({"values": values, "dir": folder.name, **_point_scalars(folder, manifest)})
+    record = {
+        "schema": SWEEP_SCHEMA,
+        "scenario": scenario.name,
+        "seed": scenario.seed,
+        "repeats": repeats,
+        "keys": [key for key, _ in vary],
+        "confidence": 0.95,
+        "points": rows,
+    }
+    (out / "sweep.json").write_text(json.dumps(record, indent=1) + "\n")
+    write_sweep_table(out / "sweep.csv", record)
+    from export.figures import plot_sweep  # matplotlib only when drawing
+
+    (out / "figures").mkdir(exist_ok=True)
+    for key in record["keys"]:
+        plot_sweep(out / "figures" / f"sweep_{key}.png", record, key)
+    return out, record
+
+
+def _point_scalars(folder: Path, manifest: dict[str, Any]) -> dict[str, Any]:
+    """Mean and 95 % interval of every scalar of one point: the geometry's descriptors
+    (its ``ensemble.json``) and the numbers of the packing's result entries (a
+    conveyor's mat, a container's fill) over the repeats' manifests."""
+    from geometry.stats import summarize
+
+    scalars: dict[str, dict[str, Any]] = {}
+    ensemble = folder / "ensemble.json"
+    if ensemble.exists():
+        summary = json.loads(ensemble.read_text())
+        for name, descriptor in summary["descriptors"].items():
+            for key, s in descriptor["scalars"].items():
+                scalars[f"{name}.{key}"] = {
+                    k: s[k] for k in ("unit", "n", "mean", "ci_low", "ci_high")
+                }
+    values: dict[str, list[float]] = {}
+    for run in manifest["runs"]:
+        entry = json.loads((folder / run / "manifest.json").read_text())
+        for section in _RESULT_ENTRIES:
+            for key, value in _numbers(entry.get(section), section):
+                values.setdefault(key, []).append(value)
+    for key, sample in values.items():
+        if len(sample) != len(manifest["runs"]):
+            continue  # missing from some runs (an undefined figure): no interval
+        s = summarize(sample)
+        scalars[key] = {
+            "unit": "",
+            "n": s.n,
+            "mean": s.mean,
+            "ci_low": s.ci_low if math.isfinite(s.ci_low) else None,
+            "ci_high": s.ci_high if math.isfinite(s.ci_high) else None,
+        }
+    return {"scalars": scalars}
+
+
+def _numbers(entry: Any, prefix: str):
+    """(dotted key, value) of every finite number in a nested manifest entry."""
+    if isinstance(entry, dict):
+        for key, value in entry.items():
+            yield from _numbers(value, f"{prefix}.{key}")
+    elif isinstance(entry, int | float) and not isinstance(entry, bool):
+        if math.isfinite(entry):
+            yield prefix, float(entry)
+
+
+def write_sweep_table(path: Path, record: dict[str, Any]) -> None:
+    """One row per point: its values, then mean, low and high of every scalar."""
+    names = sorted({name for row in record["points"] for name in row["scalars"]})
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        header = list(record["keys"])
+        for name in names:
+            header += [f"{name} mean", f"{name} ci_low", f"{name} ci_high"]
+        writer.writerow(header)
+        for row in record["points"]:
+            line = [row["values"][key] for key in record["keys"]]
+            for name in names:
+                s = row["scalars"].get(name, {})
+                line += [_cell(s.get("mean")), _cell(s.get("ci_low")), _cell(s.get("ci_high"))]
+            writer.writerow(line)
+
+
+def _cell(value: Any) -> str:
+    return "" if value is None else f"{value:.6g}"
+
+
+def check_repeats(repeats: int) -> None:
+    from core.schema import MAX_REPEATS
+
+    if not 2 <= repeats <= MAX_REPEATS:
+        raise InputError(f"--repeats: must be between 2 and {MAX_REPEATS}, got {brief(repeats)}")
