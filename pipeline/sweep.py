@@ -12,6 +12,7 @@ once every point is done.
 from __future__ import annotations
 
 import csv
+import hashlib
 import itertools
 import json
 import logging
@@ -22,6 +23,8 @@ from typing import Any
 
 from core.errors import InputError, brief, printable
 from core.schema import Scenario, scenario_from_dict, scenario_to_dict
+from pipeline.rundir import write_atomically
+from pipeline.scenario_files import dumps_toml
 
 __all__ = ["parse_vary", "sweep_points", "run_sweep", "SWEEP_SCHEMA"]
 
@@ -29,6 +32,8 @@ log = logging.getLogger(__name__)
 
 SWEEP_SCHEMA = "chipstack.sweep/1"
 MAX_POINTS = 1000
+# Which points an earlier start finished, and with what scenario: those are reused.
+JOURNAL = "sweep-points.json"
 # Manifest entries of the first stage whose numbers are descriptors of the result.
 _RESULT_ENTRIES = ("conveyor", "container")
 
@@ -132,21 +137,35 @@ def run_sweep(
         if progress is not None:
             progress(done[0], total)
 
+    journal_path = out / JOURNAL
+    journal = {} if overwrite or not journal_path.is_file() else _read(journal_path)
     rows = []
     for values, point in points:
-        folder = out / _point_name(values)
-        _, manifest = run_ensemble(
-            point,
-            folder,
-            repeats,
-            to=to,
-            overwrite=overwrite,
-            progress=step,
-            command=command,
-            workers=workers,
-            scheduler=scheduler,
-        )
-        rows.append({"values": values, "dir": folder.name, **_point_scalars(folder, manifest)})
+        name = _point_name(values)
+        folder = out / name
+        identity = {
+            "scenario_sha256": hashlib.sha256(dumps_toml(point).encode()).hexdigest(),
+            "repeats": repeats,
+            "to": to,
+        }
+        if journal.get(name) == identity and (folder / "manifest.json").is_file():
+            manifest = _read(folder / "manifest.json")  # finished by an earlier start
+            step(repeats, repeats)
+        else:
+            _, manifest = run_ensemble(
+                point,
+                folder,
+                repeats,
+                to=to,
+                overwrite=overwrite or name in journal,
+                progress=step,
+                command=command,
+                workers=workers,
+                scheduler=scheduler,
+            )
+            journal[name] = identity
+            write_atomically(journal_path, json.dumps(journal, indent=1) + "\n")
+        rows.append({"values": values, "dir": name, **_point_scalars(folder, manifest)})
     record = {
         "schema": SWEEP_SCHEMA,
         "scenario": scenario.name,
@@ -199,6 +218,13 @@ def _point_scalars(folder: Path, manifest: dict[str, Any]) -> dict[str, Any]:
             "ci_high": s.ci_high if math.isfinite(s.ci_high) else None,
         }
     return {"scalars": scalars}
+
+
+def _read(path: Path) -> dict[str, Any]:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: unreadable ({brief(str(exc))}); use --overwrite") from None
 
 
 def _numbers(entry: Any, prefix: str):
