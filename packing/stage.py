@@ -31,7 +31,8 @@ STEADY_DRIFT = 0.1  # a steady part whose thickness drifts more than this is fla
 
 
 class PackingStage(Stage):
-    """Batch deposition (``stack``, ``container``) or single-chip drops (``drop``)."""
+    """Batch deposition (``stack``, ``container``), a mat poured onto a moving belt
+    (``conveyor``; later stages take the panel cut from it) or single-chip drops (``drop``)."""
 
     name = "packing"
     progress_label = "depositing"
