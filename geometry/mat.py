@@ -47,10 +47,10 @@ def areal_weight_map(
     """Areal weight over square cells, in g/m^2 (each chip's whole mass in the cell of its
     centre of mass: right for cells several chips wide).
 
-    xy_mm (n, 2) centres of mass; masses_g (n,). The cells tile ``x_range_mm`` x
-    ``y_range_mm`` from their low ends; a range that is not a whole number of cells loses
-    its last, partial cell (it would read low). Returns (map (nx, ny) g/m^2, x edges,
-    y edges) in mm.
+    xy_mm (n, 2) centres of mass; masses_g (n,). Whole cells tile ``x_range_mm`` x
+    ``y_range_mm``, centred in each range: a range that is not a whole number of cells
+    loses half the remainder at each end (a partial cell would read low). Returns
+    (map (nx, ny) g/m^2, x edges, y edges) in mm.
     """
     xy = np.asarray(xy_mm, dtype=float).reshape(-1, 2)
     masses = np.asarray(masses_g, dtype=float).reshape(-1)
@@ -70,7 +70,8 @@ def _whole_cells(low: float, high: float, cell_mm: float) -> np.ndarray:
         raise InputError(
             f"cell_mm: a cell of {cell_mm:g} mm does not fit in [{low:.1f}, {high:.1f}] mm"
         )
-    return low + cell_mm * np.arange(count + 1)
+    start = low + ((high - low) - count * cell_mm) / 2
+    return start + cell_mm * np.arange(count + 1)
 
 
 def coefficient_of_variation(values: np.ndarray) -> float:

@@ -155,6 +155,11 @@ def check_conveyor(scenario: Scenario, largest_across_mm: float) -> None:
             f"conveyor.belt_width_mm: the chips ({largest_across_mm:.1f} mm across) are wider "
             f"than the belt ({c.belt_width_mm:g} mm)"
         )
+    if c.cell_mm > c.belt_width_mm:
+        raise InputError(
+            f"conveyor.cell_mm: a cell of {c.cell_mm:g} mm is wider than the belt "
+            f"(conveyor.belt_width_mm = {c.belt_width_mm:g} mm)"
+        )
     if d.target_size_mm > c.belt_width_mm:
         raise InputError(
             f"deposition.target_size_mm: the panel ({d.target_size_mm:g} mm) is wider than "
@@ -244,9 +249,11 @@ class _Line:
             world.step(self.check_steps)
             self.steps += self.check_steps
             moving = tracker.update(s.wake_speed_mm_s)
-            self.wakes += wake_near_movers(world, tracker, moving, set(), s, self.check_interval_s)
+            # Out of the engine first: a chip that fell off or left must not be woken.
             self._drop_spilled()
             self._drop_left_domain()
+            moving = [(chip, speed) for chip, speed in moving if chip in self.live]
+            self.wakes += wake_near_movers(world, tracker, moving, set(), s, self.check_interval_s)
         if not self.settled:
             message = (
                 f"the mat did not settle within {s.max_time_s:g} s of simulated time after "
@@ -289,6 +296,8 @@ class _Line:
             return  # the dynamic reference keeps every chip in the engine
         c = self.scenario.conveyor
         line = -c.belt_speed_mm_s * elapsed_s + c.zone_length_mm / 2
+        # Chips land downstream of where they are released when fed faster than the belt.
+        line += max(0.0, landing_offset_mm(self.scenario))
         line += c.active_lengths * self.chip_length_mm
         tracker = self.tracker
         if tracker.positions and tracker.awake:
@@ -318,6 +327,8 @@ class _Line:
                 self._take_out(chip, LEFT_DOMAIN)
 
     def _take_out(self, chip: int, status: int) -> None:
+        if chip in self.tracker.awake:
+            self.tracker.remove(chip)
         self.world.retire(chip)
         self.live.discard(chip)
         self.status[chip] = status

@@ -416,7 +416,8 @@ def mat_summary(scenario: Scenario, mat: MatRecord) -> tuple[dict[str, Any], dic
     if steady.any() and high > low:
         pixel = scenario.geometry.pixel_mm
         samples = [surface_samples(s.vertices, s.convex_pieces, pixel / 2) for s in mat.shapes]
-        near = on & (mat.positions[:, 0] >= low - 50) & (mat.positions[:, 0] <= high + 50)
+        reach = max(shape.circumradius_mm for shape in mat.shapes)
+        near = on & (mat.positions[:, 0] >= low - reach) & (mat.positions[:, 0] <= high + reach)
         heights, x_edges, y_edges = thickness_map(
             mat.positions[near],
             mat.quaternions[near],

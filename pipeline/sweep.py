@@ -17,6 +17,7 @@ import itertools
 import json
 import logging
 import math
+import shutil
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -35,7 +36,7 @@ MAX_POINTS = 1000
 # Which points an earlier start finished, and with what scenario: those are reused.
 JOURNAL = "sweep-points.json"
 # Manifest entries of the first stage whose numbers are descriptors of the result.
-_RESULT_ENTRIES = ("conveyor", "container")
+_RESULT_ENTRIES = ("packing", "conveyor", "container", "drop")
 
 
 def parse_vary(texts: Sequence[str]) -> list[tuple[str, list[Any]]]:
@@ -50,6 +51,10 @@ def parse_vary(texts: Sequence[str]) -> list[tuple[str, list[Any]]]:
         if key in (k for k, _ in keys):
             raise InputError(f"--vary {printable(key)}: given twice")
         parsed = [_value(v.strip()) for v in values.split(",") if v.strip()]
+        if any("/" in str(v) or "\\" in str(v) for v in parsed):
+            raise InputError(
+                f"--vary {printable(key)}: values name the points' folders; no '/' or '\\'"
+            )
         if len(set(map(repr, parsed))) != len(parsed):
             raise InputError(f"--vary {printable(key)}: a value is repeated")
         keys.append((key, parsed))
@@ -79,6 +84,11 @@ def sweep_points(
     """Every point of the grid: (its values, its validated scenario). Any value the
     scenario refuses is refused here, before anything runs, naming the key."""
     base = scenario_to_dict(scenario)
+    for key, _ in vary:
+        if scenario.mix and key.startswith("chip."):
+            raise InputError(
+                f"--vary {printable(key)}: the scenario pours a [[mix]], which replaces [chip]"
+            )
     points = []
     grid = list(itertools.product(*[values for _, values in vary]))
     if len(grid) > MAX_POINTS:
@@ -105,6 +115,14 @@ def sweep_points(
             points.append((values, scenario_from_dict(data)))
         except InputError as exc:
             raise InputError(f"--vary {_point_name(values)}: {exc}") from None
+    seen: dict[str, str] = {}
+    for values, point in points:
+        text = dumps_toml(point)
+        if text in seen:
+            raise InputError(
+                f"--vary: points {seen[text]} and {_point_name(values)} are the same scenario"
+            )
+        seen[text] = _point_name(values)
     return points
 
 
@@ -123,11 +141,16 @@ def run_sweep(
     """An ensemble of ``repeats`` runs at every point of ``vary``'s grid, then the sweep's
     table and figures in ``out``. Returns (out, the sweep record)."""
     from pipeline.ensemble import run_ensemble
+    from pipeline.run import stages_to
 
     points = sweep_points(scenario, vary)
+    for _, point in points:
+        stages_to(to, point)  # a stage the kind lacks: refused before anything is written
     out = Path(out)
     if out.exists() and not out.is_dir():
-        raise InputError(f"{out}: exists and is not a directory")
+        raise InputError(f"--out {out}: exists and is not a directory")
+    if overwrite:
+        _clear_points(out, [_point_name(values) for values, _ in points])
     out.mkdir(parents=True, exist_ok=True)
     total = len(points) * repeats
     done = [0]
@@ -138,7 +161,7 @@ def run_sweep(
             progress(done[0], total)
 
     journal_path = out / JOURNAL
-    journal = {} if overwrite or not journal_path.is_file() else _read(journal_path)
+    journal = _read(journal_path) if journal_path.is_file() else {}
     rows = []
     for values, point in points:
         name = _point_name(values)
@@ -157,7 +180,8 @@ def run_sweep(
                 folder,
                 repeats,
                 to=to,
-                overwrite=overwrite or name in journal,
+                # A point this sweep finished before with other settings is replaced.
+                overwrite=name in journal,
                 progress=step,
                 command=command,
                 workers=workers,
@@ -177,12 +201,28 @@ def run_sweep(
     }
     (out / "sweep.json").write_text(json.dumps(record, indent=1) + "\n")
     write_sweep_table(out / "sweep.csv", record)
+    if not any(p["scalars"] for p in rows):
+        log.warning("the sweep's runs give no scalar to draw; no figures")
+        return out, record
     from export.figures import plot_sweep  # matplotlib only when drawing
 
     (out / "figures").mkdir(exist_ok=True)
     for key in record["keys"]:
         plot_sweep(out / "figures" / f"sweep_{key}.png", record, key)
     return out, record
+
+
+def _clear_points(out: Path, names: list[str]) -> None:
+    """--overwrite: remove the earlier runs of these points (and the journal) first, so
+    an interrupted sweep resumes from this start, not the earlier one. A folder that is
+    not an earlier run or ensemble is refused, and nothing is removed."""
+    folders = [out / name for name in names if (out / name).exists()]
+    for folder in folders:
+        if not ((folder / "manifest.json").is_file() or (folder / "ensemble-state.json").is_file()):
+            raise InputError(f"--out {folder}: not an earlier run (no manifest.json); not replaced")
+    for folder in folders:
+        shutil.rmtree(folder)
+    (out / JOURNAL).unlink(missing_ok=True)
 
 
 def _point_scalars(folder: Path, manifest: dict[str, Any]) -> dict[str, Any]:

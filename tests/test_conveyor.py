@@ -42,8 +42,11 @@ def test_every_chip_released_is_on_the_belt_or_spilled():
     mat = result.mat
     summary, _ = mat_summary(scenario, mat)
     chips = summary["chips"]
-    assert chips["released"] == 160 == mat.n_chips
+    assert chips["released"] == 160 == mat.n_chips == len(mat.positions)
     assert chips["on_belt"] + chips["spilled"] + chips["left_domain"] == chips["released"]
+    # A chip counted on the belt lies on it: over it, at most the chip's size above it.
+    on = mat.status == ON_BELT
+    assert np.all(mat.positions[on, 2] > 0.0) and np.all(mat.positions[on, 2] < 60.0)
     # Without guides, chips poured up to the belt's edge fall off it, and only those.
     assert chips["spilled"] > 0
     off = np.abs(mat.positions[:, 1]) > scenario.conveyor.belt_width_mm / 2
@@ -143,11 +146,22 @@ def test_a_run_writes_the_mat_and_a_panel_later_stages_take(tmp_path):
     with np.load(out / "packing" / "mat.npz") as mat:
         assert mat["positions"].shape == (160, 3)
         assert set(np.unique(mat["pour"])) == set(range(1, 41))
+        positions, status = mat["positions"], mat["status"]
     record = json.loads((out / "packing" / "mat.json").read_text())
-    weights = np.array(record["areal_weight"]["map_g_m2"])
-    # Every chip of the steady part is in some cell: the map's mass is theirs.
-    cell_m2 = (record["areal_weight"]["cell_mm"] * 1e-3) ** 2
-    assert weights.sum() * cell_m2 > 0
+    weight = record["areal_weight"]
+    # The map's mass is that of the chips on the belt whose centres lie in its cells.
+    x, y = np.array(weight["x_edges_mm"]), np.array(weight["y_edges_mm"])
+    inside = (
+        (status == ON_BELT)
+        & (positions[:, 0] >= x[0])
+        & (positions[:, 0] < x[-1])
+        & (positions[:, 1] >= y[0])
+        & (positions[:, 1] < y[-1])
+    )
+    chip_g = 20 * 20 * 2 * 1.70e-3
+    total_g = np.array(weight["map_g_m2"]).sum() * (weight["cell_mm"] * 1e-3) ** 2
+    assert inside.sum() > 0
+    assert total_g == pytest.approx(inside.sum() * chip_g, rel=1e-9)
     assert (out / "packing" / "figures" / "mat.png").stat().st_size > 10_000
     panel = manifest["packing"]
     assert 0 < panel["chips"] < 160
@@ -162,6 +176,7 @@ def test_a_run_writes_the_mat_and_a_panel_later_stages_take(tmp_path):
         ("conveyor.zone_width_mm", 300.0, "conveyor.zone_width_mm: the pour zone"),
         ("deposition.target_size_mm", 250.0, "deposition.target_size_mm: the panel"),
         ("deposition.target_size_mm", 120.0, "longer than the mat's steady part"),
+        ("conveyor.cell_mm", 500.0, "conveyor.cell_mm: a cell of 500 mm is wider"),
     ],
 )
 def test_bad_belt_zone_or_panel_is_refused_naming_the_key(tmp_path, key, value, message):
@@ -177,7 +192,7 @@ def test_bad_belt_zone_or_panel_is_refused_naming_the_key(tmp_path, key, value, 
     out = tmp_path / "run"
     result = run_cli("run", str(path), "--out", str(out))
     assert result.returncode == 2
-    assert message.split(":")[0] in result.stderr
+    assert key in result.stderr and message in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1
     assert not out.exists()
 

@@ -57,6 +57,14 @@ def test_sweep_runs_every_point_and_tabulates_every_scalar(tmp_path):
     again = run_cli(*args)
     assert again.returncode == 0, again.stderr
     assert json.loads((out / "sweep.json").read_text())["points"] == record["points"]
+    # --overwrite redoes the points: the same seeds give the same table, times aside.
+    redone = run_cli(*args, "--overwrite")
+    assert redone.returncode == 0, redone.stderr
+    for old, new in zip(
+        record["points"], json.loads((out / "sweep.json").read_text())["points"], strict=True
+    ):
+        physical = [name for name in old["scalars"] if ".time." not in name]
+        assert {n: new["scalars"][n] for n in physical} == {n: old["scalars"][n] for n in physical}
 
 
 def test_sweep_refuses_a_bad_key_or_value_before_running(tmp_path):
@@ -65,6 +73,8 @@ def test_sweep_refuses_a_bad_key_or_value_before_running(tmp_path):
         ("conveyor.belt_sped_mm_s=1,2", "no such scenario key"),
         ("conveyor.belt_speed_mm_s=40,-5", "conveyor.belt_speed_mm_s: must be between"),
         ("conveyor.belt_speed_mm_s", "expected KEY=VALUE"),
+        ("conveyor.belt_speed_mm_s=40,40.0", "are the same scenario"),
+        ("name=a/b,c", "no '/'"),
     ):
         out = tmp_path / "bad"
         result = run_cli(
