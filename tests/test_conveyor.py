@@ -10,6 +10,7 @@ import json
 import re
 import statistics
 
+import meshio
 import numpy as np
 import pytest
 from conftest import run_cli
@@ -138,7 +139,7 @@ def test_a_run_writes_the_mat_and_a_panel_later_stages_take(tmp_path):
     scenario = tmp_path / "mat.toml"
     scenario.write_text(dumps_toml(short_mat()))
     out = tmp_path / "run"
-    result = run_cli("run", str(scenario), "--to", "geometry", "--out", str(out), "--quiet")
+    result = run_cli("run", str(scenario), "--to", "mesh", "--out", str(out), "--quiet")
     assert result.returncode == 0, result.stderr
     manifest = json.loads((out / "manifest.json").read_text())
     summary = manifest["conveyor"]
@@ -165,7 +166,12 @@ def test_a_run_writes_the_mat_and_a_panel_later_stages_take(tmp_path):
     assert (out / "packing" / "figures" / "mat.png").stat().st_size > 10_000
     panel = manifest["packing"]
     assert 0 < panel["chips"] < 160
-    assert (out / "geometry").is_dir()
+    described = json.loads((out / "geometry" / "descriptors.json").read_text())
+    assert described["chips"] == panel["chips"]
+    # The panel's voxel mesh, read back by meshio: one chip label per panel chip.
+    mesh = meshio.read(out / "mesh" / "stack_voxel.vtu")
+    chips = np.unique(np.concatenate([np.asarray(c) for c in mesh.cell_data["chip"]]))
+    assert len(chips[chips >= 0]) == panel["chips"]
 
 
 @pytest.mark.parametrize(
