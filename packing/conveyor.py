@@ -419,7 +419,11 @@ def panel_members(scenario: Scenario, mat: MatRecord) -> np.ndarray:
     """Indices of the chips on the belt that reach into the panel (a square of side
     ``deposition.target_size_mm`` centred on ``mat.panel_centre_mm``): every chip whose
     centre lies within its circumradius of the square, so the material inside the
-    square is complete."""
+    square is complete. At belt speed 0, every chip on the belt."""
+    if scenario.conveyor.belt_speed_mm_s == 0:
+        # A belt at rest makes a pile, not a mat: the stack is the whole pile, and the
+        # panel's square is the target its descriptors are taken over, as in a stack.
+        return np.flatnonzero(mat.status == ON_BELT)
     half = scenario.deposition.target_size_mm / 2
     radius = np.array([mat.shapes[k].circumradius_mm for k in mat.shape_index])
     offset = np.abs(mat.positions[:, :2] - np.asarray(mat.panel_centre_mm))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import zipfile
 from collections.abc import Mapping
 from pathlib import Path
@@ -116,7 +117,7 @@ class PackingStage(Stage):
             summary = write_mat_files(folder, scenario, result.mat, inputs.options.figures)
             warnings = list(result.warnings)
             drift = (summary["thickness"] or {}).get("drift", 0.0)
-            if abs(drift) > STEADY_DRIFT:
+            if math.isfinite(drift) and abs(drift) > STEADY_DRIFT:
                 message = (
                     f"the mat's steady part is not steady: its thickness changed by "
                     f"{100 * drift:+.0f} % from its first third to its last; raise "
@@ -433,8 +434,8 @@ def mat_summary(scenario: Scenario, mat: MatRecord) -> tuple[dict[str, Any], dic
         thirds = np.array_split(along[::-1], 3)
         drift = (
             float((thirds[2].mean() - thirds[0].mean()) / along.mean())
-            if len(along) >= 3 and along.mean() > 0
-            else float("nan")
+            if len(along) >= 3 and along.mean() > 0 and c.belt_speed_mm_s > 0
+            else float("nan")  # a belt at rest makes a pile: no steady state to check
         )
         summary["thickness"] = {
             "pixel_mm": pixel,
