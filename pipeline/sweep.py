@@ -75,7 +75,12 @@ def _value(text: str) -> Any:
 
 
 def _point_name(values: dict[str, Any]) -> str:
-    return ",".join(f"{key}={value}" for key, value in values.items())
+    """The point's folder name, values as written on the command line (TOML's true)."""
+
+    def shown(value: Any) -> str:
+        return str(value).lower() if isinstance(value, bool) else str(value)
+
+    return ",".join(f"{key}={shown(value)}" for key, value in values.items())
 
 
 def sweep_points(
