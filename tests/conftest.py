@@ -78,6 +78,8 @@ _LONGEST_FIRST = (
     "test_validation.py",
     "test_resume.py",
     "test_freezing.py",
+    "test_conveyor.py",
+    "test_sweep.py",
     "test_bad_input.py",
     "test_meshing.py",
     "test_geometry_cli.py",
