@@ -136,6 +136,14 @@ def _add_compare(commands) -> None:
     compare.add_argument("-v", "--verbose", action="store_true", help="log progress details")
 
 
+def _add_dask_flags(parser) -> None:
+    """--workers and --scheduler: where the runs go (the execution layer, Dask)."""
+    parser.add_argument(
+        "--workers", type=WORKERS, default=None, help=f"local Dask workers, 1 to {MAX_WORKERS}"
+    )
+    parser.add_argument("--scheduler", default=None, help="address of a running Dask scheduler")
+
+
 def _add_sweep(commands) -> None:
     sweep = commands.add_parser(
         "sweep", help="an ensemble at every point of a grid of scenario values, and a table"
@@ -162,10 +170,7 @@ def _add_sweep(commands) -> None:
     )
     sweep.add_argument("--out", default=None, help="where to write (default: runs/sweep-<name>)")
     sweep.add_argument("--seed", type=SEED, default=None, help=SEED_HELP)
-    sweep.add_argument(
-        "--workers", type=WORKERS, default=None, help=f"local Dask workers, 1 to {MAX_WORKERS}"
-    )
-    sweep.add_argument("--scheduler", default=None, help="address of a running Dask scheduler")
+    _add_dask_flags(sweep)
     sweep.add_argument("--overwrite", action="store_true", help="replace earlier points")
     sweep.add_argument("--quiet", action="store_true", help="no progress bar or table")
     sweep.add_argument("-v", "--verbose", action="store_true", help="log progress details")
@@ -195,10 +200,7 @@ def _add_validate(commands) -> None:
     validate.add_argument(
         "--overwrite", action="store_true", help="replace an earlier validation in --out"
     )
-    validate.add_argument(
-        "--workers", type=WORKERS, default=None, help=f"local Dask workers, 1 to {MAX_WORKERS}"
-    )
-    validate.add_argument("--scheduler", default=None, help="address of a Dask scheduler")
+    _add_dask_flags(validate)
     validate.add_argument("-v", "--verbose", action="store_true", help="log progress details")
 
 
@@ -211,10 +213,7 @@ def _add_diagnose(commands) -> None:
         "--out", default=None, help="where to write (default: runs/diagnose-<spec>)"
     )
     diagnose.add_argument("--seed", type=SEED, default=0, help=SEED_HELP)
-    diagnose.add_argument(
-        "--workers", type=WORKERS, default=None, help=f"local Dask workers, 1 to {MAX_WORKERS}"
-    )
-    diagnose.add_argument("--scheduler", default=None, help="address of a Dask scheduler")
+    _add_dask_flags(diagnose)
     diagnose.add_argument("--overwrite", action="store_true", help="replace an earlier diagnosis")
     diagnose.add_argument("--quiet", action="store_true", help="no verdict on stdout")
     diagnose.add_argument("-v", "--verbose", action="store_true", help="log progress details")
