@@ -7,7 +7,9 @@ back, and bad belt, zone and panel values refused."""
 from __future__ import annotations
 
 import json
+import os
 import re
+import shutil
 import statistics
 
 import meshio
@@ -210,3 +212,37 @@ def test_mat_summary_refuses_nothing_on_a_still_belt():
     assert summary["chips"]["released"] == 40
     assert record["orientation"]["chips_with_angle"] > 0
     assert summary["areal_weight"]["cells"] == 6  # one 30 mm cell along, six across
+
+
+needs_ccx = pytest.mark.skipif(
+    shutil.which("ccx") is None and not os.environ.get("CHIPSTACK_REQUIRE_CCX"),
+    reason="CalculiX (ccx) is not installed; .ci/run installs it and CI runs these tests",
+)
+
+
+@needs_ccx
+def test_a_panel_is_pressed_in_calculix(tmp_path):
+    """The panel's middle 40 mm, its pore space filled, periodic sides, pressed by 1 % of
+    its height: the platen's force comes back through the belt (equilibrium)."""
+    scenario = short_mat(
+        mesh={
+            "kind": "voxel",
+            "voxel_mm": 1.0,
+            "pore_space": "box",
+            "crop": "region",
+            "region_mm": [-20.0, 20.0, -20.0, 20.0],
+            "periodic": True,
+            "formats": ["vtu", "inp"],
+        },
+        solve={"press_fraction": 0.01},
+    )
+    path = tmp_path / "pressed.toml"
+    path.write_text(dumps_toml(scenario))
+    out = tmp_path / "run"
+    result = run_cli("run", str(path), "--to", "solve", "--out", str(out), "--quiet")
+    assert result.returncode == 0, result.stderr
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["stages_completed"] == ["packing", "geometry", "mesh", "solve"]
+    solve = manifest["solve"]
+    assert solve["force_n"] > 0
+    assert solve["conveyor_force_n"] == pytest.approx(solve["force_n"], rel=0.01)
