@@ -352,6 +352,16 @@ class ConveyorSpec:
     zone_width_mm: float = _key(
         150.0, "mm", "width across the belt of the pour zone, centred on the belt", _length
     )
+    zones: int = _key(
+        1,
+        "",
+        "pour zones (feeders) in a row along the line, `zone_spacing_mm` apart; the belt "
+        "passes under zone 0 first, and the pours take turns",
+        _between(1, 100),
+    )
+    zone_spacing_mm: float = _key(
+        100.0, "mm", "distance between the centres of neighbouring pour zones", _length
+    )
     belt_width_mm: float = _key(
         200.0,
         "mm",

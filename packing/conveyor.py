@@ -71,9 +71,9 @@ class MatRecord:
 
     shapes: the distinct shapes; shape_index (n,) into them; pour (n,) 1-based pour of each
     chip; positions (n, 3) mm and quaternions (n, 4) x, y, z, w, final; status (n,)
-    ``ON_BELT``, ``SPILLED`` or ``LEFT_DOMAIN``; zone_x_mm (pours,) the zone centre's x at
-    each pour; steady_mm (x_low, x_high) the part of the mat the zone poured over from
-    end to end; panel_centre_mm the centre (x, y) of the panel cut from it.
+    ``ON_BELT``, ``SPILLED`` or ``LEFT_DOMAIN``; zone_x_mm (pours,) the x of the centre of
+    the zone that poured, at each pour; steady_mm (x_low, x_high) the mat's steady part
+    (:func:`steady_range_mm`); panel_centre_mm the centre (x, y) of the panel cut from it.
     """
 
     shapes: tuple[ChipShape, ...]
@@ -137,8 +137,15 @@ def steady_range_mm(scenario: Scenario) -> tuple[float, float]:
     offset = landing_offset_mm(scenario)
     if c.belt_speed_mm_s == 0:
         return offset - c.zone_length_mm / 2, offset + c.zone_length_mm / 2
-    last_x = -c.belt_speed_mm_s * (n_pours - 1) * interval
+    # Zone k covered x in [k s - v T + l/2, k s - l/2] wholly; the steady part is what
+    # every zone covered: from the last zone's low end to the first zone's high end.
+    last_x = zone_offset_mm(scenario, c.zones - 1) - c.belt_speed_mm_s * (n_pours - 1) * interval
     return last_x + c.zone_length_mm / 2 + offset, -c.zone_length_mm / 2 + offset - c.run_in_mm
+
+
+def zone_offset_mm(scenario: Scenario, zone: int) -> float:
+    """Where zone ``zone`` (0-based) is along the line from zone 0, mm (downstream +)."""
+    return zone * scenario.conveyor.zone_spacing_mm
 
 
 def check_conveyor(scenario: Scenario, largest_across_mm: float) -> None:
@@ -154,6 +161,11 @@ def check_conveyor(scenario: Scenario, largest_across_mm: float) -> None:
         raise InputError(
             f"conveyor.belt_width_mm: the chips ({largest_across_mm:.1f} mm across) are wider "
             f"than the belt ({c.belt_width_mm:g} mm)"
+        )
+    if c.zones > 1 and c.zone_spacing_mm < c.zone_length_mm:
+        raise InputError(
+            f"conveyor.zone_spacing_mm: zones {c.zone_spacing_mm:g} mm apart overlap (each is "
+            f"conveyor.zone_length_mm = {c.zone_length_mm:g} mm long)"
         )
     if c.cell_mm > c.belt_width_mm:
         raise InputError(
@@ -270,7 +282,7 @@ class _Line:
         c, d = scenario.conveyor, scenario.deposition
         count = min(d.batch_size, d.chips - len(self.pour_of))
         shapes = draw_shapes(scenario, count, self.rng, self.cache)
-        zone_x = -c.belt_speed_mm_s * elapsed_s
+        zone_x = zone_offset_mm(scenario, (pour - 1) % c.zones) - c.belt_speed_mm_s * elapsed_s
         live = sorted(self.live)
         positions, quaternions = world.poses_of(live)
         occupied = (positions, quaternions, [self.shapes_of[k] for k in live]) if live else None
@@ -295,7 +307,9 @@ class _Line:
         if not self.scenario.settling.freeze:
             return  # the dynamic reference keeps every chip in the engine
         c = self.scenario.conveyor
-        line = -c.belt_speed_mm_s * elapsed_s + c.zone_length_mm / 2
+        # Downstream of the last zone the belt passes under.
+        line = zone_offset_mm(self.scenario, c.zones - 1) - c.belt_speed_mm_s * elapsed_s
+        line += c.zone_length_mm / 2
         # Chips land downstream of where they are released when fed faster than the belt.
         line += max(0.0, landing_offset_mm(self.scenario))
         line += c.active_lengths * self.chip_length_mm
