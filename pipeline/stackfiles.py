@@ -45,7 +45,7 @@ def load_run(run_dir: str | Path) -> tuple[Scenario, list[Arrangement], dict]:
     if not scenario_path.is_file():
         raise InputError(f"{shown}: no scenario.toml; the packing result cannot be read")
     scenario = load_scenario(str(scenario_path))
-    if scenario.kind != "stack":
+    if scenario.kind not in ("stack", "conveyor"):  # a conveyor's stack is its panel
         raise InputError(
             f"{shown}: a {scenario.kind} run has no stack to describe (see its manifest)"
         )

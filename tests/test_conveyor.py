@@ -170,6 +170,12 @@ def test_a_run_writes_the_mat_and_a_panel_later_stages_take(tmp_path):
     assert 0 < panel["chips"] < 160
     described = json.loads((out / "geometry" / "descriptors.json").read_text())
     assert described["chips"] == panel["chips"]
+    # `pipeline describe` reads the panel back from the run's files.
+    again = run_cli("describe", str(out), "--overwrite", "--quiet", "--no-figures")
+    assert again.returncode == 0, again.stderr
+    assert (
+        json.loads((out / "geometry" / "descriptors.json").read_text())["chips"] == panel["chips"]
+    )
     # The panel's voxel mesh, read back by meshio: one chip label per panel chip.
     mesh = meshio.read(out / "mesh" / "stack_voxel.vtu")
     chips = np.unique(np.concatenate([np.asarray(c) for c in mesh.cell_data["chip"]]))
