@@ -404,6 +404,7 @@ def mat_summary(scenario: Scenario, mat: MatRecord) -> tuple[dict[str, Any], dic
             "mean_g_m2": float(weights.mean()),
             "cv": coefficient_of_variation(weights),
             "cells": int(weights.size),
+            **_panel_weights(mat, on, (low, high), scenario.deposition.target_size_mm),
         }
         record["areal_weight"] = {
             **summary["areal_weight"],
@@ -462,6 +463,27 @@ def mat_summary(scenario: Scenario, mat: MatRecord) -> tuple[dict[str, Any], dic
         summary["thickness"] = summary["orientation"] = None
         record["thickness"] = record["orientation"] = None
     return summary, record
+
+
+def _panel_weights(mat: MatRecord, on, steady: tuple[float, float], panel_mm: float) -> dict:
+    """Panel to panel: the mass of each whole panel-long stretch of the steady part, across
+    the whole belt, one after another (g), and their coefficient of variation (None with
+    fewer than two)."""
+    import numpy as np
+
+    from geometry.mat import coefficient_of_variation
+
+    low, high = steady
+    count = int((high - low) // panel_mm)
+    if count < 2:
+        return {"panels": count, "panel_cv": None}
+    edges = low + panel_mm * np.arange(count + 1)
+    masses, _ = np.histogram(mat.positions[on, 0], bins=edges, weights=mat.masses_g[on])
+    return {
+        "panels": count,
+        "panel_cv": coefficient_of_variation(masses),
+        "panel_mass_g": masses.tolist(),
+    }
 
 
 def write_mat_files(folder: Path, scenario: Scenario, mat: MatRecord, figures: bool) -> dict:

@@ -77,6 +77,15 @@ def test_retiring_chips_behind_the_zone_changes_nothing():
     keeping = pour_mat(short_mat(conveyor={"active_lengths": 1e6})).mat
     assert retiring.most_in_world < keeping.most_in_world == 160
     np.testing.assert_allclose(retiring.positions, keeping.positions, atol=1e-6)
+    # Panel to panel: 30 mm panels tile the steady part; their masses are its chips'.
+    scenario = short_mat(deposition={"target_size_mm": 30.0})
+    weight = mat_summary(scenario, keeping)[0]["areal_weight"]
+    low, high = keeping.steady_mm
+    assert weight["panels"] == int((high - low) // 30.0) >= 2
+    x = keeping.positions[:, 0]
+    inside = (x >= low) & (x < low + 30.0 * weight["panels"])
+    assert sum(weight["panel_mass_g"]) == pytest.approx(keeping.masses_g[inside].sum())
+    assert weight["panel_cv"] >= 0
 
 
 def _mat_figures(scenario) -> tuple[float, float]:
