@@ -26,15 +26,24 @@ __all__ = [
 ]
 
 
-def _cells(low: float, high: float, cell_mm: float) -> np.ndarray:
-    """Edges of whole cells of ``cell_mm`` covering [low, high] from ``low`` (the last
-    cell may stick out)."""
+def _cells(low: float, high: float, cell_mm: float, inside: bool = False) -> np.ndarray:
+    """Edges of cells of ``cell_mm`` over [low, high]: covering it from ``low`` (the last
+    cell may stick out), or, ``inside``, only whole cells within it, centred (half the
+    remainder left out at each end)."""
     if not (math.isfinite(cell_mm) and cell_mm > 0):
         raise InputError(f"cell_mm: must be positive, got {cell_mm!r}")
     if not high > low:
         raise InputError(f"range: needs low < high, got [{low}, {high}]")
-    count = max(1, math.ceil((high - low) / cell_mm - 1e-9))
-    return low + cell_mm * np.arange(count + 1)
+    if not inside:
+        count = max(1, math.ceil((high - low) / cell_mm - 1e-9))
+        return low + cell_mm * np.arange(count + 1)
+    count = math.floor((high - low) / cell_mm + 1e-9)
+    if count < 1:
+        raise InputError(
+            f"cell_mm: a cell of {cell_mm:g} mm does not fit in [{low:.1f}, {high:.1f}] mm"
+        )
+    start = low + ((high - low) - count * cell_mm) / 2
+    return start + cell_mm * np.arange(count + 1)
 
 
 def areal_weight_map(
@@ -56,22 +65,10 @@ def areal_weight_map(
     masses = np.asarray(masses_g, dtype=float).reshape(-1)
     if len(xy) != len(masses):
         raise InputError(f"masses_g: {len(masses)} masses for {len(xy)} chips")
-    x_edges = _whole_cells(*x_range_mm, cell_mm)
-    y_edges = _whole_cells(*y_range_mm, cell_mm)
+    x_edges = _cells(*x_range_mm, cell_mm, inside=True)
+    y_edges = _cells(*y_range_mm, cell_mm, inside=True)
     grams, _, _ = np.histogram2d(xy[:, 0], xy[:, 1], bins=(x_edges, y_edges), weights=masses)
     return grams / (cell_mm * cell_mm * 1e-6), x_edges, y_edges
-
-
-def _whole_cells(low: float, high: float, cell_mm: float) -> np.ndarray:
-    if not (math.isfinite(cell_mm) and cell_mm > 0):
-        raise InputError(f"cell_mm: must be positive, got {cell_mm!r}")
-    count = math.floor((high - low) / cell_mm + 1e-9)
-    if count < 1:
-        raise InputError(
-            f"cell_mm: a cell of {cell_mm:g} mm does not fit in [{low:.1f}, {high:.1f}] mm"
-        )
-    start = low + ((high - low) - count * cell_mm) / 2
-    return start + cell_mm * np.arange(count + 1)
 
 
 def coefficient_of_variation(values: np.ndarray) -> float:

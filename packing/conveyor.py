@@ -41,12 +41,10 @@ from core.schema import Scenario
 from packing.deposition import (
     CHECK_INTERVAL_S,
     _batch_result,
-    _box_of,
-    _PlacedBoxes,
-    _random_rotations,
     _RestTracker,
-    _unique_names,
     draw_shapes,
+    release_poses,
+    shape_table,
     wake_near_movers,
 )
 from packing.presets import PRESETS
@@ -60,7 +58,6 @@ log = logging.getLogger(__name__)
 
 ON_BELT, SPILLED, LEFT_DOMAIN = 0, 1, 2  # MatRecord.status
 STATUS_NAMES = ("on belt", "spilled", "left the domain")
-_MAX_PLACEMENT_TRIES = 2000
 # A moving chip must be this many chip lengths upstream of a chip that is retired.
 _CLEAR_OF_MOVERS_LENGTHS = 2.0
 
@@ -286,7 +283,7 @@ class _Line:
         live = sorted(self.live)
         positions, quaternions = world.poses_of(live)
         occupied = (positions, quaternions, [self.shapes_of[k] for k in live]) if live else None
-        poses = _release_poses(scenario, shapes, self.rng, zone_x, occupied)
+        poses = release_poses(scenario, shapes, self.rng, occupied, zone_x)
         velocity = np.array([c.feed_speed_mm_s - c.belt_speed_mm_s, 0.0, 0.0])
         new = []
         for shape, p, q in zip(shapes, *poses, strict=True):
@@ -360,12 +357,11 @@ class _Line:
             )
             log.warning(message)
             self.warnings.append(message)
-        distinct = list(dict.fromkeys(self.shapes_of))
-        index = {id(shape): k for k, shape in enumerate(distinct)}
+        shapes, shape_index = shape_table(self.shapes_of)
         low, high = steady_range_mm(scenario)
         return MatRecord(
-            shapes=tuple(_unique_names(distinct)),
-            shape_index=np.array([index[id(s)] for s in self.shapes_of], dtype=np.int64),
+            shapes=shapes,
+            shape_index=shape_index,
             pour=np.array(self.pour_of, dtype=np.int64),
             positions=positions,
             quaternions=quaternions,
@@ -383,50 +379,6 @@ class _Line:
             most_in_world=self.most_in_world,
             warnings=tuple(self.warnings),
         )
-
-
-def _release_poses(
-    scenario: Scenario,
-    shapes: list[ChipShape],
-    rng: np.random.Generator,
-    zone_x_mm: float,
-    occupied: tuple[np.ndarray, np.ndarray, list[ChipShape]] | None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Release poses over the pour zone centred at ``zone_x_mm`` (belt frame), clear of one
-    another and of the ``occupied`` chips: positions (n, 3) mm, quaternions (n, 4)."""
-    c, d = scenario.conveyor, scenario.deposition
-    boxes = _PlacedBoxes(len(shapes), occupied)
-    positions, quaternions = np.empty((len(shapes), 3)), np.empty((len(shapes), 4))
-    for i, shape in enumerate(shapes):
-        reach = boxes.reach(shape)
-        clearance = shape.circumradius_mm + 0.1  # no release pose may touch the belt
-        # ... nor a side guide: one released into a guide is shot out across the belt.
-        half_width = c.zone_width_mm / 2
-        if c.side_guides:
-            half_width = min(half_width, c.belt_width_mm / 2 - clearance)
-        for _ in range(_MAX_PLACEMENT_TRIES):
-            position = np.array(
-                [
-                    zone_x_mm + rng.uniform(-c.zone_length_mm / 2, c.zone_length_mm / 2),
-                    rng.uniform(-half_width, half_width),
-                    max(rng.uniform(*d.release_height_mm), clearance),
-                ]
-            )
-            rotation = _random_rotations(scenario, 1, rng)
-            matrix = rotation.as_matrix()[0]
-            centre, half = _box_of([shape], position[None], matrix[None])
-            if not boxes.overlap(centre, half, matrix, reach):
-                break
-        else:
-            raise InputError(
-                f"deposition.batch_size: cannot release {len(shapes)} chips without overlap "
-                f"over the pour zone ({c.zone_length_mm:g} x {c.zone_width_mm:g} mm, "
-                f"{d.release_height_mm[0]:g}-{d.release_height_mm[1]:g} mm high); lower "
-                "batch_size or widen the zone or the release heights"
-            )
-        positions[i], quaternions[i] = position, rotation.as_quat()[0]
-        boxes.add(centre[0], half[0], matrix)
-    return positions, quaternions
 
 
 def panel_members(scenario: Scenario, mat: MatRecord) -> np.ndarray:
@@ -461,11 +413,10 @@ def cut_panel(scenario: Scenario, mat: MatRecord) -> Stack:
         result = _batch_result(
             world, scenario, shapes_of, 1, 0.0, mat.steps, mat.wakes, mat.settled, mat.wall_time_s
         )
-    distinct = list(dict.fromkeys(shapes_of))
-    index = {id(shape): k for k, shape in enumerate(distinct)}
+    shapes, shape_index = shape_table(shapes_of)
     return Stack(
-        shapes=tuple(distinct),
-        shape_index=np.array([index[id(s)] for s in shapes_of], dtype=int),
+        shapes=shapes,
+        shape_index=shape_index,
         batch=np.ones(len(members), dtype=int),
         batches=(result,),
         target_size_mm=scenario.deposition.target_size_mm,

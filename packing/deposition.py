@@ -37,7 +37,15 @@ from packing.shapes import ChipShape, make_shape, varies_per_chip
 from packing.stack import BatchResult, Stack
 from packing.world import GRAVITY_MM_S2, ChipWorld
 
-__all__ = ["deposit", "release_poses", "draw_shapes", "settle", "reaches_rim"]
+__all__ = [
+    "deposit",
+    "release_poses",
+    "draw_shapes",
+    "settle",
+    "reaches_rim",
+    "shape_table",
+    "wake_near_movers",
+]
 
 log = logging.getLogger(__name__)
 
@@ -135,18 +143,21 @@ def release_poses(
     shapes: list[ChipShape],
     rng: np.random.Generator,
     occupied: tuple[np.ndarray, np.ndarray, list[ChipShape]] | None = None,
+    zone_x_mm: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Draw non-overlapping release poses of ``shapes``: positions (n, 3) mm, quaternions.
 
     Stacks: centres uniform over the release square and the height range. Containers:
-    over a disc above the rim. A pose whose bounding box overlaps that of an already
-    placed chip (or one in ``occupied``: positions, quaternions, shapes) is drawn again.
+    over a disc above the rim. Conveyors: over the pour zone centred at ``zone_x_mm``
+    (belt frame), clear of the side guides. A pose whose bounding box overlaps that of an
+    already placed chip (or one in ``occupied``: positions, quaternions, shapes) is drawn
+    again.
     """
     n = len(shapes)
     boxes = _PlacedBoxes(n, occupied)
     positions, quaternions = np.empty((n, 3)), np.empty((n, 4))
     for i, shape in enumerate(shapes):
-        pose = _free_pose(scenario, shape, rng, boxes)
+        pose = _free_pose(scenario, shape, rng, boxes, zone_x_mm)
         if pose is None:
             raise _no_room(scenario, n)
         position, rotation, box = pose
@@ -203,13 +214,17 @@ class _PlacedBoxes:
 
 
 def _free_pose(
-    scenario: Scenario, shape: ChipShape, rng: np.random.Generator, boxes: _PlacedBoxes
+    scenario: Scenario,
+    shape: ChipShape,
+    rng: np.random.Generator,
+    boxes: _PlacedBoxes,
+    zone_x_mm: float = 0.0,
 ) -> tuple[np.ndarray, Rotation, tuple[np.ndarray, np.ndarray, np.ndarray]] | None:
     """A release pose of ``shape`` clear of ``boxes``: position, rotation and its box
     (centre, half sizes, rotation matrix); None if every try overlapped."""
     reach = boxes.reach(shape)
     for _ in range(_MAX_PLACEMENT_TRIES):
-        position = _release_point(scenario, shape, rng)
+        position = _release_point(scenario, shape, rng, zone_x_mm)
         rotation = _random_rotations(scenario, 1, rng)
         matrix = rotation.as_matrix()[0]
         box_centre, box_half = _box_of([shape], position[None], matrix[None])
@@ -220,6 +235,14 @@ def _free_pose(
 
 def _no_room(scenario: Scenario, n: int) -> InputError:
     d = scenario.deposition
+    if scenario.kind == "conveyor":
+        c = scenario.conveyor
+        return InputError(
+            f"deposition.batch_size: cannot release {n} chips without overlap over the pour "
+            f"zone ({c.zone_length_mm:g} x {c.zone_width_mm:g} mm, "
+            f"{d.release_height_mm[0]:g}-{d.release_height_mm[1]:g} mm high); lower "
+            "batch_size or widen the zone or the release heights"
+        )
     return InputError(
         f"deposition: cannot release {n} chips without overlap ("
         + (
@@ -232,9 +255,23 @@ def _no_room(scenario: Scenario, n: int) -> InputError:
     )
 
 
-def _release_point(scenario: Scenario, shape: ChipShape, rng: np.random.Generator):
+def _release_point(
+    scenario: Scenario, shape: ChipShape, rng: np.random.Generator, zone_x_mm: float = 0.0
+):
     d = scenario.deposition
     clearance = shape.circumradius_mm + 0.1  # no release pose may touch the floor
+    if scenario.kind == "conveyor":
+        c = scenario.conveyor
+        half_width = c.zone_width_mm / 2
+        if c.side_guides:  # a chip released into a guide is shot out across the belt
+            half_width = min(half_width, c.belt_width_mm / 2 - clearance)
+        return np.array(
+            [
+                zone_x_mm + rng.uniform(-c.zone_length_mm / 2, c.zone_length_mm / 2),
+                rng.uniform(-half_width, half_width),
+                max(rng.uniform(*d.release_height_mm), clearance),
+            ]
+        )
     if scenario.kind == "container":
         c = scenario.container
         radius = c.release_radius * c.radius_mm * np.sqrt(rng.uniform())
@@ -591,13 +628,10 @@ def _stack_of(scenario: Scenario, state: DepositionState) -> Stack:
         )
         log.warning(message)
         warnings.append(message)
-    shapes_of = [state.pool[i] for i in state.chip_shape]
-    distinct = list(dict.fromkeys(shapes_of))
-    index = {id(shape): k for k, shape in enumerate(distinct)}
-    distinct = _unique_names(distinct)
+    shapes, shape_index = shape_table([state.pool[i] for i in state.chip_shape])
     return Stack(
-        shapes=tuple(distinct),
-        shape_index=np.array([index[id(shape)] for shape in shapes_of], dtype=int),
+        shapes=shapes,
+        shape_index=shape_index,
         batch=np.asarray(state.chip_batch),
         batches=state.results,
         target_size_mm=(
@@ -870,6 +904,18 @@ def apply_effect_loads(
             torques += loads[1]
     world.apply_loads(chips, forces, torques, pos)
     return pos, vel
+
+
+def shape_table(shapes_of: list[ChipShape]) -> tuple[tuple[ChipShape, ...], np.ndarray]:
+    """The distinct shapes of per-chip ``shapes_of`` (by identity, in order of first use,
+    renamed apart where names clash: :func:`_unique_names`) and each chip's index (n,)
+    into them."""
+    distinct = list(dict.fromkeys(shapes_of))
+    index = {id(shape): k for k, shape in enumerate(distinct)}
+    return (
+        tuple(_unique_names(distinct)),
+        np.array([index[id(shape)] for shape in shapes_of], dtype=int),
+    )
 
 
 def _unique_names(shapes: list[ChipShape]) -> list[ChipShape]:

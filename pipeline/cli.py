@@ -392,16 +392,21 @@ def _ensemble(args: argparse.Namespace, scenario, out: str, descriptors) -> None
     except KeyboardInterrupt:
         for bar in bars:
             bar.close()
-        sys.stderr.write(
-            f"pipeline: interrupted; the runs already written are kept in {out}: "
-            "run the same command to resume\n"
-        )
-        raise SystemExit(130) from None
+        _resumable_interrupt("runs", out)
     finally:
         for bar in bars:
             bar.close()
     if not args.quiet:
         _print_ensemble(path, manifest, args.repeats)
+
+
+def _resumable_interrupt(what: str, out) -> None:
+    """Ctrl-C in a resumable command: say what is kept, exit 130."""
+    sys.stderr.write(
+        f"pipeline: interrupted; the {what} already written are kept in {out}: "
+        "run the same command to resume\n"
+    )
+    raise SystemExit(130) from None
 
 
 def _print_ensemble(path, manifest: dict, repeats: int) -> None:
@@ -590,11 +595,7 @@ def _sweep(args: argparse.Namespace) -> None:
         )
     except KeyboardInterrupt:
         bar.close()
-        sys.stderr.write(
-            f"pipeline: interrupted; the points and runs already written are kept in {out}: "
-            "run the same command to resume\n"
-        )
-        raise SystemExit(130) from None
+        _resumable_interrupt("points and runs", out)
     finally:
         bar.close()
     if args.quiet:

@@ -301,10 +301,3 @@ def write_sweep_table(path: Path, record: dict[str, Any]) -> None:
 
 def _cell(value: Any) -> str:
     return "" if value is None else f"{value:.6g}"
-
-
-def check_repeats(repeats: int) -> None:
-    from core.schema import MAX_REPEATS
-
-    if not 2 <= repeats <= MAX_REPEATS:
-        raise InputError(f"--repeats: must be between 2 and {MAX_REPEATS}, got {brief(repeats)}")
