@@ -82,7 +82,8 @@ def vertex(grid: list[float], curve: np.ndarray, resolution: float) -> np.ndarra
         # den < 0: the three points bend upwards (a minimum between them).
         v = np.where(den < 0, x1 - 0.5 * num / den, x[k])
     v = np.clip(v, x[np.maximum(k - 1, 0)], x[np.minimum(k + 1, len(x) - 1)])
-    return np.round(np.round(v / resolution) * resolution, 12)
+    # Rounding must not leave the grid (a prior starting at 0.1, rounded to 0.0009).
+    return np.clip(np.round(np.round(v / resolution) * resolution, 12), x[0], x[-1])
 
 
 def within(grid, fitted: np.ndarray) -> list[float]:

@@ -348,7 +348,7 @@ def _scenario_condition(entry, key, kind, scenario, base, load_scenario) -> Cond
         own = _scenario_ref(ref, base, load_scenario, f"{key}.scenario")
     if own.kind != kind:
         raise InputError(f"{key}.scenario: is a {own.kind!r} scenario, the spec's kind is {kind!r}")
-    repeats = _integer(entry.get("repeats", 2), f"{key}.repeats", 1, 1000)
+    repeats = _integer(entry.get("repeats", 2), f"{key}.repeats", 2, 1000)
     return Condition(name=name, scenario=own, repeats=repeats)
 
 

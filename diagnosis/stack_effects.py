@@ -1,19 +1,19 @@
 """Which effect, and how far it goes, for stack and container measurements: every
-candidate effect's strength is fitted on each fold's calibration conditions and scored on
-its held-out ones, the effects are ranked by the gap they close there, and the best one's
-held-out gap is shown before and after, per quantity."""
+candidate effect's strength is fitted on each fold's calibration conditions, simulated at
+that strength and scored on its held-out ones; the effects are ranked by the gap they
+close there, with the tie set of the best; and the best one's held-out gap is shown
+before and after, per quantity, with the adequacy test that "explained" needs."""
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.stats import chi2
 
-from diagnosis.ranking import effect_entry, held_out_reduction, rank_effects
-from diagnosis.statistics import interval
+from diagnosis.drop_effects import STRENGTH_RESOLUTION, vertex, within
+from diagnosis.ranking import effect_entry, held_out_reduction
+from diagnosis.statistics import holm, interval
 from diagnosis.verdicts import how_far
 from packing.effects import EFFECTS
 
@@ -23,8 +23,6 @@ if TYPE_CHECKING:
 __all__ = ["BOOTSTRAP", "StackEffectRanking", "StackFold", "how_far_best", "stack_folds"]
 
 BOOTSTRAP = 400
-# The measurements themselves (None), then every resample.
-DRAWS = [None, *range(BOOTSTRAP)]
 
 
 @dataclass
@@ -35,6 +33,8 @@ class StackFold:
     calibration: list[str]
     held_out: list[str]
     chosen: dict[str, float] = field(default_factory=dict)
+    # effect -> the grid's strengths within the fold's 95 % interval (adequacy).
+    plausible: dict[str, list[float]] = field(default_factory=dict)
 
 
 def stack_folds(names: list[str]) -> list[StackFold]:
@@ -61,9 +61,17 @@ def strength_grid(effect: str, grid_points: int, contact) -> list[float]:
     return sorted(values)
 
 
+def bootstrap_p(differences: np.ndarray) -> float:
+    """One-sided bootstrap p-value of "the difference is positive" from its resamples:
+    the share of resamples at or below 0, counted as (1 + k) / (1 + B), never 0."""
+    d = np.asarray(differences, dtype=float)
+    return float((1 + (d <= 0).sum()) / (1 + len(d)))
+
+
 class StackEffectRanking:
     """The "which" section: every effect's strength fitted per fold on the calibration
-    conditions and held, its held-out excess gap over the resamples, and the ranking."""
+    conditions (vertex of the discrepancy over the grid), simulated there and scored on
+    the held-out conditions over the resamples; the ranking and the tie set."""
 
     def __init__(
         self,
@@ -72,26 +80,51 @@ class StackEffectRanking:
         folds: list[StackFold],
         names: list[str],
         grid_points: int,
+        alpha: float,
     ):
         self.runs = runs
         self.scores = scores
         self.folds = folds
         self.names = names
         self.grid_points = grid_points
+        self.alpha = alpha
 
     def run(self, effects: list[str], kind: str) -> dict:
-        base = np.array(
-            [sum(self._excess(f.held_out, None, 0.0, d) for f in self.folds) for d in DRAWS]
+        grids = {e: strength_grid(e, self.grid_points, self.runs.contact) for e in effects}
+        for fold in self.folds:
+            for effect in effects:
+                fitted = self._fit(fold.calibration, effect, grids[effect])
+                fold.chosen[effect] = float(fitted[0])
+                fold.plausible[effect] = within(grids[effect], fitted)
+        # The fitted strengths lie between grid points: simulate them, in one batch.
+        self.runs.ensure(
+            [
+                self.runs.key(c, e, f.chosen[e])
+                for f in self.folds
+                for e in effects
+                for c in f.held_out
+            ]
         )
-        results, closed = {}, {}
+        base = self._held_out(lambda c, fold: self.runs.key(c, None, 0.0))
+        results, held = {}, {}
         for effect in effects:
-            grid = strength_grid(effect, self.grid_points, self.runs.contact)
-            held, per_fold = self._score_held_out(effect, grid)
-            closed[effect] = base - held
-            fitted = self._fit_per_draw(effect, grid)
-            reduction = held_out_reduction(held, base)
-            results[effect] = effect_entry(effect, fitted, reduction, closed[effect], per_fold)
-        ranking = rank_effects(results, closed)
+            held[effect] = self._held_out(
+                lambda c, fold, e=effect: self.runs.key(c, e, fold.chosen[e])
+            )
+            closed = base - held[effect]
+            per_fold = [dict(fold=f.name, strength=f.chosen[effect]) for f in self.folds]
+            fitted = self._fit(self.names, effect, grids[effect]).tolist()
+            results[effect] = effect_entry(
+                effect, fitted, held_out_reduction(held[effect], base), closed, per_fold
+            )
+            results[effect]["p_better_than_baseline"] = bootstrap_p(closed[1:])
+        # Holm across the effects: the best is chosen on the same held-out measurements.
+        raw = [results[e]["p_better_than_baseline"] for e in effects]
+        for effect, p in zip(effects, holm(raw), strict=True):
+            results[effect]["p_better_than_baseline_holm"] = float(p)
+        ranking = sorted(effects, key=lambda e: -results[e]["gap_closed"])
+        if ranking:
+            self._tie_set(ranking, results, held)
         best = ranking[0] if ranking else None
         tied = [e for e in ranking if results[e]["indistinguishable_from_best"]]
         return dict(
@@ -104,37 +137,45 @@ class StackEffectRanking:
             ranking=[results[e] for e in ranking],
             best=best,
             indistinguishable=tied,
+            tie_set_size=len(tied),
             telling_apart={e: self._separating_quantity(best, e) for e in tied if e != best},
             folds=[f.name for f in self.folds],
         )
 
-    def _excess(self, conditions: list[str], effect, strength: float, draw) -> float:
-        """Summed G - 1 over ``conditions`` with ``effect`` at ``strength``."""
+    def _excess(self, conditions: list[str], key_of) -> np.ndarray:
+        """Summed G - 1 over ``conditions``, each against the setting ``key_of(c)``, for
+        the measurements and every resample (1 + B,)."""
+        return sum(self.scores.gap(c, key_of(c)) - 1.0 for c in conditions)
+
+    def _fit(self, conditions: list[str], effect: str, grid: list[float]) -> np.ndarray:
+        """The strength fitted on ``conditions``: the vertex of the summed discrepancy
+        over the grid for the measurements, then for every resample (1 + B,), so that its
+        interval carries the noise of the measurements and of the simulations."""
+        curve = np.array(
+            [self._excess(conditions, lambda c, s=s: self.runs.key(c, effect, s)) for s in grid]
+        )
+        lo, hi = EFFECTS.get(effect).prior
+        return vertex(grid, curve, STRENGTH_RESOLUTION * (hi - lo))
+
+    def _held_out(self, key_of) -> np.ndarray:
+        """The held-out excess gap summed over the folds, for every draw (1 + B,): the
+        model's setting ``key_of(condition, fold)`` is fitted once on the measurements and
+        held; the held-out measurements and simulations are resampled."""
         return sum(
-            self.scores.gap(c, self.runs.key(c, effect, strength), draw) - 1.0 for c in conditions
+            self._excess(fold.held_out, lambda c, f=fold: key_of(c, f)) for fold in self.folds
         )
 
-    def _score_held_out(self, effect: str, grid: list[float]) -> tuple[np.ndarray, list[dict]]:
-        """The held-out excess gap per draw with the strength fitted once on each fold's
-        calibration conditions and held; only the held-out data are resampled."""
-        held = np.zeros(len(DRAWS))
-        per_fold = []
-        for fold in self.folds:
-            cal = [self._excess(fold.calibration, effect, s, None) for s in grid]
-            s = grid[int(np.argmin(cal))]
-            for j, d in enumerate(DRAWS):
-                held[j] += self._excess(fold.held_out, effect, s, d)
-            per_fold.append(dict(fold=fold.name, strength=s))
-            fold.chosen[effect] = s
-        return held, per_fold
-
-    def _fit_per_draw(self, effect: str, grid: list[float]) -> list[float]:
-        """The strength fitted on all conditions, for the measurements and each resample."""
-        fitted = []
-        for d in DRAWS:
-            cal = [self._excess(self.names, effect, s, d) for s in grid]
-            fitted.append(grid[int(np.argmin(cal))])
-        return fitted
+    def _tie_set(self, ranking: list[str], results: dict, held: dict[str, np.ndarray]) -> None:
+        """Each effect's one-sided bootstrap test of "worse than the best" on the held-out
+        excess, Holm-adjusted across the effects: those not significantly worse are tied
+        with the best."""
+        best, others = ranking[0], ranking[1:]
+        raw = [bootstrap_p(held[e][1:] - held[best][1:]) for e in others]
+        results[best]["p_worse_than_best"] = 1.0
+        results[best]["indistinguishable_from_best"] = True
+        for effect, p in zip(others, holm(raw) if raw else [], strict=True):
+            results[effect]["p_worse_than_best"] = float(p)
+            results[effect]["indistinguishable_from_best"] = bool(p >= self.alpha)
 
     def _separating_quantity(self, best: str, other: str) -> dict:
         """The held-out quantity whose predictions under the two effects differ most, in
@@ -142,10 +183,12 @@ class StackEffectRanking:
         top = dict(z=0.0)
         for fold in self.folds:
             for c in fold.held_out:
+                a_key = self.runs.key(c, best, fold.chosen[best])
+                b_key = self.runs.key(c, other, fold.chosen[other])
                 for q in self.scores.data[c]:
-                    a, sa, ra = self.runs.moments(self.runs.key(c, best, fold.chosen[best]), q)
-                    b, sb, rb = self.runs.moments(self.runs.key(c, other, fold.chosen[other]), q)
-                    z = abs(a - b) / max(math.sqrt(sa**2 / ra + sb**2 / rb), 1e-12)
+                    a, sa, ra = self.runs.moments(a_key, q)
+                    b, sb, rb = self.runs.moments(b_key, q)
+                    z = abs(a - b) / max(float(np.sqrt(sa**2 / ra + sb**2 / rb)), 1e-12)
                     if z > top["z"]:
                         top = dict(
                             z=z, observable=q, condition=c, best_predicts=a, other_predicts=b
@@ -155,8 +198,11 @@ class StackEffectRanking:
 
 def how_far_best(which: dict, folds: list[StackFold], runs: StackRuns, scores: StackScores) -> dict:
     """The "how far" section: every held-out quantity before and after the best effect
-    (at the strength its fold fitted), and each held-out condition's gap."""
-    best = which["best"]
+    (at the strength its fold fitted), and each held-out condition's gap with the
+    adequacy test of the best effect: the measurements' test against the simulations at
+    the fitted strength and at every grid strength within the fold's 95 % interval, the
+    largest p-value (Berger and Boos's supremum over a confidence set, as for drops)."""
+    best = which.get("best")
     if best is None:
         return {}
     rows, totals = [], []
@@ -178,22 +224,24 @@ def how_far_best(which: dict, folds: list[StackFold], runs: StackRuns, scores: S
                 )
                 for q in scores.data[c]
             ]
-            totals.append(_gap_before_after(fold.name, c, s, before, after))
+            tested = [s, *(v for v in fold.plausible.get(best, []) if v != s)]
+            p = [scores.test(c, runs.key(c, best, v)) for v in tested]
+            k = int(np.argmax(p))
+            totals.append(
+                dict(
+                    fold=fold.name,
+                    condition=c,
+                    strength=s,
+                    gap_before=mean_square(before),
+                    gap_after=mean_square(after),
+                    null_mean=1.0,
+                    p_before=scores.test(c, before_key),
+                    p_after=p[k],
+                    p_after_at_fitted=p[0],
+                    most_consistent_strength=tested[k],
+                )
+            )
     return how_far(best, which["ranking"][0], rows, totals)
-
-
-def _gap_before_after(fold: str, condition: str, strength: float, before: dict, after: dict):
-    g0, g1, k = mean_square(before), mean_square(after), len(before)
-    return dict(
-        fold=fold,
-        condition=condition,
-        strength=strength,
-        gap_before=g0,
-        gap_after=g1,
-        null_mean=1.0,
-        p_before=float(chi2.sf(g0 * k, k)),
-        p_after=float(chi2.sf(g1 * k, k)),
-    )
 
 
 def mean_square(z: dict[str, float]) -> float:

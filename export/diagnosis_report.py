@@ -82,9 +82,11 @@ def _tests_table(tests: list[dict], drop: bool) -> list[str]:
         )
     else:
         about = (
-            "Overall test per condition: the gap statistic G (mean squared standardised "
-            "discrepancy; about 1 when there is no gap) against its chi-squared null. "
-            "Holm-adjusted across conditions."
+            "Test per condition: Welch's t of every measured quantity against the "
+            "baseline's repeats, the smallest p-value Bonferroni-adjusted over the "
+            "condition's quantities (valid however they correlate); Holm-adjusted across "
+            "conditions. G, the mean squared t (about 1 when there is no gap), shows the "
+            "size of the gap."
         )
     lines = [
         about,
@@ -114,24 +116,26 @@ def _observables_table(rows: list[dict], drop: bool) -> list[str]:
         )
     else:
         about = (
-            "Every observable: experiment minus simulation, its bootstrap 95 % interval "
-            "and the noise floor. Starred rows lie beyond it with an interval excluding 0."
+            "Every quantity: experiment minus simulation, its 95 % interval (1.96 times "
+            "the standard error of the difference: the measurement's and the simulated "
+            "mean's), that margin as the noise floor, Welch's t and its p-value, "
+            "Holm-adjusted across every quantity of every condition. Starred rows are "
+            "significant after that adjustment."
         )
     lines = [
         "",
         about,
         "",
         "| condition | observable | experiment | simulation | difference | 95 % interval | "
-        "noise floor | z |" + (" p (Holm) |" if drop else ""),
-        "|---|---|---|---|---|---|---|---|" + ("---|" if drop else ""),
+        "noise floor | z | p (Holm) |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         star = " *" if r["beyond_noise"] else ""
         lines.append(
             f"| {r['condition']} | {r['observable']}{star} | {_fmt(r['experiment'])} | "
             f"{_fmt(r['simulation'])} | {_fmt(r['difference'])} | {_interval(r['ci95'])} | "
-            f"{_fmt(r['noise_floor'])} | {_fmt(r['z'], 2)} |"
-            + (f" {_fmt(r['p_holm'])} |" if drop else "")
+            f"{_fmt(r['noise_floor'])} | {_fmt(r['z'], 2)} | {_fmt(r['p_holm'])} |"
         )
     return lines
 
@@ -277,10 +281,16 @@ def _how_far_section(how: dict, drop: bool) -> list[str]:
             for c in how["conditions"]
         ),
         "",
-        "p after: the held-out drops against independent simulations of the effect at "
-        "every strength within the fold's 95 % interval, the largest p-value (for drops; "
-        "the strength it was largest at is the most consistent one); the model is "
-        "adequate when Fisher's combination of them is not significant.",
+        (
+            "p after: the held-out drops against independent simulations of the effect at "
+            "every strength within the fold's 95 % interval"
+            if drop
+            else "p after: the held-out measurements against the simulations of the effect "
+            "at the fitted strength and at every grid strength within the fold's 95 % "
+            "interval (the test of section 1)"
+        )
+        + ", the largest p-value (the strength it was largest at is the most consistent "
+        "one); the model is adequate when Fisher's combination of them is not significant.",
         "",
         "| fold | held-out condition | observable | experiment | before | after | z before "
         "| z after |",
