@@ -21,6 +21,9 @@ Parts:
 * ``seeds``: three diagnosis seeds on each of 5 datasets agree on verdict and top effect.
 * ``sweep``: two effects at six strengths each over their whole prior: where each
   becomes undetectable, and where it stops being identified.
+* ``effects-fitted-tilt``, ``outside-fitted-tilt``: the same cases as ``effects`` and
+  ``outside`` (same data), diagnosed with ``release_tilt = "fitted"``: the release tilt
+  fitted jointly with every effect instead of known.
 
 Usage: ``python benchmarks/bench_diagnosis.py --part nulls [--cases N] [--minutes M]
 [--workers N]``; ``--report`` prints the tables of every part from the cache only.
@@ -57,6 +60,11 @@ DROP_EFFECTS = (
     "warp",
 )
 PLANNED = {"nulls": 100, "effects": 35, "outside": 17, "seeds": 5, "sweep": 12}
+# The same cases diagnosed with the release tilt fitted jointly with every effect
+# (``release_tilt = "fitted"``) instead of known: paired with their parts' cases.
+FITTED_TILT = "-fitted-tilt"
+for _part in ("effects", "outside"):
+    PLANNED[_part + FITTED_TILT] = PLANNED[_part]
 # The strength sweep: each effect at SWEEP_POINTS strengths spread over its whole prior
 # (k / SWEEP_POINTS of the range, k = 1..SWEEP_POINTS), to find where it stops being
 # detectable and identifiable.
@@ -69,7 +77,15 @@ SWEEP_POINTS = 6
 # condition; adequacy at every plausible strength, combined over the held-out datasets
 # by Fisher's method; (and the physics of 2026-11-23: rolling resistance on round chips
 # only).
-METHOD = {"nulls": 1, "effects": 3, "outside": 3, "seeds": 3, "sweep": 3}
+METHOD = {
+    "nulls": 1,
+    "effects": 3,
+    "outside": 3,
+    "seeds": 3,
+    "sweep": 3,
+    "effects" + FITTED_TILT: 1,
+    "outside" + FITTED_TILT: 1,
+}
 STANDARD_CONDITIONS = ((200, 0), (500, 0), (1000, 30))
 # The release conditions null cases draw from: (height mm, yaw deg).
 CONDITION_POOL = ((150, 0), (200, 0), (300, 15), (500, 0), (700, 30), (1000, 30), (1000, 0))
@@ -78,12 +94,15 @@ CONDITION_POOL = ((150, 0), (200, 0), (300, 15), (500, 0), (700, 30), (1000, 30)
 def case_plan(part: str, index: int) -> dict:
     """The case ``index`` of ``part``, fixed by its index alone (so that a resumed study
     makes the same cases): conditions, drops, noise, truth, the library and seeds."""
+    fitted_tilt = part.endswith(FITTED_TILT)
+    variant, part = part, part.removesuffix(FITTED_TILT)
     rng = np.random.default_rng([hash_part(part), index])
     k = int(rng.integers(1, 4))
     chosen = sorted(rng.choice(len(CONDITION_POOL), size=k, replace=False).tolist())
     plan = dict(
-        part=part,
+        part=variant,
         index=index,
+        release_tilt="fitted" if fitted_tilt else "known",
         conditions=[CONDITION_POOL[c] for c in chosen],
         drops=int(rng.integers(30, 101)),
         position_sd_mm=float(rng.uniform(0.2, 2.0)),
@@ -146,6 +165,7 @@ def spec_text(plan: dict) -> str:
         f"angle_sd_deg = {plan['angle_sd_deg']}",
         "[diagnosis]",
         "effects = [" + ", ".join(f'"{e}"' for e in plan["library"]) + "]",
+        f'release_tilt = "{plan.get("release_tilt", "known")}"',
     ]
     for height, yaw in plan["conditions"]:
         lines += ["[[condition]]", f'name = "h{height}-yaw{yaw}"', f"height_mm = {height}"]
@@ -255,6 +275,7 @@ def report(part: str) -> None:
     runs = [c["runs"][0] for c in cases]
     seconds = [r["seconds"] for r in runs]
     print(f"diagnosis time: median {statistics.median(seconds):.0f} s, max {max(seconds):.0f} s")
+    part = part.removesuffix(FITTED_TILT)
     if part == "nulls":
         quiet = sum(r["verdict"] == "no significant gap" for r in runs)
         print(f"'no significant gap': {_rate(quiet, len(runs))}; target >= 95 %")

@@ -1,9 +1,10 @@
 """Which model, and how far it goes, for drop experiments.
 
 The candidates are the baseline refitted (its own fitted parameter, the release tilt
-range) and every applicable effect (its strength fitted at the spec's release tilt).
-Each is fitted on a fold's calibration conditions only, by the energy distance of the
-calibration drops to the simulated ones, and scored on the fold's held-out drops by
+range) and every applicable effect (its strength fitted jointly with the release tilt
+range, ``StrengthGrids.joint_fit``). Each is fitted on a fold's calibration drops only,
+by the energy distance of the calibration drops to the simulated ones, and scored on the
+fold's held-out drops by
 their energy scores: a proper per-drop score, so models are compared drop by drop on
 data none of them was fitted to. The effects are ranked by the held-out gap (energy
 distance) they close; the ones not significantly worse than the best (one-sided paired
@@ -28,9 +29,23 @@ from diagnosis.statistics import combined_p, holm, interval
 from diagnosis.verdicts import applicable_effects, how_far
 from packing.effects import EFFECTS
 
-__all__ = ["TILT_GRID_DEG", "EffectRanking", "Fold", "how_far_best", "vertex", "within"]
+__all__ = [
+    "TILT_GRID_DEG",
+    "EffectRanking",
+    "Fold",
+    "JointFit",
+    "how_far_best",
+    "quadratic_minimum",
+    "vertex",
+    "within",
+]
 
 TILT_RESOLUTION_DEG = 0.1
+# The joint fit's release tilts: the spec's, and this much either side (less below when
+# the spec's tilt is smaller; every condition is shifted by the same offset).
+TILT_STEP_DEG = 2.5
+# Points per side of the fine grid the joint fit's quadratic surface is minimised on.
+SURFACE_POINTS = 81
 # Fitted strengths are rounded to this share of the prior's range (one setting for
 # fits that land within it of each other).
 STRENGTH_RESOLUTION = 1e-3
@@ -44,11 +59,18 @@ class Fold:
     calibration: list[Dataset]
     held_out: list[Dataset]
     refit_tilt: float = math.nan  # the baseline's tilt refitted on this calibration
-    tilt: float | None = None  # the tilt the effects are fitted at (None: each condition's)
     chosen: dict[str, float] = field(default_factory=dict)  # effect -> fitted strength
-    # effect (None: the refitted tilt) -> the grid values within the fit's 95 % interval,
-    # the other settings the held-out drops may be consistent with (the adequacy test).
-    plausible: dict[str | None, list[float]] = field(default_factory=dict)
+    # effect -> release tilt offset (deg) fitted jointly with its strength
+    offset: dict[str, float] = field(default_factory=dict)
+    # The grid settings within the fit's 95 % interval, the other settings the held-out
+    # drops may be consistent with (the adequacy test): None -> refitted tilts; effect
+    # -> (strength, tilt offset) pairs.
+    plausible: dict[str | None, list] = field(default_factory=dict)
+
+    def model(self, sims: DropSimulations, condition: str, effect: str) -> tuple:
+        """The simulation key of ``effect`` as this fold fitted it, at ``condition``."""
+        tilt = sims.own_tilt(condition, None) + self.offset.get(effect, 0.0)
+        return sims.setting(condition, tilt, effect, self.chosen[effect])
 
 
 @dataclass
@@ -84,6 +106,44 @@ def vertex(grid: list[float], curve: np.ndarray, resolution: float) -> np.ndarra
     v = np.clip(v, x[np.maximum(k - 1, 0)], x[np.minimum(k + 1, len(x) - 1)])
     # Rounding must not leave the grid (a prior starting at 0.1, rounded to 0.0009).
     return np.clip(np.round(np.round(v / resolution) * resolution, 12), x[0], x[-1])
+
+
+def quadratic_minimum(
+    xs: list[float], ys: list[float], surface: np.ndarray, points: int = SURFACE_POINTS
+) -> tuple[np.ndarray, np.ndarray]:
+    """The minimum over the box ``xs`` x ``ys`` (3 values each) of the quadratic surface
+    (constant, linear, square and cross terms) fitted by least squares to ``surface``
+    (3, 3, C), per column: a smooth surrogate of a noisy two-parameter discrepancy, found
+    on a fine grid of the box, so that a saddle or a ridge still gives a point inside."""
+    x, y = np.asarray(xs, dtype=float), np.asarray(ys, dtype=float)
+    x0, xr = x[1], x[-1] - x[0]
+    y0, yr = y[1], y[-1] - y[0]
+
+    def design(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        return np.column_stack([np.ones_like(u), u, v, u**2, v**2, u * v])
+
+    u, v = (g.ravel() for g in np.meshgrid((x - x0) / xr, (y - y0) / yr, indexing="ij"))
+    coef, *_ = np.linalg.lstsq(design(u, v), surface.reshape(9, -1), rcond=None)
+    fu, fv = (
+        g.ravel()
+        for g in np.meshgrid(
+            np.linspace(u.min(), u.max(), points),
+            np.linspace(v.min(), v.max(), points),
+            indexing="ij",
+        )
+    )
+    k = (design(fu, fv) @ coef).argmin(axis=0)
+    return x0 + fu[k] * xr, y0 + fv[k] * yr
+
+
+@dataclass
+class JointFit:
+    """An effect's strength and release tilt offset fitted together: the estimates, then
+    one per resample (1 + B,), and the three grid strengths the surface was fitted on."""
+
+    strength: np.ndarray
+    offset: np.ndarray
+    stencil: list[float]
 
 
 def within(grid, fitted: np.ndarray) -> list[float]:
@@ -126,21 +186,27 @@ def best_tilt(sims: DropSimulations, datasets: list[Dataset]) -> np.ndarray:
 
 
 class StrengthGrids:
-    """The strengths tried for each effect (simulated for every condition at one release
-    tilt) and the discrepancy curves over them."""
+    """The strengths tried for each effect (simulated for every condition at its own
+    release tilt, and near the fitted strength at shifted tilts) and the discrepancy
+    curves and surfaces over them."""
 
     def __init__(
         self,
         sims: DropSimulations,
         effects: list[str],
         conditions: list[str],
-        tilt: float | None,
         grid_points: int,
     ):
         self.sims = sims
         self.conditions = conditions
-        self.tilt = tilt
         self.grids = {effect: self._coarse(effect, grid_points) for effect in effects}
+        self.joint = sims.x.settings.release_tilt == "fitted"
+        lowest = min(sims.own_tilt(c, None) for c in conditions)
+        below = min(TILT_STEP_DEG, lowest)
+        # Release tilts cannot be negative: with a spec tilt of 0 the offsets go upwards.
+        self.offsets = (
+            (-below, 0.0, TILT_STEP_DEG) if below > 0 else (0.0, TILT_STEP_DEG, 2 * TILT_STEP_DEG)
+        )
 
     def _coarse(self, effect: str, points: int) -> list[float]:
         # The neutral strength is always tried: an effect must be able to do nothing.
@@ -155,11 +221,77 @@ class StrengthGrids:
         keys = []
         for effect, grid in self.grids.items():
             keys += [
-                self.sims.grid_setting(c, self.tilt, effect, s)
-                for s in grid
-                for c in self.conditions
+                self.sims.grid_setting(c, None, effect, s) for s in grid for c in self.conditions
             ]
         return keys
+
+    def _shifted(self, condition: str, effect: str, strength: float, offset: float) -> tuple:
+        tilt = self.sims.own_tilt(condition, None) + offset
+        return self.sims.grid_setting(condition, tilt, effect, strength)
+
+    def stencil(self, effect: str, strength: float) -> list[float]:
+        """The three grid strengths around ``strength``."""
+        grid = self.grids[effect]
+        k = int(np.argmin(np.abs(np.asarray(grid) - strength)))
+        k = min(max(k, 1), len(grid) - 2)
+        return grid[k - 1 : k + 2]
+
+    def stencil_keys(self, datasets: list[Dataset], effect: str) -> list[tuple]:
+        """The settings the joint fit on ``datasets`` needs beyond the grid: the three grid
+        strengths around the strength fitted at the spec's tilt, at the shifted tilts."""
+        if not self.joint:
+            return []
+        around = self.stencil(effect, float(self.fit(datasets, None, effect)[0]))
+        return [
+            self._shifted(c, effect, v, o)
+            for v in around
+            for o in self.offsets
+            if o != 0
+            for c in dict.fromkeys(ds.condition for ds in datasets)
+        ]
+
+    def joint_fit(self, datasets: list[Dataset], effect: str) -> JointFit:
+        """Strength and release tilt offset fitted together on ``datasets``: the
+        strength at the spec's tilt first (``fit``), then the quadratic surface over the
+        three grid strengths around it and the three tilts (``quadratic_minimum``).
+        A resample whose strength at the spec's tilt falls outside those three keeps it
+        (and the spec's tilt): the surface says nothing there."""
+        lo, hi = EFFECTS.get(effect).prior
+        along = self.fit(datasets, None, effect)
+        around = self.stencil(effect, float(along[0]))
+        if not self.joint:
+            return JointFit(along, np.zeros_like(along), around)
+        surface = np.array(
+            [
+                [
+                    sum(
+                        self.sims.energy(ds, self._shifted(ds.condition, effect, v, o))
+                        for ds in datasets
+                    )
+                    for o in self.offsets
+                ]
+                for v in around
+            ]
+        )
+        strength, offset = quadratic_minimum(around, list(self.offsets), surface)
+        resolution = STRENGTH_RESOLUTION * (hi - lo)
+        strength = np.round(np.round(strength / resolution) * resolution, 12)
+        offset = np.round(np.round(offset / TILT_RESOLUTION_DEG) * TILT_RESOLUTION_DEG, 9)
+        outside = (along < around[0]) | (along > around[-1])
+        return JointFit(np.where(outside, along, strength), np.where(outside, 0.0, offset), around)
+
+    def plausible(self, effect: str, fitted: JointFit) -> list[tuple[float, float]]:
+        """The grid settings (strength, tilt offset) within the joint fit's 95 %
+        intervals: the grid at the spec's tilt, and the stencil at the shifted tilts."""
+        s_lo, s_hi = interval(fitted.strength[1:])
+        o_lo, o_hi = interval(fitted.offset[1:])
+        points = [(v, 0.0) for v in self.grids[effect]]
+        if self.joint:
+            points += [(v, o) for v in fitted.stencil for o in self.offsets if o != 0]
+        return [(v, o) for v, o in points if s_lo <= v <= s_hi and o_lo <= o <= o_hi]
+
+    def plausible_keys(self, condition: str, effect: str, points: list) -> list[tuple]:
+        return [self._shifted(condition, effect, v, o) for v, o in points]
 
     def curve(
         self, datasets: list[Dataset], tilt: float, effect: str, grid: list[float] | None = None
@@ -175,8 +307,9 @@ class StrengthGrids:
         )
 
     def fit(self, datasets: list[Dataset], tilt: float | None, effect: str) -> np.ndarray:
-        """The strength fitted on ``datasets``: the estimate, then one per resample of
-        the observed and simulated drops (1 + B,)."""
+        """The strength fitted on ``datasets`` at release tilt ``tilt`` (None: each
+        condition's own): the estimate, then one per resample of the observed and
+        simulated drops (1 + B,)."""
         lo, hi = EFFECTS.get(effect).prior
         curve = self.curve(datasets, tilt, effect)
         return vertex(self.grids[effect], curve, STRENGTH_RESOLUTION * (hi - lo))
@@ -205,7 +338,7 @@ class EffectRanking:
     def run(self) -> dict:
         effects, skipped = applicable_effects(self.x)
         points = self.x.settings.grid_points
-        grids = StrengthGrids(self.sims, effects, self.conditions, None, points)
+        grids = StrengthGrids(self.sims, effects, self.conditions, points)
         # Three batches: every grid (tilts and strengths); every model fitted per fold,
         # at its held-out conditions; the second pools of the adequacy tests.
         grid = self.sims.tilt_grid
@@ -222,8 +355,12 @@ class EffectRanking:
                 held[effect] = self._fit_and_score(effect)
                 closed = base.energy - held[effect].energy
                 reduction = held_out_reduction(held[effect].energy, base.energy)
-                fitted = self._fit_on_everything(effect, grids)
-                results[effect] = effect_entry(effect, fitted, reduction, closed, held[effect].rows)
+                fitted = grids.joint_fit(self.everything, effect)
+                results[effect] = effect_entry(
+                    effect, fitted.strength.tolist(), reduction, closed, held[effect].rows
+                )
+                results[effect]["release_tilt_offset_deg"] = float(fitted.offset[0])
+                results[effect]["release_tilt_offset_ci95"] = list(interval(fitted.offset[1:]))
                 # Does the effect close a significant part of the gap? The paired per-drop
                 # test on the held-out scores, against the baseline. The bootstrap
                 # interval of the gap closed resamples the simulations too, so it is
@@ -276,29 +413,33 @@ class EffectRanking:
         return HeldOut(np.concatenate(scores), energy, rows)
 
     def _fit_folds(self, effects: list[str], grids: StrengthGrids) -> list[tuple]:
-        """Fit every effect's strength on each fold's calibration data; the settings of
+        """Fit every effect's strength and release tilt jointly on each fold's
+        calibration data (and on everything, for the reported intervals); the settings of
         each fitted model at the fold's held-out conditions."""
+        stencils = [
+            key
+            for datasets in [f.calibration for f in self.folds] + [self.everything]
+            for effect in effects
+            for key in grids.stencil_keys(datasets, effect)
+        ]
+        self.sims.ensure(stencils)
         keys = []
         for fold in self.folds:
             for effect in effects:
-                fitted = grids.fit(fold.calibration, fold.tilt, effect)
-                strength = float(fitted[0])
-                fold.chosen[effect] = strength
-                fold.plausible[effect] = within(grids.grids[effect], fitted)
-                keys += [
-                    self.sims.setting(ds.condition, fold.tilt, effect, strength)
-                    for ds in fold.held_out
-                ]
+                fitted = grids.joint_fit(fold.calibration, effect)
+                fold.chosen[effect] = float(fitted.strength[0])
+                fold.offset[effect] = float(fitted.offset[0])
+                fold.plausible[effect] = grids.plausible(effect, fitted)
+                keys += [fold.model(self.sims, ds.condition, effect) for ds in fold.held_out]
         return keys
 
     def _fit_and_score(self, effect: str) -> HeldOut:
         """Score the effect, fitted on each fold's calibration data, on the fold's
         held-out drops."""
-        held = self._held_out(
-            lambda ds, fold: self.sims.setting(ds.condition, fold.tilt, effect, fold.chosen[effect])
-        )
+        held = self._held_out(lambda ds, fold: fold.model(self.sims, ds.condition, effect))
         for row, (fold, _) in zip(held.rows, self._held_pairs(), strict=True):
             row["strength"] = fold.chosen[effect]
+            row["release_tilt_offset_deg"] = fold.offset[effect]
         return held
 
     def _held_pairs(self) -> list[tuple[Fold, Dataset]]:
@@ -317,11 +458,6 @@ class EffectRanking:
         for effect, p in zip(others, adjusted, strict=True):
             results[effect]["p_worse_than_best"] = float(p)
             results[effect]["indistinguishable_from_best"] = bool(p >= self.alpha)
-
-    def _fit_on_everything(self, effect: str, grids: StrengthGrids) -> list[float]:
-        """The strength fitted on all conditions, then refitted on each resample of the
-        observed and the simulated drops: its interval carries the fit's noise."""
-        return grids.fit(self.everything, None, effect).tolist()
 
     def _baseline_refit(
         self, tilt_all: float, base: HeldOut, refit: HeldOut, best: HeldOut | None
@@ -421,8 +557,7 @@ class EffectRanking:
         return top
 
     def _prediction(self, ds: Dataset, fold: Fold, effect: str) -> np.ndarray:
-        key = self.sims.setting(ds.condition, fold.tilt, effect, fold.chosen[effect])
-        return self.sims.observables[key]
+        return self.sims.observables[fold.model(self.sims, ds.condition, effect)]
 
 
 def _p_worse(differences: np.ndarray) -> float:
@@ -452,11 +587,20 @@ def how_far_best(
     if best is None:  # no candidate effect applies
         return {}
     pairs = [(fold, ds) for fold in folds for ds in fold.held_out]
-    keys = [sims.setting(ds.condition, f.tilt, best, f.chosen[best]) for f, ds in pairs]
-    sims.ensure([sims.second_pool(k) for k in keys])
+    keys = [f.model(sims, ds.condition, best) for f, ds in pairs]
+    # The plausible settings at a held-out condition: with whole conditions held out,
+    # the shifted tilts were simulated for the calibration conditions only.
+    plausible = [
+        [
+            sims.grid_setting(ds.condition, sims.own_tilt(ds.condition, None) + o, best, v)
+            for v, o in fold.plausible[best]
+        ]
+        for fold, ds in pairs
+    ]
+    sims.ensure([sims.second_pool(k) for k in keys] + [k for ks in plausible for k in ks])
     rows, totals = [], []
-    for (fold, ds), key in zip(pairs, keys, strict=True):
-        base_key = sims.baseline(ds.condition, fold.tilt)
+    for (fold, ds), key, others in zip(pairs, keys, plausible, strict=True):
+        base_key = sims.baseline(ds.condition, None)
         before, after = sims.observables[base_key], sims.observables[key]
         sd = sims.observable_sd[ds.condition]
         z0, z1 = (ds.observed - before) / sd, (ds.observed - after) / sd
@@ -474,7 +618,6 @@ def how_far_best(
             for k, name in enumerate(sims.names)
         ]
         _, p_before = energy_test(ds, sims, base_key, rng)
-        others = [sims.grid_setting(ds.condition, fold.tilt, best, s) for s in fold.plausible[best]]
         after = adequacy_test(ds, sims, key, others, rng)
         consistent = after["most_consistent"]
         totals.append(
@@ -482,12 +625,14 @@ def how_far_best(
                 fold=fold.name,
                 condition=ds.condition,
                 strength=fold.chosen[best],
+                release_tilt_offset_deg=fold.offset[best],
                 gap_before=float(sims.energy(ds, base_key)[0]),
                 gap_after=float(sims.energy(ds, key)[0]),
                 p_before=p_before,
                 p_after=after["p"],
                 p_after_at_fitted=after["p_fitted"],
                 most_consistent_strength=_strength_of(consistent, fold.chosen[best], best, sims),
+                most_consistent_tilt_deg=float(consistent[1]),
             )
         )
     return how_far(best, which["ranking"][0], rows, totals)

@@ -182,7 +182,7 @@ class _DropDiagnosis:
         for fold in folds:
             for ds in fold.held_out:
                 if best is not None and "best_effect" not in scatter[ds.condition]:
-                    key = self.sims.setting(ds.condition, fold.tilt, best, fold.chosen[best])
+                    key = fold.model(self.sims, ds.condition, best)
                     positions = self.sims.drops[key].positions
                     scatter[ds.condition]["best_effect"] = np.round(positions, 2).tolist()
         return scatter

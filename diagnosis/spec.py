@@ -76,6 +76,10 @@ class DiagnosisSettings:
     # What each fitted model is judged on (drop experiments): "halves" of every
     # condition's drops, or whole "conditions" left out one at a time.
     held_out: str = "halves"
+    # Drop experiments: the release tilt range "known" (the conditions' tilt_deg; effects
+    # are fitted at it, and the refitted baseline is a candidate of its own), or
+    # "fitted" jointly with every effect's strength (for a release nobody measured).
+    release_tilt: str = "known"
     effects: tuple[str, ...] = ()  # candidates; () = every effect for this kind
     alpha: float = 0.05
 
@@ -286,6 +290,8 @@ def _settings(data: dict, kind: str) -> DiagnosisSettings:
         values["grid_points"] = _integer(data["grid_points"], "diagnosis.grid_points", 3, 50)
     if "held_out" in data:
         values["held_out"] = _held_out(data["held_out"], kind)
+    if "release_tilt" in data:
+        values["release_tilt"] = _release_tilt(data["release_tilt"], kind)
     if "alpha" in data:
         values["alpha"] = _number(data["alpha"], "diagnosis.alpha", 1e-6, 0.5)
     if "effects" in data:
@@ -314,6 +320,21 @@ def _held_out(value, kind: str) -> str:
         raise InputError(
             f"diagnosis.held_out: {kind} experiments hold out whole conditions; "
             '"halves" splits the drops of a drop experiment'
+        )
+    return value
+
+
+RELEASE_TILT = ("fitted", "known")
+
+
+def _release_tilt(value, kind: str) -> str:
+    if value not in RELEASE_TILT:
+        raise InputError(
+            f"diagnosis.release_tilt: {value!r} is not one of {', '.join(map(repr, RELEASE_TILT))}"
+        )
+    if kind != "drop":
+        raise InputError(
+            f"diagnosis.release_tilt: only drop experiments have a release tilt, not {kind}"
         )
     return value
 

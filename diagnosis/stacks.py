@@ -432,13 +432,18 @@ def diagnose_stacks(
 
 
 def synthesize_quantities(
-    experiment: Experiment, strengths: dict, seed: int, run_many=None
+    experiment: Experiment,
+    strengths: dict,
+    seed: int,
+    run_many=None,
+    measurements: int | None = None,
 ) -> list[dict]:
-    """Rows ``condition, quantity, value, sd, n``: the mean and sd over each condition's
-    repeats with the effects on (seeds apart from the diagnosis's own)."""
+    """Rows ``condition, quantity, value, sd, n``: the mean and sd over ``measurements``
+    depositions of each condition (default: its repeats, at least 2) with the effects on
+    (seeds apart from the diagnosis's own)."""
     calls, owners = [], []
     for condition in experiment.conditions:
-        for r in range(max(condition.repeats, 2)):
+        for r in range(measurements or max(condition.repeats, 2)):
             calls.append(
                 dict(
                     scenario=condition.scenario,

@@ -236,6 +236,13 @@ def _add_synth(commands) -> None:
         help=f"drops per condition (kind drop), 1 to {MAX_DROPS}",
     )
     synth.add_argument(
+        "--measurements",
+        type=_bounded(2, 1000),
+        default=None,
+        help="measured depositions per condition (kinds stack and container), 2 to 1000 "
+        "(default: the condition's repeats, at least 2)",
+    )
+    synth.add_argument(
         "--position-sd-mm",
         type=_bounded(0.0, 100.0, float),
         default=None,
@@ -548,6 +555,7 @@ def _synth(args: argparse.Namespace) -> None:
         args.seed,
         args.output,
         drops=args.drops,
+        measurements=args.measurements,
         overwrite=args.overwrite,
         workers=args.workers,
         position_sd_mm=args.position_sd_mm,

@@ -110,6 +110,7 @@ def synth(
     workers: int | None = None,
     position_sd_mm: float | None = None,
     angle_sd_deg: float | None = None,
+    measurements: int | None = None,
 ) -> tuple[Path, int]:
     """Pseudo-experimental observations with the given effects, written atomically;
     measurement noise as in the spec unless given here."""
@@ -138,7 +139,9 @@ def synth(
         if experiment.kind == "drop":
             rows = synthesize_drops(experiment, strengths, seed, drops, executor.map)
         else:
-            rows = synthesize_quantities(experiment, strengths, seed, executor.map)
+            rows = synthesize_quantities(
+                experiment, strengths, seed, executor.map, measurements=measurements
+            )
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=list(rows[0]), lineterminator="\n")
     writer.writeheader()

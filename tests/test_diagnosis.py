@@ -147,6 +147,30 @@ def test_strength_fit_finds_the_minimum_between_grid_points():
     assert 0.4 <= fitted[3] <= 0.8
 
 
+def test_joint_fit_finds_the_minimum_of_a_tilted_bowl_between_grid_points():
+    """Strength and tilt together: a quadratic bowl with a cross term (the tilt absorbs
+    part of the strength) sampled on the 3 x 3 stencil has its minimum found off both
+    grids, where fitting the strength at the middle tilt alone misses it; a minimum
+    beyond the box stays on its edge; every column is fitted."""
+    from diagnosis.drop_effects import quadratic_minimum, vertex
+
+    xs, ys = [0.4, 0.5, 0.6], [3.23, 5.73, 8.23]
+    u, v = np.meshgrid(xs, ys, indexing="ij")
+
+    def bowl(s0, t0):
+        # Elliptic, with a strong cross term: the valley runs diagonally.
+        ds, dt = (u - s0) / 0.1, (v - t0) / 2.5
+        return ds**2 + dt**2 + 1.2 * ds * dt
+
+    surface = np.stack([bowl(0.47, 7.0), bowl(0.9, 5.73)], axis=-1)
+    s, t = quadratic_minimum(xs, ys, surface)
+    assert s[0] == pytest.approx(0.47, abs=0.003) and t[0] == pytest.approx(7.0, abs=0.07)
+    # At the middle tilt alone the valley's floor lies elsewhere.
+    alone = vertex(xs, bowl(0.47, 7.0)[:, 1], 1e-4)[0]
+    assert alone == pytest.approx(0.5005, abs=1e-3)
+    assert s[1] == pytest.approx(0.6)  # beyond the box: its edge
+
+
 def test_plausible_strengths_are_the_grid_points_within_the_fits_interval():
     """The adequacy test also tries the grid's strengths inside the 95 % interval of the
     fit's resamples: none outside it, all inside (its ends included)."""
@@ -605,3 +629,41 @@ def test_effects_that_cannot_act_on_the_chip_are_set_aside():
     assert set(skipped) == {"edge_rounding", "warp"}
     assert "flat convex chips" in skipped["warp"]
     assert "air_drag" in usable and "friction" in usable
+
+
+@pytest.mark.slow
+def test_release_tilt_fitted_jointly_carries_its_uncertainty(tmp_path):
+    """Drops made with restitution 0.7 at a release tilt 2.5 deg above the spec's. With
+    the tilt known (the spec's, wrongly) the strength's interval is narrow and biased;
+    fitted jointly, each fold's tilt offset stays in the fit's box, the interval widens
+    and holds the truth (both measured: known 0.52-0.66, fitted 0.49-0.71)."""
+    spec = drop_spec(tmp_path, effects=("restitution", "friction"))
+    text = spec.read_text()
+    made = tmp_path / "made.toml"
+    made.write_text(
+        text.replace("height_mm = 200", "height_mm = 200\ntilt_deg = 8.2296").replace(
+            "height_mm = 600", "height_mm = 600\ntilt_deg = 8.2296"
+        )
+    )
+    fitted = tmp_path / "fitted.toml"
+    fitted.write_text(text.replace("[diagnosis]", '[diagnosis]\nrelease_tilt = "fitted"'))
+    data = tmp_path / "data.csv"
+    result = run_cli(
+        "synth", str(made), "--effect", "restitution=0.7", "--seed", "11", "-o", str(data)
+    )
+    assert result.returncode == 0, result.stderr
+    entries = {}
+    for name, path in (("known", spec), ("fitted", fitted)):
+        out = tmp_path / name
+        result = run_cli("diagnose", str(path), "--out", str(out), "--workers", "2")
+        assert result.returncode == 0, result.stderr
+        report = json.loads((out / "diagnosis.json").read_text())
+        assert report["which"]["best"] == "restitution"
+        entries[name] = report["which"]["ranking"][0]
+    known, joint = entries["known"], entries["fitted"]
+    assert all(f["release_tilt_offset_deg"] == 0 for f in known["folds"])
+    assert all(-2.5 <= f["release_tilt_offset_deg"] <= 2.5 for f in joint["folds"])
+    width = {k: e["strength_ci95"][1] - e["strength_ci95"][0] for k, e in entries.items()}
+    assert width["fitted"] > width["known"]
+    assert not known["strength_ci95"][0] <= 0.7 <= known["strength_ci95"][1]
+    assert joint["strength_ci95"][0] <= 0.7 <= joint["strength_ci95"][1]
