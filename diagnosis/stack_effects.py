@@ -217,8 +217,8 @@ def how_far_best(which: dict, folds: list[StackFold], runs: StackRuns, scores: S
                     condition=c,
                     observable=q,
                     experiment=scores.data[c][q].value,
-                    before=runs.moments(before_key, q)[0],
-                    after=runs.moments(after_key, q)[0],
+                    before=scores.mean(c, before_key, q),
+                    after=scores.mean(c, after_key, q),
                     z_before=before[q],
                     z_after=after[q],
                 )

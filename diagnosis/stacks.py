@@ -164,9 +164,11 @@ class StackRuns:
         repeats = self.x.condition(key[0]).repeats
         return max(repeats, BASELINE_REPEATS) if key[1] is None else repeats
 
-    def moments(self, key: tuple, quantity: str) -> tuple[float, float, int]:
-        """Mean, sd and number of the repeats of a setting."""
-        values = np.array([r[quantity] for r in self.results[key]], dtype=float)
+    def moments(
+        self, key: tuple, quantity: str, first: int | None = None
+    ) -> tuple[float, float, int]:
+        """Mean, sd and number of the repeats of a setting (its ``first`` ones only)."""
+        values = np.array([r[quantity] for r in self.results[key][:first]], dtype=float)
         sd = float(values.std(ddof=1)) if len(values) > 1 else 0.0
         return float(values.mean()), sd, len(values)
 
@@ -215,18 +217,27 @@ class StackScores:
                 self.pooled[(c, q)] = self.runs.pooled_variance(c, q)
         self._gaps.clear()
 
-    def _variance(self, condition: str, key: tuple, quantity: str) -> tuple[float, float, float]:
-        """The variance the simulated mean is scored with, its degrees of freedom (inf:
-        none known) and the variance it is resampled with. Once frozen, every setting of
-        a condition is scored with the grid's repeats (a scale common to the models,
-        though the baseline is run more often) and resampled with its own."""
-        runs = len(self.runs.results[key])
+    def _first(self, condition: str) -> int | None:
+        """The repeats a setting's mean is taken over: all of them for the detection;
+        once frozen, the grid's (the baseline's first ones), so that every setting of a
+        condition shares the same seeds (common random numbers: the curves over the
+        strengths stay smooth) and one scale."""
+        return self.runs.x.condition(condition).repeats if self.pooled else None
+
+    def mean(self, condition: str, key: tuple, quantity: str) -> float:
+        """The simulated mean a measured quantity is compared with."""
+        return self.runs.moments(key, quantity, self._first(condition))[0]
+
+    def _variance(self, condition: str, key: tuple, quantity: str) -> tuple[float, float]:
+        """The variance of the simulated mean and its degrees of freedom (inf: none
+        known): the setting's own repeats' for the detection, the pooled one once
+        frozen."""
         if (condition, quantity) in self.pooled:
             var, dof = self.pooled[(condition, quantity)]
             repeats = self.runs.x.condition(condition).repeats
-            return var / repeats, (dof if dof > 0 else math.inf), var / runs
-        _, sd, _ = self.runs.moments(key, quantity)
-        return sd**2 / runs, (runs - 1 if runs > 1 else math.inf), sd**2 / runs
+            return var / repeats, (dof if dof > 0 else math.inf)
+        _, sd, runs = self.runs.moments(key, quantity)
+        return sd**2 / runs, (runs - 1 if runs > 1 else math.inf)
 
     def _sim_draws(self, key: tuple, quantity: str) -> np.ndarray:
         if (key, quantity) not in self._sim_noise:
@@ -240,8 +251,8 @@ class StackScores:
         Welch-Satterthwaite degrees of freedom. ``resampled``: t for the measurements,
         then for every resample (1 + B,)."""
         q = self.data[condition][quantity]
-        mean = self.runs.moments(key, quantity)[0]
-        sim_var, sim_dof, resampled_var = self._variance(condition, key, quantity)
+        mean = self.mean(condition, key, quantity)
+        sim_var, sim_dof = self._variance(condition, key, quantity)
         known = math.isfinite(q.sd) and q.n > 1
         obs_var = q.sd**2 / q.n if known else 0.0
         obs_dof = q.n - 1 if known else math.inf
@@ -252,7 +263,7 @@ class StackScores:
                 [[q.value], q.value + self._noise[condition][quantity] * math.sqrt(obs_var)]
             )
             means = np.concatenate(
-                [[mean], mean + self._sim_draws(key, quantity) * math.sqrt(resampled_var)]
+                [[mean], mean + self._sim_draws(key, quantity) * math.sqrt(sim_var)]
             )
         floor = 1e-3 * (1 + abs(mean))
         if scale < floor:
