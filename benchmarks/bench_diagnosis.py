@@ -24,6 +24,9 @@ Parts:
 * ``effects-fitted-tilt``, ``outside-fitted-tilt``: the same cases as ``effects`` and
   ``outside`` (same data), diagnosed with ``release_tilt = "fitted"``: the release tilt
   fitted jointly with every effect instead of known.
+* ``effects-100-drops``, ``outside-100-drops``: the same cases with 100 drops per
+  condition (the first 50 land where the part's case's 50 do; the angles' measurement
+  noise is drawn anew).
 
 Usage: ``python benchmarks/bench_diagnosis.py --part nulls [--cases N] [--minutes M]
 [--workers N]``; ``--report`` prints the tables of every part from the cache only.
@@ -60,11 +63,14 @@ DROP_EFFECTS = (
     "warp",
 )
 PLANNED = {"nulls": 100, "effects": 35, "outside": 17, "seeds": 5, "sweep": 12}
-# The same cases diagnosed with the release tilt fitted jointly with every effect
-# (``release_tilt = "fitted"``) instead of known: paired with their parts' cases.
-FITTED_TILT = "-fitted-tilt"
+# Variants of a part: the same cases (same truth, seeds and first landings) diagnosed
+# with the release tilt fitted jointly with every effect (``release_tilt = "fitted"``)
+# instead of known, or with 100 drops per condition instead of 50 (is a shortfall the
+# method's or the data's?).
+VARIANTS = {"-fitted-tilt": dict(release_tilt="fitted"), "-100-drops": dict(drops=100)}
 for _part in ("effects", "outside"):
-    PLANNED[_part + FITTED_TILT] = PLANNED[_part]
+    for _suffix in VARIANTS:
+        PLANNED[_part + _suffix] = PLANNED[_part]
 # The strength sweep: each effect at SWEEP_POINTS strengths spread over its whole prior
 # (k / SWEEP_POINTS of the range, k = 1..SWEEP_POINTS), to find where it stops being
 # detectable and identifiable.
@@ -83,8 +89,7 @@ METHOD = {
     "outside": 3,
     "seeds": 3,
     "sweep": 3,
-    "effects" + FITTED_TILT: 1,
-    "outside" + FITTED_TILT: 1,
+    **{part + suffix: 1 for part in ("effects", "outside") for suffix in VARIANTS},
 }
 STANDARD_CONDITIONS = ((200, 0), (500, 0), (1000, 30))
 # The release conditions null cases draw from: (height mm, yaw deg).
@@ -94,15 +99,15 @@ CONDITION_POOL = ((150, 0), (200, 0), (300, 15), (500, 0), (700, 30), (1000, 30)
 def case_plan(part: str, index: int) -> dict:
     """The case ``index`` of ``part``, fixed by its index alone (so that a resumed study
     makes the same cases): conditions, drops, noise, truth, the library and seeds."""
-    fitted_tilt = part.endswith(FITTED_TILT)
-    variant, part = part, part.removesuffix(FITTED_TILT)
+    variant, part = part, _base(part)
+    overrides = VARIANTS.get(variant[len(part) :], {})
     rng = np.random.default_rng([hash_part(part), index])
     k = int(rng.integers(1, 4))
     chosen = sorted(rng.choice(len(CONDITION_POOL), size=k, replace=False).tolist())
     plan = dict(
         part=variant,
         index=index,
-        release_tilt="fitted" if fitted_tilt else "known",
+        release_tilt="known",
         conditions=[CONDITION_POOL[c] for c in chosen],
         drops=int(rng.integers(30, 101)),
         position_sd_mm=float(rng.uniform(0.2, 2.0)),
@@ -142,7 +147,14 @@ def case_plan(part: str, index: int) -> dict:
         plan["truth"] = {effect: _upper_half(effect, rng)}
         plan["drops"] = 50
         plan["diagnosis_seeds"] = [index, 100 + index, 200 + index]
-    return plan
+    return {**plan, **overrides}
+
+
+def _base(part: str) -> str:
+    """The part a variant's cases come from."""
+    for suffix in VARIANTS:
+        part = part.removesuffix(suffix)
+    return part
 
 
 def hash_part(part: str) -> int:
@@ -275,7 +287,7 @@ def report(part: str) -> None:
     runs = [c["runs"][0] for c in cases]
     seconds = [r["seconds"] for r in runs]
     print(f"diagnosis time: median {statistics.median(seconds):.0f} s, max {max(seconds):.0f} s")
-    part = part.removesuffix(FITTED_TILT)
+    part = _base(part)
     if part == "nulls":
         quiet = sum(r["verdict"] == "no significant gap" for r in runs)
         print(f"'no significant gap': {_rate(quiet, len(runs))}; target >= 95 %")
