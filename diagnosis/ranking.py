@@ -1,5 +1,5 @@
 """Bookkeeping both diagnoses (drops, stacks) share between their statistics and the
-report: multiplicity-adjusted overall tests, an effect's ranking entry and the ranking."""
+report: multiplicity-adjusted overall tests and an effect's ranking entry."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 from diagnosis.statistics import holm, interval
 from packing.effects import EFFECTS
 
-__all__ = ["adjust_tests", "effect_entry", "held_out_reduction", "rank_effects"]
+__all__ = ["adjust_tests", "effect_entry", "held_out_reduction"]
 
 
 def adjust_tests(tests: list[dict], alpha: float) -> None:
@@ -52,16 +52,3 @@ def held_out_reduction(excess: np.ndarray, base_excess: np.ndarray) -> np.ndarra
     """1 - excess gap with the effect / without, nan where there is no excess to close."""
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(base_excess > 0, 1 - excess / base_excess, np.nan)
-
-
-def rank_effects(results: dict[str, dict], closed: dict[str, np.ndarray]) -> list[str]:
-    """Effects by the gap they close, largest first. Each entry of ``results`` gains the
-    interval of its difference to the best and whether that interval reaches 0 (then the
-    two cannot be told apart)."""
-    ranking = sorted(results, key=lambda e: -closed[e][0])
-    best = ranking[0] if ranking else None
-    for effect in ranking:
-        lo, hi = interval(closed[best][1:] - closed[effect][1:])
-        results[effect]["difference_to_best_ci95"] = [lo, hi]
-        results[effect]["indistinguishable_from_best"] = bool(effect == best or not lo > 0)
-    return ranking
