@@ -1,10 +1,10 @@
 """Which model, and how far it goes, for drop experiments.
 
 The candidates are the baseline refitted (its own fitted parameter, the release tilt
-range) and every applicable effect (its strength fitted jointly with the release tilt
-range, ``StrengthGrids.joint_fit``). Each is fitted on a fold's calibration drops only,
-by the energy distance of the calibration drops to the simulated ones, and scored on the
-fold's held-out drops by
+range) and every applicable effect (its strength fitted at the spec's release tilt, or
+with ``release_tilt = "fitted"`` jointly with the tilt: ``StrengthGrids.joint_fit``).
+Each is fitted on a fold's calibration drops only, by the energy distance of the
+calibration drops to the simulated ones, and scored on the fold's held-out drops by
 their energy scores: a proper per-drop score, so models are compared drop by drop on
 data none of them was fitted to. The effects are ranked by the held-out gap (energy
 distance) they close; the ones not significantly worse than the best (one-sided paired
@@ -278,20 +278,23 @@ class StrengthGrids:
         strength = np.round(np.round(strength / resolution) * resolution, 12)
         offset = np.round(np.round(offset / TILT_RESOLUTION_DEG) * TILT_RESOLUTION_DEG, 9)
         outside = (along < around[0]) | (along > around[-1])
+        # Rounding must not leave the box (a prior starting at 0.1, rounded to 0.0009).
+        strength = np.clip(strength, around[0], around[-1])
+        offset = np.clip(offset, self.offsets[0], self.offsets[-1])
         return JointFit(np.where(outside, along, strength), np.where(outside, 0.0, offset), around)
 
     def plausible(self, effect: str, fitted: JointFit) -> list[tuple[float, float]]:
-        """The grid settings (strength, tilt offset) within the joint fit's 95 %
-        intervals: the grid at the spec's tilt, and the stencil at the shifted tilts."""
-        s_lo, s_hi = interval(fitted.strength[1:])
-        o_lo, o_hi = interval(fitted.offset[1:])
+        """The grid settings (strength, tilt offset) within the fit's 95 % confidence
+        set: the grid at the spec's tilt, and with the tilt fitted the stencil at the
+        shifted tilts, inside the rectangle of the two 97.5 % intervals (which covers
+        both with at least 95 %)."""
+        level = 0.975 if self.joint else 0.95
+        s_lo, s_hi = interval(fitted.strength[1:], level)
+        o_lo, o_hi = interval(fitted.offset[1:], level)
         points = [(v, 0.0) for v in self.grids[effect]]
         if self.joint:
             points += [(v, o) for v in fitted.stencil for o in self.offsets if o != 0]
         return [(v, o) for v, o in points if s_lo <= v <= s_hi and o_lo <= o <= o_hi]
-
-    def plausible_keys(self, condition: str, effect: str, points: list) -> list[tuple]:
-        return [self._shifted(condition, effect, v, o) for v, o in points]
 
     def curve(
         self, datasets: list[Dataset], tilt: float, effect: str, grid: list[float] | None = None
@@ -390,8 +393,8 @@ class EffectRanking:
 
     def _refit_tilt(self) -> float:
         """The baseline refit is a candidate of its own, refitted on each fold's
-        calibration conditions and judged on the held-out ones. The effects are fitted at
-        the release tilt the spec states."""
+        calibration conditions and judged on the held-out ones (the effects are fitted at
+        the spec's tilt, or jointly with an offset from it)."""
         for fold in self.folds:
             fitted = best_tilt(self.sims, fold.calibration)
             fold.refit_tilt = float(fitted[0])
@@ -525,7 +528,8 @@ class EffectRanking:
         if len(tied) < 2:
             return {}
         strengths = {e: results[e]["strength"] for e in tied}
-        releases = separating_releases(self.sims, strengths, best)
+        offsets = {e: results[e]["release_tilt_offset_deg"] for e in tied}
+        releases = separating_releases(self.sims, strengths, best, offsets)
         return {
             e: {**self._separating_observation(best, e), "release": releases[e]}
             for e in tied

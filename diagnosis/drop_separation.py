@@ -36,10 +36,14 @@ Z_ALPHA_PLUS_POWER = 1.645 + 0.842  # one-sided 5 %, power 80 %
 
 
 def separating_releases(
-    sims: DropSimulations, strengths: dict[str, float], best: str
+    sims: DropSimulations,
+    strengths: dict[str, float],
+    best: str,
+    offsets: dict[str, float] | None = None,
 ) -> dict[str, dict]:
     """For every model of ``strengths`` (effect -> fitted strength) other than ``best``:
-    the candidate release that separates it from ``best`` with the fewest drops."""
+    the candidate release that separates it from ``best`` with the fewest drops. Each
+    model is released at the spec's tilt plus its fitted offset (``offsets``, deg)."""
     spec = sims.x.conditions[0].protocol
     candidates = [
         replace(spec, height_mm=h, yaw_deg=y)
@@ -53,7 +57,9 @@ def separating_releases(
             calls.append(
                 dict(
                     scenario=sims.x.scenario,
-                    protocol=protocol,
+                    protocol=replace(
+                        protocol, tilt_deg=protocol.tilt_deg + (offsets or {}).get(effect, 0.0)
+                    ),
                     n=SEPARATION_DROPS,
                     strengths={effect: strength},
                     # Common random numbers across the models of one release.

@@ -179,16 +179,16 @@ class StackEffectRanking:
 
     def _separating_quantity(self, best: str, other: str) -> dict:
         """The held-out quantity whose predictions under the two effects differ most, in
-        units of the simulations' standard error."""
+        units of the standard error of a measured quantity against one of them (the
+        scale of the scores)."""
         top = dict(z=0.0)
         for fold in self.folds:
             for c in fold.held_out:
                 a_key = self.runs.key(c, best, fold.chosen[best])
                 b_key = self.runs.key(c, other, fold.chosen[other])
                 for q in self.scores.data[c]:
-                    a, sa, ra = self.runs.moments(a_key, q)
-                    b, sb, rb = self.runs.moments(b_key, q)
-                    z = abs(a - b) / max(float(np.sqrt(sa**2 / ra + sb**2 / rb)), 1e-12)
+                    a, b = self.scores.mean(c, a_key, q), self.scores.mean(c, b_key, q)
+                    z = abs(float(self.scores.t(c, a_key, q)[0] - self.scores.t(c, b_key, q)[0]))
                     if z > top["z"]:
                         top = dict(
                             z=z, observable=q, condition=c, best_predicts=a, other_predicts=b

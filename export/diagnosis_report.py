@@ -287,7 +287,7 @@ def _how_far_section(how: dict, drop: bool) -> list[str]:
             if drop
             else "p after: the held-out measurements against the simulations of the effect "
             "at the fitted strength and at every grid strength within the fold's 95 % "
-            "interval (the test of section 1)"
+            "interval (the test of section 1, on the grid's repeats)"
         )
         + ", the largest p-value (the strength it was largest at is the most consistent "
         "one); the model is adequate when Fisher's combination of them is not significant.",

@@ -570,8 +570,12 @@ def test_stack_diagnosis_end_to_end(tmp_path):
     result = run_cli("diagnose", str(spec), "--out", str(out), "--workers", "2")
     assert result.returncode == 0, result.stderr
     report = json.loads((out / "diagnosis.json").read_text())
-    assert [e["effect"] for e in report["which"]["ranking"]] != []
-    assert report["verdict"]["kind"] in ("explained", "no significant gap", "unexplained")
+    # Friction at 0.1 flattens the stacks (measured: G about 190 in both conditions).
+    assert report["verdict"]["kind"] == "explained", report["verdict"]
+    assert report["which"]["best"] == "friction"
+    assert report["which"]["indistinguishable"] == ["friction"]
+    lo, hi = report["which"]["ranking"][0]["strength_ci95"]
+    assert lo <= 0.1 <= hi
     assert (out / "diagnosis.md").read_text().startswith("# Sim-to-real diagnosis")
     bad = tmp_path / "bad.csv"
     bad.write_text("condition,quantity,value\na,porosity,0.5\n")
@@ -635,8 +639,8 @@ def test_effects_that_cannot_act_on_the_chip_are_set_aside():
 def test_release_tilt_fitted_jointly_carries_its_uncertainty(tmp_path):
     """Drops made with restitution 0.7 at a release tilt 2.5 deg above the spec's. With
     the tilt known (the spec's, wrongly) the strength's interval is narrow and biased;
-    fitted jointly, each fold's tilt offset stays in the fit's box, the interval widens
-    and holds the truth (both measured: known 0.52-0.66, fitted 0.49-0.71)."""
+    fitted jointly, the interval widens and holds the truth (both measured: known
+    0.52-0.66, fitted 0.49-0.71)."""
     spec = drop_spec(tmp_path, effects=("restitution", "friction"))
     text = spec.read_text()
     made = tmp_path / "made.toml"
@@ -661,8 +665,6 @@ def test_release_tilt_fitted_jointly_carries_its_uncertainty(tmp_path):
         assert report["which"]["best"] == "restitution"
         entries[name] = report["which"]["ranking"][0]
     known, joint = entries["known"], entries["fitted"]
-    assert all(f["release_tilt_offset_deg"] == 0 for f in known["folds"])
-    assert all(-2.5 <= f["release_tilt_offset_deg"] <= 2.5 for f in joint["folds"])
     width = {k: e["strength_ci95"][1] - e["strength_ci95"][0] for k, e in entries.items()}
     assert width["fitted"] > width["known"]
     assert not known["strength_ci95"][0] <= 0.7 <= known["strength_ci95"][1]

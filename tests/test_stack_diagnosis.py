@@ -79,9 +79,9 @@ def measured(truth: dict, rng, n: int = 5, shift: dict | None = None) -> dict:
 
 
 def test_effect_free_measurements_are_passed_at_the_nominal_rate():
-    """300 effect-free datasets: the share called a gap is at most alpha (the tests are
-    Bonferroni within a condition and Holm across conditions, so below 5 %), and the same
-    datasets shifted by 4 standard errors in one quantity are found."""
+    """300 effect-free datasets: the share called a gap is about alpha (Bonferroni within
+    a condition and Holm across conditions bound it by 5 %; measured 16 of 300), and the
+    same datasets shifted by 4 standard errors in one quantity are found."""
     x = experiment()
     rng = np.random.default_rng(5)
     alarms = found = 0
@@ -133,7 +133,6 @@ def test_a_gap_no_effect_makes_is_not_explained():
     data = measured({"friction": 0.85}, np.random.default_rng(2), shift={"contacts_per_chip": 0.5})
     report = diagnose_stacks(x, data, fake_run_many)
     assert report["verdict"]["kind"] in ("partly explained", "unexplained"), report["verdict"]
-    assert report["verdict"]["kind"] != "explained"
     off = [r for r in report["where"]["observables"] if r["beyond_noise"]]
     assert {r["observable"] for r in off} >= {"contacts_per_chip"}
 
