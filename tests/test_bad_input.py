@@ -370,6 +370,21 @@ BAD_SPECS = {
         '[[condition]]\nname = "a"\nscenario = "paper-squares"\n',
         "diagnosis.held_out: stack experiments hold out whole conditions",
     ),
+    "unknown release tilt": (
+        'kind = "drop"\nobservations = "data.csv"\n[diagnosis]\nrelease_tilt = "guessed"\n'
+        + CONDITION,
+        "diagnosis.release_tilt: 'guessed' is not one of 'fitted', 'known'",
+    ),
+    "release tilt of a stack experiment": (
+        'kind = "stack"\nobservations = "data.csv"\n[diagnosis]\nrelease_tilt = "fitted"\n'
+        '[[condition]]\nname = "a"\nscenario = "paper-squares"\n',
+        "diagnosis.release_tilt: only drop experiments have a release tilt, not stack",
+    ),
+    "one repeat per setting": (
+        'kind = "stack"\nobservations = "data.csv"\n'
+        '[[condition]]\nname = "a"\nscenario = "paper-squares"\nrepeats = 1\n',
+        "condition[0].repeats: 1 is outside [2, 1000]",
+    ),
 }
 
 

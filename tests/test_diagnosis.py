@@ -340,6 +340,7 @@ def test_an_effect_that_leaves_a_significant_gap_is_only_partly_explained():
         held_out_reduction_ci95=[0.3, 0.8],
         gap_closed=1.2,
         gap_closed_ci95=[0.5, 2.0],
+        p_better_than_baseline_holm=0.001,
         strength=0.4,
         unit="mm",
     )
@@ -356,7 +357,7 @@ def test_an_effect_that_leaves_a_significant_gap_is_only_partly_explained():
     # Holm across the held-out conditions: 0.03 and 0.04 are not both below 0.05 / 2.
     assert residual(0.03, 0.6)["kind"] == "explained"
     # An effect that closes nothing for sure: unexplained, naming what is still off.
-    weak = dict(top, gap_closed_ci95=[-0.1, 0.5])
+    weak = dict(top, gap_closed_ci95=[-0.1, 0.5], p_better_than_baseline_holm=0.3)
     where = dict(
         observables=[
             dict(condition="c0", observable="r_q90", beyond_noise=True),
@@ -367,7 +368,7 @@ def test_an_effect_that_leaves_a_significant_gap_is_only_partly_explained():
     verdict = effect_verdict(["c0"], dict(which, ranking=[weak]), dict(conditions=[]), 0.05, where)
     assert verdict["kind"] == "unexplained"
     assert verdict["text"].endswith("Still off: r_q90 in c0, ring > 40 mm in c1.")
-    # Drop experiments decide on the paired per-drop test (Holm across the effects), not
+    # The verdict decides on the test against the baseline (Holm across the effects), not
     # on the bootstrap interval, which resamples the simulations too.
     paired = dict(weak, p_better_than_baseline_holm=0.01)
     assert effect_verdict(["c0"], dict(which, ranking=[paired]), {}, 0.05)["kind"] == "explained"
