@@ -34,8 +34,6 @@ Usage: ``python benchmarks/bench_diagnosis.py --part nulls [--cases N] [--minute
 
 from __future__ import annotations
 
-import argparse
-import json
 import statistics
 import sys
 import tempfile
@@ -43,7 +41,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy.stats import binomtest
+from calibration_study import cached, rate, strength_record, study_main
 
 from diagnosis.drops import diagnose_drops
 from diagnosis.spec import DropData, load_experiment
@@ -222,7 +220,6 @@ def _data(rows, experiment, distortion) -> dict[str, DropData]:
 def _summary(result: dict, plan: dict, seconds: float) -> dict:
     which = result["which"] or {}
     ranking = which.get("ranking", [])
-    truth = list(plan["truth"])
     record = dict(
         verdict=result["verdict"]["kind"],
         detection_p=result["where"]["overall"]["p_value"],
@@ -250,39 +247,12 @@ def _summary(result: dict, plan: dict, seconds: float) -> dict:
         for e in ranking
     }
     record["p_after"] = [c["p_after"] for c in (result.get("how_far") or {}).get("conditions", [])]
-    if len(truth) == 1 and ranking:
-        entry = {e["effect"]: e for e in ranking}.get(truth[0])
-        if entry is not None:
-            lo, hi = entry["strength_ci95"]
-            record["strength"] = entry["strength"]
-            record["strength_ci95"] = [lo, hi]
-            record["covered"] = bool(lo <= plan["truth"][truth[0]] <= hi)
-    return record
+    return {**record, **strength_record(ranking, plan["truth"])}
 
 
 # -- tables ---------------------------------------------------------------------------------
-def _current(record: dict) -> bool:
-    """Made by the part's current method (cases cached before methods were stamped are
-    method 1)."""
-    return record.get("method", 1) == METHOD[record["plan"]["part"]]
-
-
-def _cached(part: str) -> list[dict]:
-    folder = RESULTS / part
-    records = [json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))]
-    return [r for r in records if _current(r)]
-
-
-def _rate(hits: int, n: int) -> str:
-    if n == 0:
-        return "no cases yet"
-    lo, hi = binomtest(hits, n).proportion_ci(0.95, method="exact")
-    share = f"{hits} / {n} = {100 * hits / n:.1f} %"
-    return f"{share} (95 % Clopper-Pearson {100 * lo:.1f} to {100 * hi:.1f} %)"
-
-
 def report(part: str) -> None:
-    cases = _cached(part)
+    cases = cached(RESULTS, part, METHOD)
     print(f"\n## {part}: {len(cases)} of {PLANNED[part]} planned cases cached")
     if not cases:
         return
@@ -292,7 +262,7 @@ def report(part: str) -> None:
     part = _base(part)
     if part == "nulls":
         quiet = sum(r["verdict"] == "no significant gap" for r in runs)
-        print(f"'no significant gap': {_rate(quiet, len(runs))}; target >= 95 %")
+        print(f"'no significant gap': {rate(quiet, len(runs))}; target >= 95 %")
     elif part == "effects":
         truth = [next(iter(c["plan"]["truth"])) for c in cases]
         good = [
@@ -301,7 +271,7 @@ def report(part: str) -> None:
         ]
         print(
             "explained, true effect in a tie set of <= 2: "
-            f"{_rate(sum(good), len(good))}; target >= 90 %"
+            f"{rate(sum(good), len(good))}; target >= 90 %"
         )
         # The data's limit apart from the method's: a gap the detection does not see
         # cannot be attributed by any method.
@@ -311,7 +281,7 @@ def report(part: str) -> None:
         first = sum(r["best"] == t for r, t in zip(runs, truth, strict=True))
         print(
             f"of the {len(detected)} with a significant gap: "
-            f"{_rate(sum(detected), len(detected))}; true effect ranked first in {first} "
+            f"{rate(sum(detected), len(detected))}; true effect ranked first in {first} "
             f"of {len(runs)}"
         )
         sizes = [len(r["tie_set"]) for r in runs if r["tie_set"]]
@@ -320,7 +290,7 @@ def report(part: str) -> None:
         covered = [r["covered"] for r in runs if "covered" in r]
         print(
             "95 % strength intervals covering the truth: "
-            f"{_rate(sum(covered), len(covered))}; target 90 to 98 %"
+            f"{rate(sum(covered), len(covered))}; target 90 to 98 %"
         )
         _confusion(truth, [r["best"] or "none" for r in runs])
         print("\n| true effect | strength | verdict | best | tie set |")
@@ -331,7 +301,7 @@ def report(part: str) -> None:
             print(f"| {t} | {strength:.3g} | {r['verdict']} | {r['best']} | {tied} |")
     elif part == "outside":
         never = [r["verdict"] != "explained" for r in runs]
-        print(f"not 'explained': {_rate(sum(never), len(never))}; target >= 80 %")
+        print(f"not 'explained': {rate(sum(never), len(never))}; target >= 80 %")
         for c, r in zip(cases, runs, strict=True):
             what = c["plan"]["distortion"] or c["plan"]["truth"]
             print(f"- {what}: {r['verdict']} (best {r['best']})")
@@ -345,7 +315,7 @@ def report(part: str) -> None:
             print("| " + " | ".join(map(str, [*row, tied])) + " |")
     elif part == "seeds":
         agree = [len({(r["verdict"], r["best"]) for r in c["runs"]}) == 1 for c in cases]
-        print(f"three seeds agree on verdict and best effect: {_rate(sum(agree), len(agree))}")
+        print(f"three seeds agree on verdict and best effect: {rate(sum(agree), len(agree))}")
 
 
 def _confusion(truth: list[str], best: list[str]) -> None:
@@ -359,42 +329,8 @@ def _confusion(truth: list[str], best: list[str]) -> None:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--part", choices=sorted(PLANNED), action="append")
-    parser.add_argument(
-        "--cases", type=int, default=None, help="cases of the part (default: planned)"
-    )
-    parser.add_argument("--minutes", type=float, default=None, help="stop after this long")
-    parser.add_argument("--workers", type=int, default=None)
-    parser.add_argument("--report", action="store_true", help="tables from the cache only")
-    args = parser.parse_args()
-    parts = args.part or sorted(PLANNED)
-    if not args.report:
-        deadline = time.time() + 60 * args.minutes if args.minutes else float("inf")
-        with Executor(workers=args.workers) as executor:
-            for part in parts:
-                folder = RESULTS / part
-                folder.mkdir(parents=True, exist_ok=True)
-                for index in range(args.cases or PLANNED[part]):
-                    path = folder / f"case-{index:03d}.json"
-                    if path.exists() and _current(json.loads(path.read_text())):
-                        continue
-                    if time.time() > deadline:
-                        print("time budget spent; rerun to go on", flush=True)
-                        break
-                    record = run_case(case_plan(part, index), executor)
-                    partial = path.with_suffix(".part")
-                    partial.write_text(json.dumps(record, indent=1))
-                    partial.replace(path)  # a case is cached whole or not at all
-                    first = record["runs"][0]
-                    print(
-                        f"{part} {index:3d}: {first['verdict']:19s} best {first['best']} "
-                        f"({record['wall_s']:.0f} s)",
-                        flush=True,
-                    )
-    for part in parts:
-        report(part)
-    return 0
+    description = __doc__.splitlines()[0]
+    return study_main(description, PLANNED, RESULTS, METHOD, case_plan, run_case, report)
 
 
 if __name__ == "__main__":

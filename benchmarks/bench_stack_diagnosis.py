@@ -24,8 +24,6 @@ Usage: ``python benchmarks/bench_stack_diagnosis.py --part nulls [--cases N] [--
 
 from __future__ import annotations
 
-import argparse
-import json
 import statistics
 import sys
 import tempfile
@@ -33,7 +31,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy.stats import binomtest
+from calibration_study import cached, rate, strength_record, study_main
 
 from diagnosis.spec import QuantityData, load_experiment
 from diagnosis.stacks import diagnose_stacks, synthesize_quantities
@@ -143,32 +141,11 @@ def _summary(result: dict, plan: dict, seconds: float) -> dict:
         ranking=[e["effect"] for e in ranking],
         seconds=round(seconds, 1),
     )
-    truth = list(plan["truth"])
-    if len(truth) == 1 and ranking:
-        entry = {e["effect"]: e for e in ranking}.get(truth[0])
-        if entry is not None:
-            lo, hi = entry["strength_ci95"]
-            record["strength"] = entry["strength"]
-            record["strength_ci95"] = [lo, hi]
-            record["covered"] = bool(lo <= plan["truth"][truth[0]] <= hi)
-    return record
-
-
-def _cached(part: str) -> list[dict]:
-    records = [json.loads(p.read_text()) for p in sorted((RESULTS / part).glob("*.json"))]
-    return [r for r in records if r.get("method") == METHOD[part]]
-
-
-def _rate(hits: int, n: int) -> str:
-    if n == 0:
-        return "no cases yet"
-    lo, hi = binomtest(hits, n).proportion_ci(0.95, method="exact")
-    share = f"{hits} / {n} = {100 * hits / n:.1f} %"
-    return f"{share} (95 % Clopper-Pearson {100 * lo:.1f} to {100 * hi:.1f} %)"
+    return {**record, **strength_record(ranking, plan["truth"])}
 
 
 def report(part: str) -> None:
-    cases = _cached(part)
+    cases = cached(RESULTS, part, METHOD)
     print(f"\n## stacks, {part}: {len(cases)} of {PLANNED[part]} planned cases cached")
     if not cases:
         return
@@ -177,7 +154,7 @@ def report(part: str) -> None:
     print(f"diagnosis time: median {statistics.median(seconds):.0f} s, max {max(seconds):.0f} s")
     if part == "nulls":
         quiet = sum(r["verdict"] == "no significant gap" for r in runs)
-        print(f"'no significant gap': {_rate(quiet, len(runs))}; target >= 95 %")
+        print(f"'no significant gap': {rate(quiet, len(runs))}; target >= 95 %")
         return
     if part == "effects":
         truth = [next(iter(c["plan"]["truth"])) for c in cases]
@@ -185,12 +162,12 @@ def report(part: str) -> None:
             r["verdict"] == "explained" and t in r["tie_set"] and len(r["tie_set"]) <= 2
             for r, t in zip(runs, truth, strict=True)
         ]
-        print(f"explained, true effect in a tie set of <= 2: {_rate(sum(good), len(good))}")
+        print(f"explained, true effect in a tie set of <= 2: {rate(sum(good), len(good))}")
         covered = [r["covered"] for r in runs if "covered" in r]
-        print(f"95 % strength intervals covering the truth: {_rate(sum(covered), len(covered))}")
+        print(f"95 % strength intervals covering the truth: {rate(sum(covered), len(covered))}")
     else:
         never = [r["verdict"] != "explained" for r in runs]
-        print(f"not 'explained': {_rate(sum(never), len(never))}; target >= 80 %")
+        print(f"not 'explained': {rate(sum(never), len(never))}; target >= 80 %")
     print("\n| truth | detection p (Holm) | verdict | best | tie set | strength [95 %] |")
     print("|---|---|---|---|---|---|")
     for c, r in zip(cases, runs, strict=True):
@@ -207,40 +184,8 @@ def report(part: str) -> None:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--part", choices=sorted(PLANNED), action="append")
-    parser.add_argument("--cases", type=int, default=None, help="cases of the part")
-    parser.add_argument("--minutes", type=float, default=None, help="stop after this long")
-    parser.add_argument("--workers", type=int, default=None)
-    parser.add_argument("--report", action="store_true", help="tables from the cache only")
-    args = parser.parse_args()
-    parts = args.part or sorted(PLANNED)
-    if not args.report:
-        deadline = time.time() + 60 * args.minutes if args.minutes else float("inf")
-        with Executor(workers=args.workers) as executor:
-            for part in parts:
-                folder = RESULTS / part
-                folder.mkdir(parents=True, exist_ok=True)
-                for index in range(args.cases or PLANNED[part]):
-                    path = folder / f"case-{index:03d}.json"
-                    if path.exists() and json.loads(path.read_text()).get("method") == METHOD[part]:
-                        continue
-                    if time.time() > deadline:
-                        print("time budget spent; rerun to go on", flush=True)
-                        break
-                    record = run_case(case_plan(part, index), executor)
-                    partial = path.with_suffix(".part")
-                    partial.write_text(json.dumps(record, indent=1))
-                    partial.replace(path)  # a case is cached whole or not at all
-                    first = record["runs"][0]
-                    print(
-                        f"{part} {index:3d}: {first['verdict']:19s} best {first['best']} "
-                        f"({record['wall_s']:.0f} s)",
-                        flush=True,
-                    )
-    for part in parts:
-        report(part)
-    return 0
+    description = __doc__.splitlines()[0]
+    return study_main(description, PLANNED, RESULTS, METHOD, case_plan, run_case, report)
 
 
 if __name__ == "__main__":
