@@ -42,7 +42,7 @@ from pipeline.scenario_files import load_scenario
 RESULTS = Path(__file__).resolve().parent / "results" / "diagnosis-stacks"
 STACK_EFFECTS = tuple(n for n in EFFECTS.names() if "stack" in EFFECTS.get(n).kinds)
 PLANNED = {"nulls": 20, "effects": len(STACK_EFFECTS), "outside": 4}
-METHOD = {"nulls": 1, "effects": 2, "outside": 2}
+METHOD = {"nulls": 1, "effects": 3, "outside": 3}
 CHIPS = (24, 36, 48)
 MEASUREMENTS = 5
 SCENARIO = """name = "small-{chips}"

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import math
+import zlib
 from collections.abc import Callable
 
 import numpy as np
@@ -187,9 +188,11 @@ class StackScores:
 
     Draws: the measurements themselves (None) or one of ``BOOTSTRAP`` parametric
     resamples, which draw each measurement from its standard error and the simulated
-    means from theirs, one draw per condition and quantity shared by every setting (the
-    settings share their seeds, so their errors move together, as the drops' paired
-    resamples do)."""
+    means from theirs. The settings share their seeds, so part of their errors moves
+    together and part does not (a deposition is chaotic: a different effect soon takes
+    the chips elsewhere); the shared share ``rho`` is measured from the grid
+    (``shared_share``), and each setting's draw is sqrt(rho) times one draw common to
+    the condition's settings plus sqrt(1 - rho) times its own."""
 
     def __init__(self, data: dict, runs: StackRuns, seed: int):
         self.data = data
@@ -198,13 +201,48 @@ class StackScores:
         self.frozen = False
         rng = np.random.default_rng([self.seed, 19])
         self._noise = {c: {q: rng.normal(size=BOOTSTRAP) for q in data[c]} for c in data}
-        self._sim_noise = {c: {q: rng.normal(size=BOOTSTRAP) for q in data[c]} for c in data}
+        self._shared_noise = {c: {q: rng.normal(size=BOOTSTRAP) for q in data[c]} for c in data}
+        self._own_noise: dict[tuple, np.ndarray] = {}
+        self.shared: dict[tuple[str, str], float] = {}
         self._gaps: dict[tuple, np.ndarray] = {}
 
     def freeze(self) -> None:
-        """Score every setting on the grid's repeats from now on."""
+        """Score every setting on the grid's repeats from now on, with the share of their
+        errors the settings have in common measured from the grid."""
         self.frozen = True
+        for c, values in self.data.items():
+            for q in values:
+                self.shared[(c, q)] = self.shared_share(c, q)
         self._gaps.clear()
+
+    def shared_share(self, condition: str, quantity: str) -> float:
+        """The share of a setting's repeat-to-repeat variance that every setting of the
+        condition has in common (the seeds' part), 0 to 1: one minus the two-way
+        residual variance (settings x seeds, both means removed) over the baseline's
+        variance. Model: x[k, r] = mean[k] + seed[r] + own[k, r]."""
+        repeats = self.runs.x.condition(condition).repeats
+        rows = [
+            [run[quantity] for run in runs[:repeats]]
+            for key, runs in self.runs.results.items()
+            if key[0] == condition and len(runs) >= repeats
+        ]
+        x = np.array(rows, dtype=float)
+        _, sd, _ = self.runs.moments(self.runs.key(condition, None, 0.0), quantity)
+        if len(x) < 2 or sd == 0:
+            return 1.0
+        residual = x - x.mean(axis=1, keepdims=True) - x.mean(axis=0, keepdims=True) + x.mean()
+        own = float((residual**2).sum()) / ((x.shape[0] - 1) * (x.shape[1] - 1))
+        return float(np.clip(1 - own / sd**2, 0.0, 1.0))
+
+    def _sim_draws(self, condition: str, key: tuple, quantity: str) -> np.ndarray:
+        """Standard normal draws of a setting's simulated-mean error (``BOOTSTRAP``,)."""
+        if (key, quantity) not in self._own_noise:
+            stream = zlib.crc32(repr((key, quantity)).encode())
+            rng = np.random.default_rng([self.seed, 29, stream])
+            self._own_noise[(key, quantity)] = rng.normal(size=BOOTSTRAP)
+        rho = self.shared.get((condition, quantity), 1.0)
+        shared = self._shared_noise[condition][quantity]
+        return math.sqrt(rho) * shared + math.sqrt(1 - rho) * self._own_noise[(key, quantity)]
 
     def _first(self, condition: str) -> int | None:
         """The repeats a setting's mean is taken over: all of them for the detection;
@@ -244,7 +282,7 @@ class StackScores:
                 [[q.value], q.value + self._noise[condition][quantity] * math.sqrt(obs_var)]
             )
             means = np.concatenate(
-                [[mean], mean + self._sim_noise[condition][quantity] * math.sqrt(sim_var)]
+                [[mean], mean + self._sim_draws(condition, key, quantity) * math.sqrt(sim_var)]
             )
         floor = 1e-3 * (1 + abs(mean))
         if scale < floor:
