@@ -41,7 +41,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from calibration_study import cached, rate, strength_record, study_main
+from calibration_study import cached, part_header, rate, strength_record, study_main
 
 from diagnosis.drops import diagnose_drops
 from diagnosis.spec import DropData, load_experiment
@@ -253,12 +253,9 @@ def _summary(result: dict, plan: dict, seconds: float) -> dict:
 # -- tables ---------------------------------------------------------------------------------
 def report(part: str) -> None:
     cases = cached(RESULTS, part, METHOD)
-    print(f"\n## {part}: {len(cases)} of {PLANNED[part]} planned cases cached")
+    runs = part_header(part, cases, PLANNED[part])
     if not cases:
         return
-    runs = [c["runs"][0] for c in cases]
-    seconds = [r["seconds"] for r in runs]
-    print(f"diagnosis time: median {statistics.median(seconds):.0f} s, max {max(seconds):.0f} s")
     part = _base(part)
     if part == "nulls":
         quiet = sum(r["verdict"] == "no significant gap" for r in runs)

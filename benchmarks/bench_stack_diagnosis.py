@@ -24,14 +24,13 @@ Usage: ``python benchmarks/bench_stack_diagnosis.py --part nulls [--cases N] [--
 
 from __future__ import annotations
 
-import statistics
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
-from calibration_study import cached, rate, strength_record, study_main
+from calibration_study import cached, part_header, rate, strength_record, study_main
 
 from diagnosis.spec import QuantityData, load_experiment
 from diagnosis.stacks import diagnose_stacks, synthesize_quantities
@@ -146,12 +145,9 @@ def _summary(result: dict, plan: dict, seconds: float) -> dict:
 
 def report(part: str) -> None:
     cases = cached(RESULTS, part, METHOD)
-    print(f"\n## stacks, {part}: {len(cases)} of {PLANNED[part]} planned cases cached")
+    runs = part_header(f"stacks, {part}", cases, PLANNED[part])
     if not cases:
         return
-    runs = [c["runs"][0] for c in cases]
-    seconds = [r["seconds"] for r in runs]
-    print(f"diagnosis time: median {statistics.median(seconds):.0f} s, max {max(seconds):.0f} s")
     if part == "nulls":
         quiet = sum(r["verdict"] == "no significant gap" for r in runs)
         print(f"'no significant gap': {rate(quiet, len(runs))}; target >= 95 %")

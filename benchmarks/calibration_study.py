@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -34,6 +35,18 @@ def cached(results: Path, part: str, method: dict[str, int]) -> list[dict]:
     """The part's cached cases made by its current method."""
     records = [json.loads(p.read_text()) for p in sorted((results / part).glob("*.json"))]
     return [r for r in records if current(r, method)]
+
+
+def part_header(title: str, cases: list[dict], planned: int) -> list[dict]:
+    """Print a part's heading and diagnosis times; its cases' first runs."""
+    print(f"\n## {title}: {len(cases)} of {planned} planned cases cached")
+    runs = [c["runs"][0] for c in cases]
+    if runs:
+        seconds = [r["seconds"] for r in runs]
+        print(
+            f"diagnosis time: median {statistics.median(seconds):.0f} s, max {max(seconds):.0f} s"
+        )
+    return runs
 
 
 def strength_record(ranking: list[dict], truth: dict[str, float]) -> dict:

@@ -104,8 +104,13 @@ def vertex(grid: list[float], curve: np.ndarray, resolution: float) -> np.ndarra
         # den < 0: the three points bend upwards (a minimum between them).
         v = np.where(den < 0, x1 - 0.5 * num / den, x[k])
     v = np.clip(v, x[np.maximum(k - 1, 0)], x[np.minimum(k + 1, len(x) - 1)])
-    # Rounding must not leave the grid (a prior starting at 0.1, rounded to 0.0009).
-    return np.clip(np.round(np.round(v / resolution) * resolution, 12), x[0], x[-1])
+    return snap(v, resolution, x[0], x[-1])
+
+
+def snap(values: np.ndarray, resolution: float, low: float, high: float) -> np.ndarray:
+    """``values`` rounded to ``resolution`` and kept within [low, high] (rounding must
+    not leave a grid: a prior starting at 0.1, rounded to 0.0009, gives 0.0999)."""
+    return np.clip(np.round(np.round(values / resolution) * resolution, 12), low, high)
 
 
 def quadratic_minimum(
@@ -201,6 +206,7 @@ class StrengthGrids:
         self.conditions = conditions
         self.grids = {effect: self._coarse(effect, grid_points) for effect in effects}
         self.joint = sims.x.settings.release_tilt == "fitted"
+        self._fits: dict[tuple, np.ndarray] = {}
         lowest = min(sims.own_tilt(c, None) for c in conditions)
         below = min(TILT_STEP_DEG, lowest)
         # Release tilts cannot be negative: with a spec tilt of 0 the offsets go upwards.
@@ -225,9 +231,13 @@ class StrengthGrids:
             ]
         return keys
 
-    def _shifted(self, condition: str, effect: str, strength: float, offset: float) -> tuple:
-        tilt = self.sims.own_tilt(condition, None) + offset
-        return self.sims.grid_setting(condition, tilt, effect, strength)
+    def _along(self, datasets: list[Dataset], effect: str) -> np.ndarray:
+        """``fit`` at the spec's tilt, once per datasets and effect (the stencil's keys
+        and the joint fit both start from it)."""
+        memo = (tuple(id(ds) for ds in datasets), effect)
+        if memo not in self._fits:
+            self._fits[memo] = self.fit(datasets, None, effect)
+        return self._fits[memo]
 
     def stencil(self, effect: str, strength: float) -> list[float]:
         """The three grid strengths around ``strength``."""
@@ -241,9 +251,9 @@ class StrengthGrids:
         strengths around the strength fitted at the spec's tilt, at the shifted tilts."""
         if not self.joint:
             return []
-        around = self.stencil(effect, float(self.fit(datasets, None, effect)[0]))
+        around = self.stencil(effect, float(self._along(datasets, effect)[0]))
         return [
-            self._shifted(c, effect, v, o)
+            self.sims.grid_at_offset(c, o, effect, v)
             for v in around
             for o in self.offsets
             if o != 0
@@ -257,7 +267,7 @@ class StrengthGrids:
         A resample whose strength at the spec's tilt falls outside those three keeps it
         (and the spec's tilt): the surface says nothing there."""
         lo, hi = EFFECTS.get(effect).prior
-        along = self.fit(datasets, None, effect)
+        along = self._along(datasets, effect)
         around = self.stencil(effect, float(along[0]))
         if not self.joint:
             return JointFit(along, np.zeros_like(along), around)
@@ -265,7 +275,7 @@ class StrengthGrids:
             [
                 [
                     sum(
-                        self.sims.energy(ds, self._shifted(ds.condition, effect, v, o))
+                        self.sims.energy(ds, self.sims.grid_at_offset(ds.condition, o, effect, v))
                         for ds in datasets
                     )
                     for o in self.offsets
@@ -274,13 +284,9 @@ class StrengthGrids:
             ]
         )
         strength, offset = quadratic_minimum(around, list(self.offsets), surface)
-        resolution = STRENGTH_RESOLUTION * (hi - lo)
-        strength = np.round(np.round(strength / resolution) * resolution, 12)
-        offset = np.round(np.round(offset / TILT_RESOLUTION_DEG) * TILT_RESOLUTION_DEG, 9)
+        strength = snap(strength, STRENGTH_RESOLUTION * (hi - lo), around[0], around[-1])
+        offset = snap(offset, TILT_RESOLUTION_DEG, self.offsets[0], self.offsets[-1])
         outside = (along < around[0]) | (along > around[-1])
-        # Rounding must not leave the box (a prior starting at 0.1, rounded to 0.0009).
-        strength = np.clip(strength, around[0], around[-1])
-        offset = np.clip(offset, self.offsets[0], self.offsets[-1])
         return JointFit(np.where(outside, along, strength), np.where(outside, 0.0, offset), around)
 
     def plausible(self, effect: str, fitted: JointFit) -> list[tuple[float, float]]:
@@ -595,10 +601,7 @@ def how_far_best(
     # The plausible settings at a held-out condition: with whole conditions held out,
     # the shifted tilts were simulated for the calibration conditions only.
     plausible = [
-        [
-            sims.grid_setting(ds.condition, sims.own_tilt(ds.condition, None) + o, best, v)
-            for v, o in fold.plausible[best]
-        ]
+        [sims.grid_at_offset(ds.condition, o, best, v) for v, o in fold.plausible[best]]
         for fold, ds in pairs
     ]
     sims.ensure([sims.second_pool(k) for k in keys] + [k for ks in plausible for k in ks])

@@ -103,6 +103,12 @@ class DropSimulations:
         key = self.setting(condition, tilt, effect, strength)
         return key if key == self.baseline(condition, None) else key[:4] + (GRID_POOL,)
 
+    def grid_at_offset(self, condition: str, offset: float, effect: str | None, strength):
+        """``grid_setting`` at the condition's own release tilt plus ``offset`` (deg)."""
+        return self.grid_setting(
+            condition, self.own_tilt(condition, None) + offset, effect, strength
+        )
+
     @staticmethod
     def second_pool(key: tuple) -> tuple:
         """The same setting simulated again, independently (its noise-floor twin)."""
