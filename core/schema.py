@@ -474,6 +474,20 @@ class MeshSpec:
     min_quality: float = _key(
         0.1, "", "smallest accepted element quality (SICN) of the conformal mesh", _between(0, 1)
     )
+    gap_mm: float = _key(
+        0.03,
+        "mm",
+        "conformal mesh: contact resolution leaves chips that are not in surface contact at "
+        "least this far apart (at most a tenth of the thinnest chip dimension)",
+        _between(1e-4, 10.0),
+    )
+    snap_angle_deg: float = _key(
+        3.0,
+        "deg",
+        "conformal mesh: surface contacts whose faces are within this angle are made exactly "
+        "coplanar and touching",
+        _between(0.0, 15.0),
+    )
     formats: tuple[str, ...] = _key(
         ("msh", "vtu", "inp", "xdmf"), "", "files to write (the CLI's --formats overrides)"
     )

@@ -45,6 +45,7 @@ class MeshedStack:
     native: dict[str, Path] = field(default_factory=dict)  # files the mesher wrote (scratch)
     scratch: tempfile.TemporaryDirectory | None = None
     contact: ContactModel | None = None  # the contact model, when asked for
+    resolution: Any = None  # the conformal mesh's contact resolution (geometry.resolve)
 
 
 class MeshStage(Stage):
@@ -83,6 +84,7 @@ class MeshStage(Stage):
 
         from geometry.arrangement import stack_history
         from geometry.contacts import KINDS, find_contacts
+        from geometry.resolve import UnresolvedError
         from meshing.checks import assert_valid, check_mesh, split_warning
         from meshing.conformal import MeshingError
         from meshing.contact_model import contact_model
@@ -125,17 +127,26 @@ class MeshStage(Stage):
                 report(self.name, done, len(kinds), {"mesh": kind})
             try:
                 mesh = self._mesh(kind, arrangement, inputs.scenario, result)
-            except MeshingError as exc:
+            except (MeshingError, UnresolvedError) as exc:
                 if len(kinds) == 1:
                     raise
                 # Both were asked for: the voxel mesh stands; the failure is reported.
                 log.warning("%s", exc)
                 result.errors[kind] = str(exc)
                 continue
+            meshed, pairs = arrangement, surface_pairs
+            if result.resolution is not None and kind == "conformal":
+                # Surface contacts the resolution could not make coplanar were cleared by
+                # the gap (counted in its report); the others must share faces.
+                meshed = result.resolution.arrangement
+                cleared = {frozenset(p) for p in result.resolution.surface_cleared}
+                pairs = np.array(
+                    [p for p in surface_pairs.tolist() if frozenset(p) not in cleared]
+                ).reshape(-1, 2)
             checks = check_mesh(
                 mesh,
-                arrangement,
-                surface_pairs,
+                meshed,
+                pairs,
                 spec.min_quality if kind == "conformal" else 0.99,
                 chip_tolerance=_volume_tolerance(kind, arrangement, spec.voxel_mm),
                 region_mm=mesh.info.get("region_mm"),
@@ -160,12 +171,34 @@ class MeshStage(Stage):
             return voxel_mesh(
                 arrangement, spec.voxel_mm, spec.pore_space, layer_mm, region, spec.periodic
             )
+        from geometry.resolve import resolve_contacts
+
         msh = None
         if "msh" in spec.formats:
             msh = result.native[kind] = Path(result.scratch.name) / f"stack_{kind}.msh"
-        return conformal_mesh(
-            arrangement, spec.size_mm, spec.pore_space, layer_mm, spec.min_quality, msh_path=msh
+        g = scenario.geometry
+        # The mesh-ready arrangement: the settled one is left as it is (descriptors and
+        # the voxel mesh keep the physics' poses).
+        resolution = resolve_contacts(
+            arrangement,
+            spec.gap_mm,
+            spec.snap_angle_deg,
+            contact_gap_mm=g.contact_gap_mm,
+            contact_extent_mm=g.contact_extent_mm,
         )
+        result.resolution = resolution
+        mesh = conformal_mesh(
+            resolution.arrangement,
+            spec.size_mm,
+            spec.pore_space,
+            layer_mm,
+            spec.min_quality,
+            msh_path=msh,
+        )
+        info = dict(mesh.info)
+        info["resolution"] = resolution.summary()
+        info["mesh_time_s"] = round(info["mesh_time_s"] + resolution.seconds, 3)
+        return type(mesh)(**{**mesh.__dict__, "info": info})
 
     def write(self, result: MeshedStack, folder: Path, inputs: StageInputs) -> StageOutput:
         if result.contact is not None:
@@ -205,6 +238,14 @@ class MeshStage(Stage):
                 f"{m['quality_min']:.3f}, largest chip volume error "
                 f"{100 * m['chip_volume_error_max']:.2f} %; in {m['info']['mesh_time_s']:.1f} s"
             )
+            if (r := m["info"].get("resolution")) is not None:
+                lines.append(
+                    f"  contact resolution: chips moved at most {r['max_translation_mm']:.3f} mm "
+                    f"and {r['max_rotation_deg']:.2f} deg; {r['snapped_chip_chip']} chip and "
+                    f"{r['snapped_conveyor']} conveyor surface contacts made coplanar, "
+                    f"{r['pairs_cleared']} near pairs cleared to {r['gap_mm']:g} mm, "
+                    f"{r['surface_contacts_cleared']} surface contacts cleared instead of snapped"
+                )
             if m.get("chips_in_pieces_count"):
                 lines[-1] += f"; NOT VALID: {m['chips_in_pieces_count']} chips in pieces"
         return lines
