@@ -1,10 +1,21 @@
-"""Meshing speed: the voxel mesh and the conformal mesh of the 270-chip reference stack.
+"""Meshing: the voxel mesh and the conformal mesh of the 270-chip reference stack.
 
-Deposits the reference stack (seed 0), then times ``voxel_mesh`` at 0.5 mm (target
-<= 10 s) and tries ``conformal_mesh`` at 1.5 mm (target <= 60 s, peak memory <= 4 GB),
-printing its failure if it fails; each in a fresh process so peak memory is its own.
+For every seed asked for, deposits the reference stack, then in a fresh process (so that
+peak memory is its own) times
 
-    .venv/bin/python benchmarks/bench_meshing.py
+* ``voxel_mesh`` at 0.5 mm (target <= 10 s);
+* the conformal route: contact resolution (``geometry.resolve``) and ``conformal_mesh``
+  at 1.5 mm, chips only and with the pore space (``--pore-space``), each checked by
+  ``meshing.checks.check_mesh`` (every chip present, volumes within 2 %, SICN >= 0.1,
+  every snapped surface contact sharing faces). Targets: resolution plus mesh <= 60 s and
+  <= 4 GB.
+
+It prints one line per seed and kind, then the count of valid meshes and the median and
+worst times beside the targets (ratios in the same run). Contact classes before and after
+the resolution are compared pair by pair (the geometry stage's classification).
+
+    .venv/bin/python benchmarks/bench_meshing.py                       # seed 0
+    .venv/bin/python benchmarks/bench_meshing.py --seeds 0 1 2 3 4 5 6 7 8 9 --no-voxel
 """
 
 from __future__ import annotations
@@ -13,6 +24,7 @@ import argparse
 import json
 import pickle
 import resource
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -21,58 +33,136 @@ from pathlib import Path
 
 CHILD = """
 import json, pickle, resource, sys, time
-from meshing import conformal_mesh, voxel_mesh, MeshingError
+import numpy as np
 arrangement = pickle.load(open(sys.argv[1], "rb"))
-kind = sys.argv[2]
+kind, pore = sys.argv[2], sys.argv[3]
+result = {"kind": kind, "pore_space": pore}
 start = time.perf_counter()
-result = {"kind": kind}
-try:
-    if kind == "voxel":
-        mesh = voxel_mesh(arrangement, 0.5)
-    else:
-        mesh = conformal_mesh(arrangement, 1.5)
-    result.update(elements=mesh.n_elements, nodes=len(mesh.points),
-                  quality_min=float(mesh.quality.min()))
-except MeshingError as exc:
-    result["error"] = str(exc)
-result["seconds"] = time.perf_counter() - start
+if kind == "voxel":
+    from meshing import voxel_mesh
+    mesh = voxel_mesh(arrangement, 0.5)
+    result.update(elements=mesh.n_elements, seconds=time.perf_counter() - start)
+else:
+    from geometry.contacts import KINDS, find_contacts
+    from geometry.resolve import UnresolvedError, resolve_contacts
+    from meshing import MeshingError, check_mesh, conformal_mesh
+    before = find_contacts(arrangement)
+    try:
+        resolution = resolve_contacts(arrangement, contacts=before)
+    except UnresolvedError as exc:
+        result.update(error=str(exc), seconds=time.perf_counter() - start)
+        resolution = None
+    if resolution is not None:
+        result["resolution"] = resolution.summary()
+        result["resolve_s"] = time.perf_counter() - start
+        after = find_contacts(resolution.arrangement)
+        def classes(table):
+            rows = zip(table.chip_a, table.chip_b, table.kind)
+            return {(int(a), int(b)): int(k) for a, b, k in rows}
+        c0, c1 = classes(before), classes(after)
+        changed = {}
+        for pair in set(c0) | set(c1):
+            was = KINDS[c0[pair]] if pair in c0 else "none"
+            now = KINDS[c1[pair]] if pair in c1 else "none"
+            if was != now:
+                changed[f"{was}->{now}"] = changed.get(f"{was}->{now}", 0) + 1
+        result["class_changes"] = changed
+        result["pairs_before"] = len(c0)
+        try:
+            mesh = conformal_mesh(resolution.arrangement, 1.5, pore_space=pore)
+            cleared = {frozenset(p) for p in resolution.surface_cleared}
+            surface = [
+                (int(a), int(b))
+                for a, b, k in zip(before.chip_a, before.chip_b, before.kind)
+                if b >= 0 and KINDS[k] == "surface" and frozenset((int(a), int(b))) not in cleared
+            ]
+            report = check_mesh(mesh, resolution.arrangement, np.array(surface).reshape(-1, 2), 0.1)
+            result.update(
+                elements=mesh.n_elements, nodes=len(mesh.points),
+                quality_min=report["quality_min"], volume_error_max=report["chip_volume_error_max"],
+                valid=report["valid"], shared_missing=report["interfaces"].get("missing"),
+                surface_pairs=len(surface),
+            )
+        except MeshingError as exc:
+            result["error"] = str(exc)
+        result["seconds"] = time.perf_counter() - start
 result["peak_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 print(json.dumps(result))
 """
 
 
+def run_child(path: Path, kind: str, pore: str) -> dict:
+    start = time.perf_counter()
+    out = subprocess.run(
+        [sys.executable, "-c", CHILD, str(path), kind, pore], capture_output=True, text=True
+    )
+    if out.returncode != 0:
+        return {
+            "kind": kind,
+            "pore_space": pore,
+            "error": "crashed: " + out.stderr[-500:],
+            "seconds": time.perf_counter() - start,
+            "peak_mb": float("nan"),
+        }
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def describe(seed: int, r: dict) -> str:
+    head = f"seed {seed} {r['kind']:9s} pore={r['pore_space']:4s}"
+    if "error" in r:
+        return f"{head} FAILED after {r['seconds']:.1f} s, peak {r['peak_mb']:.0f} MB: {r['error']}"
+    if r["kind"] == "voxel":
+        return (
+            f"{head} {r['elements']:,} elements, {r['seconds']:.1f} s, peak {r['peak_mb']:.0f} MB"
+        )
+    res = r["resolution"]
+    return (
+        f"{head} {'valid' if r['valid'] else 'NOT VALID'}: {r['elements']:,} tetrahedra, SICN min "
+        f"{r['quality_min']:.3f}, chip volume error max {100 * r['volume_error_max']:.2f} %, "
+        f"{r['surface_pairs']} surface contacts share faces (missing: {r['shared_missing'] or 0}); "
+        f"resolution {r['resolve_s']:.1f} s (moves <= {res['max_translation_mm']:.3f} mm, "
+        f"{res['max_rotation_deg']:.2f} deg; snapped {res['snapped_chip_chip']} + "
+        f"{res['snapped_conveyor']} conveyor; {res['surface_contacts_cleared']} surface "
+        f"contacts cleared; class changes {r['class_changes']} of {r['pairs_before']} pairs) "
+        f"+ mesh = {r['seconds']:.1f} s, peak {r['peak_mb']:.0f} MB"
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0])
+    parser.add_argument("--pore-space", nargs="+", default=["none", "box"])
+    parser.add_argument("--no-voxel", action="store_true")
     args = parser.parse_args()
     from geometry import arrangements_from_stack
     from packing import deposit, scenario_from_dict
 
-    stack = deposit(scenario_from_dict({"seed": args.seed}))
-    arrangement = arrangements_from_stack(stack)[-1]
+    conformal: list[dict] = []
     with tempfile.TemporaryDirectory() as folder:
-        path = Path(folder) / "stack.pkl"
-        path.write_bytes(pickle.dumps(arrangement))
-        for kind in ("voxel", "conformal"):
-            start = time.perf_counter()
-            out = subprocess.run(
-                [sys.executable, "-c", CHILD, str(path), kind], capture_output=True, text=True
-            )
-            if out.returncode != 0:
-                print(f"{kind}: crashed after {time.perf_counter() - start:.1f} s")
-                print(out.stderr[-2000:])
-                continue
-            r = json.loads(out.stdout.strip().splitlines()[-1])
-            if "error" in r:
-                print(
-                    f"{kind}: FAILED after {r['seconds']:.1f} s, peak {r['peak_mb']:.0f} MB: "
-                    f"{r['error']}"
-                )
-            else:
-                print(
-                    f"{kind}: {r['elements']:,} elements, {r['nodes']:,} nodes, quality min "
-                    f"{r['quality_min']:.3f}, {r['seconds']:.1f} s, peak {r['peak_mb']:.0f} MB"
-                )
+        for seed in args.seeds:
+            stack = deposit(scenario_from_dict({"seed": seed}))
+            path = Path(folder) / f"stack{seed}.pkl"
+            path.write_bytes(pickle.dumps(arrangements_from_stack(stack)[-1]))
+            kinds = [] if args.no_voxel else [("voxel", "none")]
+            kinds += [("conformal", pore) for pore in args.pore_space]
+            for kind, pore in kinds:
+                r = run_child(path, kind, pore)
+                print(describe(seed, r), flush=True)
+                if kind == "conformal":
+                    conformal.append(r)
+    for pore in args.pore_space:
+        runs = [r for r in conformal if r["pore_space"] == pore]
+        if not runs:
+            continue
+        valid = [r for r in runs if r.get("valid")]
+        seconds = [r["seconds"] for r in runs]
+        peak = max(r["peak_mb"] for r in runs)
+        print(
+            f"conformal, pore_space={pore}: {len(valid)} of {len(runs)} valid; resolution + mesh "
+            f"median {statistics.median(seconds):.1f} s, worst {max(seconds):.1f} s "
+            f"(target 60 s: worst/target {max(seconds) / 60:.2f}); peak {peak:.0f} MB "
+            f"(target 4096 MB: {peak / 4096:.2f})"
+        )
     print(
         f"(this process: peak {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB)"
     )

@@ -50,6 +50,7 @@ _SURFACE = KINDS.index("surface")
 _PLANE_TOL_MM = 1e-9  # two snapped faces closer than this share their plane
 _MAX_MOVE_MM = 1.0  # the largest motion asked of a chip (a tenth of its thickness is typical)
 _MAX_TURN_RAD = np.radians(6.0)
+_TURN_WEIGHT = 10.0  # turns cost this many times their inertia: a turn sweeps corners far
 _REACH_MM = 0.3  # pairs further apart than their lower bound by this are left out of a step
 _CORNER_REACH_MM = 0.2  # corners this close to a pair's extreme are constrained too
 _SLACK_MM = 2e-4  # margin kept above the gap so rounding cannot bring a pair under it
@@ -269,7 +270,16 @@ def resolve_contacts(
         chip = int(chip)
         body = pieces[arrangement.shape_index[chip]]
         inertia = arrangement.shapes[arrangement.shape_index[chip]].inertia_mm2
+        # Chips not placed yet stay where they are for now: the chip must not sweep
+        # further into them than it already is (they would have to move as far).
+        later = []
+        for k in sorted(near[chip]):
+            if placed[k] is None:
+                world = _place(pieces[arrangement.shape_index[k]], rotations[k], positions[k])
+                now = _separation(_place(body, rotations[chip], positions[chip]), world)
+                later.append((world, Rule(min(now, rule(chip, k).lower) - _SLACK_MM)))
         attempt = _resolve_chip(
+            later,
             chip,
             body,
             inertia,
@@ -355,8 +365,64 @@ def resolve_contacts(
                     rule,
                 )
             clusters += 1
-    # A chip left short can be cleared later, with a cluster above it: judge the end.
+    # A chip left short (or pushed short by a chip placed after it) is moved again with
+    # the chips it is too close to, everything else around it held, until none is left.
     unresolved = _verify(order, near, placed, touching, rule)
+    for _ in range(6):
+        if not unresolved:
+            break
+        for chip, _ in unresolved:
+            group = [chip] + [
+                k
+                for k in sorted(near[chip])
+                if k not in touching[chip]
+                and _separation(placed[chip], placed[k]) < rule(chip, k).lower
+            ]
+            if (
+                _solve_cluster(
+                    group,
+                    pieces,
+                    arrangement,
+                    rotations,
+                    positions,
+                    placed,
+                    near,
+                    touching,
+                    planes,
+                    rule,
+                )
+                < 0
+            ):
+                # Moved too far to come back in small steps: start the free chips of the
+                # group from where the physics left them (a few hundredths of a
+                # millimetre into their neighbours) and try once more.
+                saved = {k: (rotations[k].copy(), positions[k].copy(), placed[k]) for k in group}
+                for k in group:
+                    if not touching[k]:
+                        rotations[k] = arrangement.rotations[k]
+                        positions[k] = arrangement.positions[k]
+                        placed[k] = _place(
+                            pieces[arrangement.shape_index[k]], rotations[k], positions[k]
+                        )
+                if (
+                    _solve_cluster(
+                        group,
+                        pieces,
+                        arrangement,
+                        rotations,
+                        positions,
+                        placed,
+                        near,
+                        touching,
+                        planes,
+                        rule,
+                    )
+                    < 0
+                ):
+                    for k, (r, p, w) in saved.items():
+                        rotations[k], positions[k], placed[k] = r, p, w
+            clusters += 1
+        unresolved = _verify(order, near, placed, touching, rule)
     if unresolved:
         names = ", ".join(f"{c} ({-w:.3f} mm short)" for c, w in unresolved[:12])
         raise UnresolvedError(
@@ -498,6 +564,7 @@ def _surface_partners(
 
 
 def _resolve_chip(
+    later,
     chip,
     body,
     inertia,
@@ -518,12 +585,13 @@ def _resolve_chip(
     Returns rotation, position, the snapped plane (or None), the partners lying exactly
     in it, how many pairs broke their rule, and the worst margin left (mm)."""
     best = None
-    for first in [*range(len(surface)), None]:
+    attempts = [(first, keep) for keep in (True, False) for first in [*range(len(surface)), None]]
+    for first, keep_later in attempts:
         r, p, plane, partners = rotation, position, None, []
         if first is not None:
             partner = surface[first][0]
             target = _partner_plane(partner, placed, arrangement, contacts, chip)
-            snap = _snap(body, r, p, target, cos_snap)
+            snap = None if target is None else _snap(body, r, p, target, cos_snap)
             if snap is None:
                 continue
             r, p = snap
@@ -539,7 +607,8 @@ def _resolve_chip(
             r,
             p,
             _motion_basis([] if plane is None else [plane[0]]),
-            [(placed[k], rule(chip, k)) for k in neighbours if k not in partners],
+            [(placed[k], rule(chip, k)) for k in neighbours if k not in partners]
+            + (later if keep_later else []),
             None if GROUND in partners else rule(chip, GROUND),
         )
         ((r_clear, p_clear),), closes, worst = _clear_group([mover], [])
@@ -578,11 +647,17 @@ def _partner_plane(partner, placed, arrangement, contacts, chip):
         return np.array([0.0, 0.0, 1.0]), 0.0, centre
     world = placed[partner]
     best = None
+    chip_centre = arrangement.positions[chip]
     for normals, offsets in zip(world.normals, world.offsets, strict=True):
         distance = np.abs(normals @ centre - offsets)
+        # Only a face the chip lies outside of: a tilted partner that came to rest first
+        # can lie over the chip, and its top face is then not the one the chip touches.
+        distance[normals @ (chip_centre - centre) <= 0] = np.inf
         k = int(np.argmin(distance))
         if best is None or distance[k] < best[0]:
             best = (float(distance[k]), normals[k], float(offsets[k]))
+    if best is None or not np.isfinite(best[0]):
+        return None
     return best[1], best[2], centre
 
 
@@ -618,6 +693,8 @@ def _snap(body, rotation, position, plane, cos_snap):
     face_normal = rotation @ piece.normals[k]
     rotation = _exact_normal(rotation, piece.normals[k], -normal, face_normal)
     along = -offset - (piece.offsets[k] - normal @ position)
+    if abs(along) > _MAX_MOVE_MM / 2:
+        return None  # not the face it rests on: snapping would carry it through a chip
     position = position - along * normal
     return rotation, position
 
@@ -704,7 +781,7 @@ def _clear_group(movers: list[_Mover], pairs: list[tuple[int, int, Rule]]):
     for m, lo, hi in zip(movers, cuts[:-1], cuts[1:], strict=True):
         weight = np.zeros((6, 6))
         weight[:3, :3] = np.eye(3)
-        weight[3:, 3:] = m.rotation @ np.diag(m.inertia) @ m.rotation.T
+        weight[3:, 3:] = _TURN_WEIGHT * m.rotation @ np.diag(m.inertia) @ m.rotation.T
         metric[lo:hi, lo:hi] = m.basis.T @ weight @ m.basis
         translational = np.abs(m.basis[:3]).sum(axis=0) > np.abs(m.basis[3:]).sum(axis=0)
         step_limit.append(np.where(translational, 0.1, 0.01))  # mm, rad per step
@@ -780,6 +857,14 @@ def _clear_group(movers: list[_Mover], pairs: list[tuple[int, int, Rule]]):
             best_q, best_worst, best_score = q, worst, score
         if np.abs(delta).max() < 1e-8:
             break
+    if best_worst >= 0:
+        # The path to a feasible pose can overshoot: the shortest stretch of the way back
+        # that still clears everything is kept.
+        for fraction in (0.0, 0.25, 0.5, 0.75):
+            trial = margins(place(fraction * best_q))
+            if trial.min(initial=np.inf) >= 0:
+                best_q, best_worst = fraction * best_q, float(trial.min(initial=np.inf))
+                break
     poses = [m.pose(best_q[lo:hi]) for m, (lo, hi) in zip(movers, spans, strict=True)]
     return poses, closes, best_worst
 
@@ -988,18 +1073,20 @@ def _qp_step(metric, q, gradient, values, sense, targets, step_limit, limits):
             "eq" not in kept or np.abs(a_eq @ result.x - b_eq).max() < 1e-7
         ):
             return result.x
-    from scipy.optimize import linprog
-
+    # The lower bounds cannot all be met within the trust region: the smallest step that
+    # comes closest, one shared slack s >= 0 heavily penalised (a linear programme
+    # would jump to a corner of the trust region and wander).
     a_in, b_in = rows["lower"]
-    m, d = a_in.shape
-    if not m:
+    if not len(a_in):
         return None
-    # maximise t subject to a_in @ delta - b_in >= t (variables delta, t)
-    lp = linprog(
-        np.r_[np.zeros(d), -1.0],
-        A_ub=np.hstack([-a_in, np.ones((m, 1))]),
-        b_ub=-b_in,
-        bounds=[*bounds, (None, None)],
-        method="highs",
+    dim = len(q)
+    result = minimize(
+        lambda x: float((q + x[:dim]) @ metric @ (q + x[:dim])) + 1e4 * x[dim] ** 2,
+        np.zeros(dim + 1),
+        jac=lambda x: np.r_[2 * metric @ (q + x[:dim]), 2e4 * x[dim]],
+        constraints=[_linear("ineq", np.hstack([a_in, np.ones((len(a_in), 1))]), b_in)],
+        bounds=[*bounds, (0, None)],
+        method="SLSQP",
+        options={"maxiter": 100, "ftol": 1e-14},
     )
-    return lp.x[:d] if lp.success else None
+    return result.x[:dim] if np.all(np.isfinite(result.x)) else None

@@ -341,9 +341,13 @@ def test_inp_orientation_follows_a_tilted_unidirectional_chip(tmp_path):
 
 
 def test_both_meshes_keep_the_voxel_one_when_the_conformal_fails(tmp_path, small_scenario):
+    """A quality no tetrahedral mesh of a physics stack reaches: the conformal mesh fails,
+    the voxel mesh stands, and the failure is a warning in the run."""
     from conftest import run_cli
 
-    small_scenario.write_text(small_scenario.read_text() + '[mesh]\nkind = "both"\n')
+    small_scenario.write_text(
+        small_scenario.read_text() + '[mesh]\nkind = "both"\nmin_quality = 0.9\n'
+    )
     out = tmp_path / "run"
     result = run_cli("run", str(small_scenario), "--to", "mesh", "--out", str(out), "--quiet")
     assert result.returncode == 0, result.stderr
@@ -504,11 +508,37 @@ def test_unknown_format_lists_the_valid_ones(tmp_path, small_scenario):
 
 
 def test_a_stack_that_cannot_be_meshed_conformally_is_one_clear_line(tmp_path, small_scenario):
-    """The small physics stack (seed 3) leaves chips a few hundredths of a millimetre apart;
-    the conformal mesher fails there and says which chips, and what to use instead."""
-    lines, out = _refused_mesh_run(tmp_path, small_scenario, '[mesh]\nkind = "conformal"\n')
+    """A conformal mesh that cannot reach the quality asked for says which chips hold the
+    poor elements, and what to use instead, in one line."""
+    extra = '[mesh]\nkind = "conformal"\nmin_quality = 0.9\n'
+    lines, out = _refused_mesh_run(tmp_path, small_scenario, extra)
     assert re.search(r"chips \d+", lines[0]) and "mesh.kind = 'voxel'" in lines[0]
     assert not out.exists() and not list(tmp_path.glob(".run*"))
+
+
+def test_a_physics_stack_meshes_conformally_after_contact_resolution(tmp_path, small_scenario):
+    """The small physics stack (24 chips, seed 3) leaves chips a few hundredths of a
+    millimetre into and apart from each other; resolved, it meshes conformally: every
+    check valid, the snapped surface contacts sharing faces, the resolution reported."""
+    import json
+
+    from conftest import run_cli
+
+    small_scenario.write_text(small_scenario.read_text() + '[mesh]\nkind = "conformal"\n')
+    out = tmp_path / "run"
+    result = run_cli("run", str(small_scenario), "--to", "mesh", "--out", str(out), "--quiet")
+    assert result.returncode == 0, result.stderr
+    entry = json.loads((out / "manifest.json").read_text())["mesh"]["conformal"]
+    assert entry["valid"] and entry["quality_min"] >= 0.1
+    assert entry["chip_volume_error_max"] <= 0.02
+    resolution = entry["info"]["resolution"]
+    assert resolution["max_translation_mm"] < 1.0
+    checks = json.loads((out / "mesh/stack_conformal_checks.json").read_text())
+    shared = checks["interfaces"]
+    assert shared["surface_contacts"] == resolution["snapped_chip_chip"] > 0
+    assert shared["sharing_faces"] == shared["surface_contacts"] and not shared["missing"]
+    back = meshio.read(out / "mesh/stack_conformal.vtu")
+    assert len(back.points) == entry["nodes"]
 
 
 def test_a_single_chip_meshes_conformally():

@@ -1,0 +1,121 @@
+"""Contact resolution (geometry/resolve.py): analytic arrangements with known answers."""
+
+from __future__ import annotations
+
+import hashlib
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from core.errors import InputError
+from core.schema import ChipSpec
+from geometry.arrangement import Arrangement
+from geometry.resolve import UnresolvedError, resolve_contacts, separation_mm
+from meshing import check_mesh, conformal_mesh
+from packing.shapes import box_shape
+
+SQUARE = box_shape(ChipSpec())  # 20 x 20 x 2 mm
+
+
+def arrange(poses) -> Arrangement:
+    """poses: (centre, scipy Rotation or yaw in degrees)."""
+    rotations = [
+        r if isinstance(r, Rotation) else Rotation.from_euler("z", r, degrees=True)
+        for _, r in poses
+    ]
+    n = len(poses)
+    return Arrangement(
+        (SQUARE,),
+        np.zeros(n, int),
+        np.array([p for p, _ in poses], dtype=float),
+        np.array([r.as_quat() for r in rotations]),
+        np.ones(n, int),
+        80.0,
+    )
+
+
+def normal_of(a: Arrangement, chip: int, axis: int = 2) -> np.ndarray:
+    return a.rotations[chip][:, axis]
+
+
+def test_a_chip_tilted_on_another_is_laid_exactly_on_it():
+    """The lower chip sinks 0.01 mm into the conveyor; the upper lies on it tilted by 0.3
+    deg and 0.01 mm into it (a surface contact). Resolved: the lower lies exactly on the
+    conveyor, the upper's bottom face exactly in the lower's top face, both snapped."""
+    tilt = Rotation.from_euler("xz", (0.3, 10.0), degrees=True)
+    a = arrange([((0.0, 0.0, 0.99), 0.0), ((3.0, 2.0, 2.99), tilt)])
+    r = resolve_contacts(a)
+    b = r.arrangement
+    assert r.snapped == {"chip": 1, "conveyor": 1}
+    assert b.bounds[0, 0, 2] == pytest.approx(0.0, abs=1e-12)
+    assert np.abs(normal_of(b, 0) - normal_of(b, 1)).max() < 1e-12  # both flat, parallel
+    assert b.bounds[1, 0, 2] == pytest.approx(2.0, abs=1e-12)  # on the lower's top face
+    assert separation_mm(b, 0, 1) == pytest.approx(0.0, abs=1e-9)
+    # The smallest motions: the tilt taken out about the centre of mass, and no more.
+    assert r.rotation_deg[1] == pytest.approx(0.3, abs=1e-6)
+    assert r.max_translation_mm < 0.05
+    # Conformal: the two chips share their interface.
+    mesh = conformal_mesh(b, size_mm=2.0)
+    report = check_mesh(mesh, b, np.array([[0, 1]]), min_quality=0.1)
+    assert report["valid"] and report["interfaces"]["sharing_faces"] == 1
+
+
+def test_chips_that_nearly_touch_edge_on_are_cleared_by_the_gap():
+    """Two flat chips side by side, 0.02 mm into each other at their edges (a line
+    contact, not a surface): moved apart to the gap, by no more than it takes."""
+    a = arrange([((-9.99, 0.0, 1.0), 0.0), ((9.99, 0.0, 1.0), 0.0)])
+    assert separation_mm(a, 0, 1) == pytest.approx(-0.02)
+    r = resolve_contacts(a, gap_mm=0.03)
+    gap = separation_mm(r.arrangement, 0, 1)
+    assert 0.03 <= gap <= 0.045  # cleared, still within the contact gap: still a contact
+    assert r.cleared >= 1 and r.max_translation_mm < 0.06
+    assert r.snapped == {"chip": 0, "conveyor": 2}
+
+
+def test_an_overlap_no_small_motion_clears_is_named():
+    """One chip 1.5 mm into another (the physics never leaves that): named, not dropped."""
+    a = arrange([((0.0, 0.0, 1.0), 0.0), ((0.0, 0.0, 1.5), 30.0)])
+    with pytest.raises(UnresolvedError, match=r"2 chips .* chips 0 \(1.530 mm short\), 1 "):
+        resolve_contacts(a)
+
+
+def test_the_settled_arrangement_is_left_as_it_was():
+    a = arrange([((0.0, 0.0, 0.99), 0.0), ((3.0, 2.0, 2.98), 5.0)])
+
+    def digest() -> str:
+        return hashlib.sha256(a.positions.tobytes() + a.quaternions.tobytes()).hexdigest()
+
+    before = digest()
+    r = resolve_contacts(a)
+    assert digest() == before
+    assert r.arrangement is not a and not np.allclose(r.arrangement.positions, a.positions)
+
+
+@pytest.mark.parametrize(
+    ("gap", "angle", "message"),
+    [
+        (-0.01, 3.0, "mesh.gap_mm: must be positive"),
+        (0.5, 3.0, "mesh.gap_mm: 0.5 mm is above a tenth of the thinnest chip dimension"),
+        (0.03, -1.0, "mesh.snap_angle_deg: must be between 0 and 15"),
+    ],
+)
+def test_settings_that_cannot_work_are_refused(gap, angle, message):
+    a = arrange([((0.0, 0.0, 1.0), 0.0)])
+    with pytest.raises(InputError, match=message):
+        resolve_contacts(a, gap_mm=gap, snap_angle_deg=angle)
+
+
+def test_a_gap_above_a_tenth_of_the_chip_is_one_line_from_the_cli(tmp_path, small_scenario):
+    from conftest import run_cli
+
+    small_scenario.write_text(
+        small_scenario.read_text() + '[mesh]\nkind = "conformal"\ngap_mm = 0.5\n'
+    )
+    out = tmp_path / "run"
+    result = run_cli("run", str(small_scenario), "--to", "mesh", "--out", str(out), "--quiet")
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in result.stderr
+    assert "mesh.gap_mm: 0.5 mm is above a tenth of the thinnest chip dimension" in lines[0]
+    assert not out.exists()
