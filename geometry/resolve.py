@@ -50,6 +50,7 @@ _SURFACE = KINDS.index("surface")
 _PLANE_TOL_MM = 1e-9  # two snapped faces closer than this share their plane
 _MAX_MOVE_MM = 1.0  # the largest motion asked of a chip (a tenth of its thickness is typical)
 _MAX_TURN_RAD = np.radians(6.0)
+_LATER_GIVE_MM = 0.1  # how much further a chip may go into one not placed yet
 _TURN_WEIGHT = 10.0  # turns cost this many times their inertia: a turn sweeps corners far
 _REACH_MM = 0.3  # pairs further apart than their lower bound by this are left out of a step
 _CORNER_REACH_MM = 0.2  # corners this close to a pair's extreme are constrained too
@@ -270,14 +271,14 @@ def resolve_contacts(
         chip = int(chip)
         body = pieces[arrangement.shape_index[chip]]
         inertia = arrangement.shapes[arrangement.shape_index[chip]].inertia_mm2
-        # Chips not placed yet stay where they are for now: the chip must not sweep
+        # Chips not placed yet stay where they are for now: the chip may not sweep much
         # further into them than it already is (they would have to move as far).
         later = []
         for k in sorted(near[chip]):
             if placed[k] is None:
                 world = _place(pieces[arrangement.shape_index[k]], rotations[k], positions[k])
                 now = _separation(_place(body, rotations[chip], positions[chip]), world)
-                later.append((world, Rule(min(now, rule(chip, k).lower) - _SLACK_MM)))
+                later.append((world, Rule(min(now, rule(chip, k).lower) - _LATER_GIVE_MM)))
         attempt = _resolve_chip(
             later,
             chip,
