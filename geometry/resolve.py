@@ -50,11 +50,14 @@ _SURFACE = KINDS.index("surface")
 _PLANE_TOL_MM = 1e-9  # two snapped faces closer than this share their plane
 _MAX_MOVE_MM = 1.0  # the largest motion asked of a chip (a tenth of its thickness is typical)
 _MAX_TURN_RAD = np.radians(6.0)
-_LATER_GIVE_MM = 0.1  # how much further a chip may go into one not placed yet
 _TURN_WEIGHT = 10.0  # turns cost this many times their inertia: a turn sweeps corners far
 _REACH_MM = 0.3  # pairs further apart than their lower bound by this are left out of a step
 _CORNER_REACH_MM = 0.2  # corners this close to a pair's extreme are constrained too
 _SLACK_MM = 2e-4  # margin kept above the gap so rounding cannot bring a pair under it
+# How much further a chip may go into a chip not placed yet. Measured on the reference
+# stack, seeds 0 to 5: with 0.1 mm seed 4 resolves and seed 0 does not; with none, the
+# other way round.
+_LATER_GIVE_MM = _SLACK_MM
 
 
 class UnresolvedError(ChipstackError):
