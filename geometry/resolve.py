@@ -13,7 +13,13 @@ every chip by a small rigid motion (three translations, three rotations) so that
   clearance holds for the exact solids);
 * nothing interpenetrates and nothing goes below the conveyor.
 
-Chips are resolved one at a time from the bottom up (the chip that came to rest first is
+Two routes. The global route (:mod:`geometry._relax`, tried first) moves every chip at
+once, one sparse convex programme per step, and also turns two chips whose outlines cross
+at a shallow angle in a shared plane until their edges are parallel; it is the one that
+resolves the physics stacks. When it leaves a pair short, the bottom-up route below is
+tried.
+
+In the bottom-up route, chips are resolved one at a time (the chip that came to rest first is
 placed first and then held): a chip with surface contacts is turned about its centre of
 mass by the smallest rotation that lays its face on its largest partner's face and moved
 along that face's normal; the motions left (in-plane translation and the turn about the
@@ -29,7 +35,9 @@ never in its place, with a report of the motions.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import time
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -48,6 +56,7 @@ log = logging.getLogger(__name__)
 
 _SURFACE = KINDS.index("surface")
 _PLANE_TOL_MM = 1e-9  # two snapped faces closer than this share their plane
+_TOUCHING_TOL_MM = 1e-8  # chips in a shared plane may overlap this much (OCC merges 1e-7)
 _MAX_MOVE_MM = 1.0  # the largest motion asked of a chip (a tenth of its thickness is typical)
 _MAX_TURN_RAD = np.radians(6.0)
 _TURN_WEIGHT = 10.0  # turns cost this many times their inertia: a turn sweeps corners far
@@ -235,13 +244,15 @@ def resolve_contacts(
         ``contact_gap_mm`` and ``contact_extent_mm`` when not given).
     Raises :class:`UnresolvedError` naming the chips that cannot be cleared.
     """
-    import time
-
     start = time.perf_counter()
     thinnest = min(s.thickness_mm for s in arrangement.shapes) if arrangement.shapes else 1.0
     check_settings(gap_mm, snap_angle_deg, thinnest)
     if contacts is None:
         contacts = find_contacts(arrangement, contact_gap_mm, contact_extent_mm)
+    resolved = _resolve_globally(arrangement, contacts, gap_mm, snap_angle_deg, contact_gap_mm)
+    if resolved is not None:
+        return dataclasses.replace(resolved, seconds=time.perf_counter() - start)
+    log.info("contact resolution: the global route did not clear every pair; bottom-up route")
     n = arrangement.n_chips
     pieces = [_pieces(s) for s in arrangement.shapes]
     rotations = np.array(arrangement.rotations, dtype=float).reshape(n, 3, 3)
@@ -459,11 +470,107 @@ def resolve_contacts(
         info={
             "coplanar_touching": sum(len(t) for t in touching.values()) // 2 - snapped["chip"],
             "clusters_solved": clusters,
+            "route": "bottom-up",
         },
     )
 
 
-def _verify(order, near, placed, touching, rule) -> list[tuple[int, float]]:
+def _resolve_globally(arrangement, contacts, gap_mm, snap_angle_deg, contact_gap_mm):
+    """The global route (:mod:`geometry._relax`) finished by an exact snap of every kept
+    surface contact, bottom-up; None when it leaves any pair short of its rule."""
+    from geometry._relax import relax
+
+    out = relax(arrangement, contacts, gap_mm, snap_angle_deg, contact_gap_mm)
+    if out is None or out[-1] < -_SLACK_MM / 2:
+        return None
+    rotations, positions, start_rot, start_pos, surface, let_go, _ = out
+    n = arrangement.n_chips
+    pieces = [_pieces(s) for s in arrangement.shapes]
+    rank = arrangement.bottom_up_rank()
+    order = arrangement.bottom_up_order()
+    rule = _rules(contacts, gap_mm, contact_gap_mm)
+    cos_snap = np.cos(np.radians(snap_angle_deg))
+    kept = [pair for pair in surface if pair not in let_go]
+    partners: dict[int, list[int]] = {k: [] for k in range(n)}
+    touching: dict[int, set[int]] = {k: set() for k in range(n)}
+    for chip, partner in kept:
+        partners[chip].append(partner)
+        touching[chip].add(partner)
+        if partner != GROUND:
+            touching[partner].add(chip)
+    placed = [
+        _place(pieces[arrangement.shape_index[k]], rotations[k], positions[k]) for k in range(n)
+    ]
+    for chip in order:
+        chip = int(chip)
+        if not partners[chip]:
+            continue
+        # The first partner's face exactly: the relaxation leaves it nanometres off.
+        partner = min(partners[chip], key=lambda k: -1 if k == GROUND else rank[k])
+        faces = surface[(chip, partner)]
+        if partner == GROUND:
+            plane = (np.array([0.0, 0.0, 1.0]), 0.0, positions[chip] * [1, 1, 0])
+        else:
+            piece, face = faces[1]
+            world = placed[partner]
+            plane = (world.normals[piece][face], float(world.offsets[piece][face]), positions[chip])
+        snap = _snap(
+            pieces[arrangement.shape_index[chip]], rotations[chip], positions[chip], plane, cos_snap
+        )
+        if snap is None:
+            return None
+        rotations[chip], positions[chip] = snap
+        placed[chip] = _place(pieces[arrangement.shape_index[chip]], *snap)
+    near: dict[int, set[int]] = {k: set() for k in range(n)}
+    for a, b in candidate_pairs(arrangement.bounds, gap_mm + 1.0):
+        near[int(a)].add(int(b))
+        near[int(b)].add(int(a))
+    unresolved = _verify(order, near, placed, touching, rule, touching_tol=_TOUCHING_TOL_MM)
+    if unresolved:
+        log.info("contact resolution, global route: %d chips short", len(unresolved))
+        return None
+    start_worlds = [
+        _place(pieces[arrangement.shape_index[k]], start_rot[k], start_pos[k]) for k in range(n)
+    ]
+    cleared = sum(
+        1
+        for a in range(n)
+        for b in near[a]
+        if a < b and _separation(start_worlds[a], start_worlds[b]) < rule(a, b).lower
+    )
+    quaternions = Rotation.from_matrix(rotations).as_quat()
+    resolved = Arrangement(
+        arrangement.shapes,
+        arrangement.shape_index,
+        positions,
+        quaternions,
+        arrangement.batch,
+        arrangement.target_size_mm,
+    )
+    turned = (Rotation.from_matrix(rotations) * Rotation.from_matrix(start_rot).inv()).magnitude()
+    surface_pairs = [
+        (int(a), int(b))
+        for a, b, k in zip(contacts.chip_a, contacts.chip_b, contacts.kind, strict=True)
+        if k == _SURFACE
+    ]
+    kept_sets = {frozenset(p) for p in kept}
+    return Resolution(
+        arrangement=resolved,
+        translation_mm=np.linalg.norm(positions - start_pos, axis=1),
+        rotation_deg=np.degrees(turned),
+        snapped={
+            "chip": sum(1 for _, p in kept if p != GROUND),
+            "conveyor": sum(1 for _, p in kept if p == GROUND),
+        },
+        surface_cleared=tuple(p for p in surface_pairs if frozenset(p) not in kept_sets),
+        cleared=cleared,
+        gap_mm=gap_mm,
+        snap_angle_deg=snap_angle_deg,
+        info={"route": "global"},
+    )
+
+
+def _verify(order, near, placed, touching, rule, touching_tol=1e-9) -> list[tuple[int, float]]:
     """(chip, worst margin) of every chip that breaks a lower bound of its rules in the end
     (a pair in a shared plane: that it does not interpenetrate)."""
     out = []
@@ -472,10 +579,10 @@ def _verify(order, near, placed, touching, rule) -> list[tuple[int, float]]:
         worst = np.inf
         for k in near[chip]:
             separation = _separation(placed[chip], placed[k])
-            lower = -1e-9 if k in touching[chip] else rule(chip, k).lower
+            lower = -touching_tol if k in touching[chip] else rule(chip, k).lower
             worst = min(worst, separation - lower)
         lowest = min(float(v[:, 2].min()) for v in placed[chip].vertices)
-        lower = -1e-9 if GROUND in touching[chip] else rule(chip, GROUND).lower
+        lower = -touching_tol if GROUND in touching[chip] else rule(chip, GROUND).lower
         worst = min(worst, lowest - lower)
         if worst < 0:
             out.append((chip, worst))

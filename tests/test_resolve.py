@@ -44,7 +44,7 @@ def test_a_chip_tilted_on_another_is_laid_exactly_on_it():
     deg and 0.01 mm into it (a surface contact). Resolved: the lower lies exactly on the
     conveyor, the upper's bottom face exactly in the lower's top face, both snapped."""
     tilt = Rotation.from_euler("xz", (0.3, 10.0), degrees=True)
-    a = arrange([((0.0, 0.0, 0.99), 0.0), ((3.0, 2.0, 2.99), tilt)])
+    a = arrange([((0.0, 0.0, 0.99), 0.0), ((3.0, 1.0, 2.99), tilt)])
     r = resolve_contacts(a)
     b = r.arrangement
     assert r.snapped == {"chip": 1, "conveyor": 1}
@@ -59,6 +59,63 @@ def test_a_chip_tilted_on_another_is_laid_exactly_on_it():
     mesh = conformal_mesh(b, size_mm=2.0)
     report = check_mesh(mesh, b, np.array([[0, 1]]), min_quality=0.1)
     assert report["valid"] and report["interfaces"]["sharing_faces"] == 1
+
+
+def yaw_deg(a: Arrangement, chip: int) -> float:
+    x = a.rotations[chip][:, 0]
+    return float(np.degrees(np.arctan2(x[1], x[0])))
+
+
+@pytest.mark.parametrize(("turned", "aligned"), [(2.0, True), (-4.5, True), (10.0, False)])
+def test_chips_in_a_shared_plane_at_a_shallow_angle_are_aligned(turned, aligned):
+    """Outlines crossing at a shallow angle in a shared plane cut the face into a thin
+    wedge no sound tetrahedron fits: below the alignment angle (6 deg) the upper chip is
+    turned about the plane's normal until the edges are parallel (the smaller turn, shared
+    by both chips, mass-weighted); above it the yaw is left as it was."""
+    a = arrange([((0.0, 0.0, 0.99), 0.0), ((6.0, 4.0, 2.99), turned)])
+    r = resolve_contacts(a)
+    b = r.arrangement
+    assert r.info["route"] == "global"
+    assert r.snapped == {"chip": 1, "conveyor": 1}
+    relative = yaw_deg(b, 1) - yaw_deg(b, 0)
+    if aligned:
+        assert relative == pytest.approx(0.0, abs=1e-6)
+        mesh = conformal_mesh(b, size_mm=2.0)
+        report = check_mesh(mesh, b, np.array([[0, 1]]), min_quality=0.1)
+        assert report["valid"] and report["interfaces"]["sharing_faces"] == 1
+    else:
+        assert relative == pytest.approx(turned, abs=1e-6)
+    assert separation_mm(b, 0, 1) == pytest.approx(0.0, abs=1e-9)
+
+
+def corners_in_frame_of(a: Arrangement, chip: int, other: int) -> np.ndarray:
+    """The corners of ``chip`` (x, y) in the frame of ``other``."""
+    world = SQUARE.vertices @ a.rotations[chip].T + a.positions[chip]
+    return ((world - a.positions[other]) @ a.rotations[other])[:, :2]
+
+
+def test_parallel_edges_a_hair_apart_in_a_shared_plane_are_made_flush():
+    """Two aligned squares, one on the other, offset 0.05 mm across x: the edges at
+    x = +-10 would cut both shared faces into strips 0.05 mm wide. Resolved: flush
+    (collinear to rounding), the offset along y kept."""
+    a = arrange([((0.0, 0.0, 0.99), 0.0), ((0.05, 6.0, 2.99), 0.0)])
+    b = resolve_contacts(a).arrangement
+    local = corners_in_frame_of(b, 1, 0)
+    assert local[:, 0].min() == pytest.approx(-10.0, abs=1e-6)
+    assert local[:, 0].max() == pytest.approx(10.0, abs=1e-6)
+    assert local[:, 1].min() == pytest.approx(-4.0, abs=0.01)
+
+
+def test_a_corner_a_hair_from_an_edge_in_a_shared_plane_is_moved_off_it():
+    """The upper square, turned 20 deg, has a corner 0.05 mm inside the lower's edge
+    x = -10: a neck 0.05 mm wide in the lower's top face. Resolved: the corner is 0.3 mm
+    inside (the side it was on), and the pair meshes soundly."""
+    a = arrange([((0.0, 0.0, 0.99), 0.0), ((2.867, -5.977, 2.99), 20.0)])
+    assert corners_in_frame_of(a, 1, 0)[:, 0].min() == pytest.approx(-9.95, abs=1e-3)
+    b = resolve_contacts(a).arrangement
+    assert corners_in_frame_of(b, 1, 0)[:, 0].min() >= -9.7 - 1e-6
+    mesh = conformal_mesh(b, size_mm=2.0)
+    assert check_mesh(mesh, b, np.array([[0, 1]]), min_quality=0.1)["valid"]
 
 
 def test_chips_that_nearly_touch_edge_on_are_cleared_by_the_gap():

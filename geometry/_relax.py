@@ -1,0 +1,642 @@
+"""Contact resolution of the whole stack at once (the first route of
+:func:`geometry.resolve.resolve_contacts`).
+
+Every chip moves at the same time: sequential quadratic programming over the six rigid
+motions of all chips, each step one sparse convex quadratic programme (Clarabel's
+interior-point solver) linearised at the current poses:
+
+* the objective is the mass-weighted squared motion of every chip from where the physics
+  left it (translations in mm, turns weighted by the chip's inertia);
+* a surface contact is a set of equalities: the corners of the chip's face lie in its
+  partner's face plane (the conveyor: z = 0);
+* every other near pair keeps its rule (:class:`geometry.resolve.Rule`): at least the gap
+  along its separating axis, every corner near the extreme a row of its own; a touching
+  pair at most the contact gap, a line contact's edge parallel;
+* every row is soft with an exact (L1) penalty, the lower bounds and the surface
+  contacts heavily so, so that each programme is feasible and the solution meets them
+  exactly when they can be met; each step stays in a trust region.
+
+Solving everything at once is what the bottom-up route cannot do: there, a chip placed
+early is held while a chip resting on it would need it to give a few hundredths of a
+millimetre, and the later chip has to turn by degrees instead. A surface contact whose
+equalities cannot hold with the others (a chip lying on two faces that are not coplanar)
+is let go and cleared by the gap like any pair; the faces are then made exactly coplanar
+by a final snap, chip by chip from the bottom up, of a few nanometres.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sparse
+from scipy.spatial.transform import Rotation
+
+log = logging.getLogger(__name__)
+
+_LOWER_PENALTY = 1e5  # per mm below a lower bound
+_SURFACE_PENALTY = 1e4  # per mm out of a surface contact's plane
+_SOFT_PENALTY = 1.0  # per mm beyond an upper bound or off parallel
+_ALIGN_PENALTY = 1e3  # per radian off alignment
+# Two chips in a shared plane whose outlines cross at less than this are turned (about
+# the plane's normal) until their edges are parallel: outlines crossing at a shallow
+# angle cut the shared face into a thin wedge, and no tetrahedron on it can be sound.
+_ALIGN_DEG = 6.0
+_FLUSH_MM = 0.3  # parallel edges closer than this in a shared plane are made flush
+_STEP_MM = 0.1  # trust region per step
+_STEP_RAD = 0.01
+_ITERATIONS = 80
+_CHECKPOINTS = (12, 24, 40)  # steps at which what cannot hold is let go
+
+
+@dataclass
+class _Row:
+    """One linearised constraint: value = n . (x_b - x_a) of a point x_a on chip ``a``
+    (-1: the conveyor) and x_b on chip ``b``; sense +1: value >= target, -1: <=, 0: ==;
+    ``group``: the surface contact it belongs to (None: not a surface equality)."""
+
+    a: int
+    b: int
+    normal: np.ndarray
+    x_a: np.ndarray
+    x_b: np.ndarray
+    value: float
+    sense: int
+    target: float
+    penalty: float
+    group: object = None
+    turn: bool = False  # a turn about ``normal``: d value = (w_b - w_a) . normal
+    key: object = None  # an alignment, flush edge or corner on an edge (can be let go)
+
+
+def relax(
+    arrangement,
+    contacts,
+    gap_mm: float,
+    snap_angle_deg: float,
+    contact_gap_mm: float,
+):
+    """Resolve every chip at once. Returns (rotations, positions, surface contacts kept
+    as (chip, partner) with partner -1 for the conveyor, surface contacts let go) or None
+    when the lower bounds cannot all be met."""
+    from geometry import resolve as r
+
+    n = arrangement.n_chips
+    pieces = [r._pieces(s) for s in arrangement.shapes]
+    rotations = np.array(arrangement.rotations, dtype=float).reshape(n, 3, 3)
+    positions = np.array(arrangement.positions, dtype=float).reshape(n, 3)
+    start_rot, start_pos = rotations.copy(), positions.copy()
+    rank = arrangement.bottom_up_rank()
+    rule = r._rules(contacts, gap_mm, contact_gap_mm)
+    cos_snap = np.cos(np.radians(snap_angle_deg))
+    volumes = np.array(
+        [arrangement.shapes[arrangement.shape_index[k]].volume_mm3 for k in range(n)]
+    )
+    weights = volumes / volumes.mean()
+    inertia = [arrangement.shapes[arrangement.shape_index[k]].inertia_mm2 for k in range(n)]
+
+    def world(k):
+        return r._place(pieces[arrangement.shape_index[k]], rotations[k], positions[k])
+
+    worlds = [world(k) for k in range(n)]
+    near = [(int(a), int(b)) for a, b in r.candidate_pairs(arrangement.bounds, gap_mm + 1.0)]
+    # Surface contacts: (chip, partner) with the partner placed first (or the conveyor).
+    surface = {}
+    for a, b, kind in zip(contacts.chip_a, contacts.chip_b, contacts.kind, strict=True):
+        if kind != r._SURFACE:
+            continue
+        a, b = int(a), int(b)
+        if b != r.GROUND and rank[b] > rank[a]:
+            a, b = b, a
+        faces = _facing_faces(worlds, a, b, contacts, positions, cos_snap)
+        if faces is not None:
+            surface[(a, b)] = faces
+    align = {
+        pair
+        for pair in surface
+        if pair[1] != r.GROUND
+        and all(arrangement.shapes[arrangement.shape_index[k]].kind == "box" for k in pair)
+        and abs(_misalignment(rotations, *pair, worlds, surface[pair])) < np.radians(_ALIGN_DEG)
+    }
+    # Edges of two aligned chips that run parallel a hair apart cut the shared face into a
+    # strip as narrow: they are made flush (collinear) instead.
+    flush = []
+    for pair in sorted(align):
+        (pa, fa), (pb, fb) = surface[pair]
+        edges_a = _face_edges(worlds[pair[0]], pa, fa)
+        edges_b = _face_edges(worlds[pair[1]], pb, fb)
+        normal = worlds[pair[1]].normals[pb][fb]
+        for i, (p, q) in enumerate(edges_a):
+            for j, (s, t) in enumerate(edges_b):
+                value, overlap = _edge_offset(p, q, s, t, normal)
+                if abs(value) < _FLUSH_MM and overlap > 0:
+                    flush.append((pair, i, j))
+    # A corner a hair from the other face's edge (the edges crossing at a real angle)
+    # leaves a neck as narrow in the face around it: it is moved away from the edge's
+    # line, on the side it is on, to the flush distance. (Put exactly on the line, it
+    # left degenerate tetrahedra: OpenCASCADE merges within its own tolerance.)
+    corner_on_edge = []
+    for pair, ((pa, fa), face_b) in sorted(surface.items()):
+        if pair[1] == r.GROUND or pair in align:
+            continue
+        pb, fb = face_b
+        normal = worlds[pair[1]].normals[pb][fb]
+        for first, (p1, f1), (p2, f2) in ((0, (pa, fa), (pb, fb)), (1, (pb, fb), (pa, fa))):
+            corners = _face_edges(worlds[pair[first]], p1, f1)
+            edges = _face_edges(worlds[pair[1 - first]], p2, f2)
+            for i, (corner, _) in enumerate(corners):
+                for j, (s, t) in enumerate(edges):
+                    length = np.linalg.norm(t - s)
+                    edge = (t - s) / length
+                    along = (corner - s) @ edge
+                    value = np.cross(normal, edge) @ (corner - s)
+                    if abs(value) < _FLUSH_MM and 0 < along < length:
+                        corner_on_edge.append((pair, first, i, j, 1.0 if value >= 0 else -1.0))
+    let_go: set = set()
+    dropped: set = set()
+    chosen: dict = {}
+
+    rotations_now = [rotations]
+
+    def build(worlds):
+        kept = {pair: f for pair, f in surface.items() if pair not in let_go}
+        equal_pairs = {frozenset(p) for p in kept}
+        rows = []
+        for a, b in near:
+            if frozenset((a, b)) not in equal_pairs:
+                rows += _pair_rows(worlds, a, b, rule(a, b), chosen)
+        for k in range(n):
+            if (k, r.GROUND) not in kept:
+                rows += _floor_rows(worlds[k], k, rule(k, r.GROUND))
+        for (a, b), (face_a, face_b) in kept.items():
+            rows += _surface_rows(worlds, a, b, face_a, face_b)
+            if (a, b) in align and ("align", a, b) not in dropped:
+                normal = worlds[b].normals[face_b[0]][face_b[1]]
+                value = _misalignment(rotations_now[0], a, b, worlds, (face_a, face_b))
+                rows.append(
+                    _Row(
+                        a,
+                        b,
+                        normal,
+                        normal,
+                        normal,
+                        value,
+                        0,
+                        0.0,
+                        _ALIGN_PENALTY,
+                        turn=True,
+                        key=("align", a, b),
+                    )
+                )
+        for (a, b), i, j in flush:
+            if (a, b) not in kept or ("flush", a, b, i, j) in dropped:
+                continue
+            (pa, fa), (pb, fb) = kept[(a, b)]
+            p, q = _face_edges(worlds[a], pa, fa)[i]
+            s_, t = _face_edges(worlds[b], pb, fb)[j]
+            normal = worlds[b].normals[pb][fb]
+            edge = (t - s_) / np.linalg.norm(t - s_)
+            across = np.cross(normal, edge)
+            middle = (p + q) / 2
+            foot = s_ + edge * ((middle - s_) @ edge)
+            value = float(across @ (middle - foot))
+            rows.append(
+                _Row(
+                    b,
+                    a,
+                    across,
+                    foot,
+                    middle,
+                    value,
+                    0,
+                    0.0,
+                    _ALIGN_PENALTY,
+                    key=("flush", a, b, i, j),
+                )
+            )
+        for pair, first, i, j, side in corner_on_edge:
+            if pair not in kept or ("corner", pair, first, i, j) in dropped:
+                continue
+            faces = kept[pair]
+            own, other = pair[first], pair[1 - first]
+            corner = _face_edges(worlds[own], *faces[first])[i][0]
+            s_, t = _face_edges(worlds[other], *faces[1 - first])[j]
+            normal = worlds[pair[1]].normals[faces[1][0]][faces[1][1]]
+            edge = (t - s_) / np.linalg.norm(t - s_)
+            away = side * np.cross(normal, edge)
+            foot = s_ + edge * ((corner - s_) @ edge)
+            value = float(away @ (corner - foot))
+            rows.append(
+                _Row(
+                    other,
+                    own,
+                    away,
+                    foot,
+                    corner,
+                    value,
+                    1,
+                    _FLUSH_MM,
+                    _ALIGN_PENALTY,
+                    key=("corner", pair, first, i, j),
+                )
+            )
+        return rows
+
+    metric = _metric(start_rot, inertia, weights)
+
+    def merit(rows, total):
+        return 0.5 * float(total @ (metric @ total)) + sum(
+            row.penalty * _violation(row) for row in rows
+        )
+
+    total = np.zeros(6 * n)  # accumulated motion (translation, rotation vector)
+    radius = 1.0  # trust region, in units of (_STEP_MM, _STEP_RAD)
+    rows = build(worlds)
+    current = merit(rows, total)
+    for iteration in range(_ITERATIONS):
+        worst = min(
+            (row.value - row.target for row in rows if row.penalty == _LOWER_PENALTY),
+            default=np.inf,
+        )
+        off_plane = max((abs(row.value) for row in rows if row.group is not None), default=0.0)
+        turned = max((_violation(row) for row in rows if row.key is not None), default=0.0)
+        # The lower bounds carry a margin (resolve._SLACK_MM) above the gap: a
+        # micrometre short of it is still clear, and the final check is against the gap.
+        if worst >= -1e-6 and off_plane < 1e-8 and turned < 1e-8:
+            break
+        delta = _qp(rows, total, metric, positions, n, radius)
+        if delta is None:
+            log.debug("relax: programme failed at step %d", iteration)
+            return None
+        trial_rot, trial_pos = rotations.copy(), positions.copy()
+        moved = np.flatnonzero(np.abs(delta.reshape(n, 6)).max(axis=1) > 0)
+        trial_worlds = list(worlds)
+        for k in moved:
+            t, w = delta[6 * k : 6 * k + 3], delta[6 * k + 3 : 6 * k + 6]
+            trial_rot[k] = Rotation.from_rotvec(w).as_matrix() @ rotations[k]
+            trial_pos[k] = positions[k] + t
+            trial_worlds[k] = r._place(
+                pieces[arrangement.shape_index[k]], trial_rot[k], trial_pos[k]
+            )
+        rotations_now[0] = trial_rot
+        trial_rows = build(trial_worlds)
+        rotations_now[0] = rotations
+        trial = merit(trial_rows, total + delta)
+        log.debug(
+            "relax step %d: %d rows, worst lower %.2e mm, off plane %.2e mm, radius %.3g, "
+            "merit %.6g -> %.6g",
+            iteration,
+            len(rows),
+            worst,
+            off_plane,
+            radius,
+            current,
+            trial,
+        )
+        if trial < current:
+            rotations, positions, worlds = trial_rot, trial_pos, trial_worlds
+            rotations_now[0] = rotations
+            total = total + delta
+            rows, current = trial_rows, trial
+            radius = min(1.0, 2 * radius)
+        else:
+            radius /= 4
+            if radius < 1e-6:
+                break
+        # What cannot hold with the rest once it has settled is let go: first an edge
+        # made flush or a corner put on an edge (the mesh copes with a narrow strip
+        # better than the stack with a lost contact), then, later, a surface contact
+        # still out of its plane (cleared by the gap instead).
+        if iteration in _CHECKPOINTS:
+            stuck_edges = {
+                row.key for row in rows if row.key is not None and _violation(row) > 1e-6
+            }
+            stuck = set()
+            if iteration != _CHECKPOINTS[0]:
+                stuck = {
+                    row.group for row in rows if row.group is not None and abs(row.value) > 1e-5
+                }
+            if stuck or stuck_edges:
+                let_go.update(stuck)
+                dropped.update(stuck_edges)
+                rows = build(worlds)
+                current = merit(rows, total)
+                radius = 1.0
+    worst = min(
+        (row.value - row.target for row in rows if row.penalty == _LOWER_PENALTY),
+        default=np.inf,
+    )
+    return rotations, positions, start_rot, start_pos, surface, let_go, worst
+
+
+def _misalignment(rotations, chip, partner, worlds, faces) -> float:
+    """The angle (radians, in [-pi/4, pi/4)) by which the partner's edges are turned from
+    the chip's about the partner's face normal, for two boxes (edges every 90 degrees)."""
+    face_b = faces[1]
+    normal = worlds[partner].normals[face_b[0]][face_b[1]]
+    u_a = rotations[chip][:, 0] - (rotations[chip][:, 0] @ normal) * normal
+    u_b = rotations[partner][:, 0] - (rotations[partner][:, 0] @ normal) * normal
+    angle = np.arctan2(normal @ np.cross(u_a, u_b), u_a @ u_b)
+    quarter = np.pi / 2
+    return float((angle + quarter / 2) % quarter - quarter / 2)
+
+
+def _violation(row) -> float:
+    if row.sense > 0:
+        return max(0.0, row.target - row.value)
+    if row.sense < 0:
+        return max(0.0, row.value - row.target)
+    return abs(row.value - row.target)
+
+
+def _metric(rotations, inertia, weights):
+    from geometry import resolve as r
+
+    blocks = []
+    for k in range(len(rotations)):
+        w = np.zeros((6, 6))
+        w[:3, :3] = np.eye(3)
+        w[3:, 3:] = r._TURN_WEIGHT * rotations[k] @ np.diag(inertia[k]) @ rotations[k].T
+        blocks.append(2 * weights[k] * w)
+    return sparse.block_diag(blocks, format="csc")
+
+
+def _facing_faces(worlds, chip, partner, contacts, positions, cos_snap):
+    """((piece, face) of the chip, (piece, face) of the partner or None for the conveyor)
+    that face each other in a surface contact, or None when no pair is within the snap
+    angle."""
+    from geometry import resolve as r
+
+    rows = np.flatnonzero(
+        ((contacts.chip_a == chip) & (contacts.chip_b == partner))
+        | ((contacts.chip_a == partner) & (contacts.chip_b == chip))
+    )
+    centre = contacts.centre_mm[rows[0]]
+    if partner == r.GROUND:
+        target_normal, face_b = np.array([0.0, 0.0, 1.0]), None
+    else:
+        best = None
+        other = worlds[partner]
+        for p, (normals, offsets) in enumerate(zip(other.normals, other.offsets, strict=True)):
+            distance = np.abs(normals @ centre - offsets)
+            distance[normals @ (positions[chip] - centre) <= 0] = np.inf
+            k = int(np.argmin(distance))
+            if best is None or distance[k] < best[0]:
+                best = (float(distance[k]), p, k)
+        if best is None or not np.isfinite(best[0]):
+            return None
+        face_b = (best[1], best[2])
+        target_normal = other.normals[best[1]][best[2]]
+    best = None
+    for p, (normals, offsets) in enumerate(
+        zip(worlds[chip].normals, worlds[chip].offsets, strict=True)
+    ):
+        facing = -(normals @ target_normal)
+        for k in np.flatnonzero(facing >= cos_snap):
+            distance = abs(normals[k] @ centre - offsets[k])
+            if best is None or distance < best[0]:
+                best = (distance, p, int(k))
+    if best is None:
+        return None
+    return (best[1], best[2]), face_b
+
+
+def _face_edges(world, piece, face):
+    """The edges (corner, next corner) of a face, in order round its normal."""
+    corners = _face_corners(world, piece, face)
+    normal = world.normals[piece][face]
+    centre = corners.mean(axis=0)
+    e1 = corners[0] - centre
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(normal, e1)
+    # Angles from the first corner in [0, 2 pi): the opposite corner of a rectangle sits
+    # at pi, where arctan2 would flip between -pi and pi with the rounding.
+    angles = np.arctan2((corners - centre) @ e2, (corners - centre) @ e1) % (2 * np.pi)
+    angles[0] = 0.0
+    order = np.argsort(angles)
+    corners = corners[order]
+    return [(corners[k], corners[(k + 1) % len(corners)]) for k in range(len(corners))]
+
+
+def _edge_offset(p, q, s, t, normal):
+    """How far (mm) edge p-q lies from the line of edge s-t across it, in the plane of
+    ``normal``, and how long their common stretch is (mm; <= 0: none); inf when they are
+    not nearly parallel."""
+    edge = (t - s) / np.linalg.norm(t - s)
+    along = q - p
+    if abs(along @ edge) < np.cos(np.radians(_ALIGN_DEG)) * np.linalg.norm(along):
+        return np.inf, 0.0
+    across = np.cross(normal, edge)
+    value = float(across @ ((p + q) / 2 - s))
+    lo_a, hi_a = sorted(((p - s) @ edge, (q - s) @ edge))
+    overlap = min(hi_a, float((t - s) @ edge)) - max(lo_a, 0.0)
+    return value, overlap
+
+
+def _face_corners(world, piece, face):
+    v = world.vertices[piece]
+    on = np.abs(v @ world.normals[piece][face] - world.offsets[piece][face]) < 1e-6
+    return v[on]
+
+
+def _surface_rows(worlds, chip, partner, face_a, face_b):
+    """The chip's face corners in the partner's face plane (equalities)."""
+    corners = _face_corners(worlds[chip], *face_a)
+    if face_b is None:
+        normal, offset, other = np.array([0.0, 0.0, 1.0]), 0.0, -1
+    else:
+        normal = worlds[partner].normals[face_b[0]][face_b[1]]
+        offset = worlds[partner].offsets[face_b[0]][face_b[1]]
+        other = partner
+    out = []
+    for x in corners:
+        value = float(normal @ x - offset)
+        out.append(
+            _Row(
+                other,
+                chip,
+                normal,
+                x - value * normal,
+                x,
+                value,
+                0,
+                0.0,
+                _SURFACE_PENALTY,
+                (chip, partner),
+            )
+        )
+    return out
+
+
+def _floor_rows(world, chip, rule):
+    from geometry import resolve as r
+
+    up = np.array([0.0, 0.0, 1.0])
+    out = []
+    target = rule.lower + r._SLACK_MM
+    lowest = None
+    for v in world.vertices:
+        for x in v:
+            z = float(x[2])
+            if lowest is None or z < lowest[0]:
+                lowest = (z, x)
+            if z < rule.lower + r._REACH_MM:
+                out.append(_Row(-1, chip, up, x * [1, 1, 0], x, z, 1, target, _LOWER_PENALTY))
+    if rule.upper < np.inf:
+        z, x = lowest
+        out.append(
+            _Row(-1, chip, up, x * [1, 1, 0], x, z, -1, rule.upper - r._SLACK_MM, _SOFT_PENALTY)
+        )
+        if rule.parallel:
+            edge = [x for v in world.vertices for x in v if x[2] <= z + r._CORNER_REACH_MM]
+            if len(edge) >= 2:
+                out += [
+                    _Row(-1, chip, up, x * [1, 1, 0], x, float(x[2]), 0, target, _SOFT_PENALTY)
+                    for x in edge[:3]
+                ]
+    return out
+
+
+def _pair_rows(worlds, a, b, rule, chosen):
+    """Rows of a pair of chips along its separating axes (see resolve._near_features)."""
+    from geometry import resolve as r
+
+    wa, wb = worlds[a], worlds[b]
+    candidates = []
+    for pa_i, (va, na, ea) in enumerate(zip(wa.vertices, wa.normals, wa.edges, strict=True)):
+        for pb_i, (vb, nb, eb) in enumerate(zip(wb.vertices, wb.normals, wb.edges, strict=True)):
+            gaps, sides = r._axis_gaps(va, na, ea, vb, nb, eb)
+            k = int(np.argmax(gaps))
+            kept = chosen.get((a, b, pa_i, pb_i))
+            if kept is not None and gaps[kept[0]] >= gaps[k] - 0.003 and sides[kept[0]] == kept[1]:
+                k = kept[0]
+            chosen[(a, b, pa_i, pb_i)] = (k, bool(sides[k]))
+            candidates.append((float(gaps[k]), pa_i, pb_i, k, bool(sides[k])))
+    closest = min(candidates)
+    out = []
+    target = rule.lower + r._SLACK_MM
+    for gap, pa_i, pb_i, k, ahead in candidates:
+        nearest = (pa_i, pb_i) == closest[1:3]
+        if gap >= rule.lower + r._REACH_MM and not (nearest and rule.upper < np.inf):
+            continue
+        axis = r._axis(wa, wb, pa_i, pb_i, k)
+        normal = axis if ahead else -axis  # from a towards b
+        va, vb = wa.vertices[pa_i], wb.vertices[pb_i]
+        sa, sb = va @ normal, vb @ normal
+        top_a, bottom_b = sa.max(), sb.min()
+        near_a = np.flatnonzero(sa >= top_a - r._CORNER_REACH_MM)
+        near_b = np.flatnonzero(sb <= bottom_b + r._CORNER_REACH_MM)
+        n_faces_a = len(wa.normals[pa_i])
+        n_faces_b = len(wb.normals[pb_i])
+        pairs = []
+        if k < n_faces_a:  # a's face: its plane against b's corners
+            for j in near_b:
+                value = float(sb[j] - top_a)
+                pairs.append((vb[j] - value * normal, vb[j], value))
+        elif k < n_faces_a + n_faces_b:  # b's face against a's corners
+            for i in near_a:
+                value = float(bottom_b - sa[i])
+                pairs.append((va[i], va[i] + value * normal, value))
+        else:
+            for i in near_a:
+                for j in near_b:
+                    pairs.append((va[i], vb[j], float(sb[j] - sa[i])))
+        out += [
+            _Row(a, b, normal, xa, xb, value, 1, target, _LOWER_PENALTY) for xa, xb, value in pairs
+        ]
+        if not nearest:
+            continue
+        first = min(pairs, key=lambda p: p[2])
+        if rule.upper < np.inf:
+            out.append(
+                _Row(
+                    a,
+                    b,
+                    normal,
+                    first[0],
+                    first[1],
+                    first[2],
+                    -1,
+                    rule.upper - r._SLACK_MM,
+                    _SOFT_PENALTY,
+                )
+            )
+        if rule.parallel and len(pairs) >= 2:
+            for xa, xb, value in sorted(pairs, key=lambda p: p[2])[:3]:
+                out.append(_Row(a, b, normal, xa, xb, value, 0, target, _SOFT_PENALTY))
+    return out
+
+
+def _qp(rows, total, metric, positions, n, radius):
+    """The step of every chip's motion (6 n,) from the linearised rows, within the trust
+    region; None when the programme fails."""
+    import clarabel
+
+    from geometry import resolve as r
+
+    m = len(rows)
+    dim = 6 * n
+    p_matrix = sparse.block_diag([metric, sparse.csc_matrix((m, m))], format="csc")
+    linear = np.concatenate([metric @ total, [row.penalty for row in rows]])
+    # Jacobian rows: d value = n . (dx_b - dx_a), dx = t + w x (x - c).
+    a_idx = np.array([row.a for row in rows])
+    b_idx = np.array([row.b for row in rows])
+    normal = np.array([row.normal for row in rows])
+    x_a = np.array([row.x_a for row in rows])
+    x_b = np.array([row.x_b for row in rows])
+    values = np.array([row.value for row in rows])
+    targets = np.array([row.target for row in rows])
+    senses = np.array([row.sense for row in rows])
+    turn = np.array([row.turn for row in rows])
+    row_ids = np.arange(m)
+    data, cols, rws = [], [], []
+    for sign, idx, x in ((1.0, b_idx, x_b), (-1.0, a_idx, x_a)):
+        on = idx >= 0
+        arm = np.cross(x[on] - positions[idx[on]], normal[on])
+        arm = np.where(turn[on, None], normal[on], arm)
+        push = np.where(turn[on, None], 0.0, normal[on])
+        data.append(sign * np.hstack([push, arm]).ravel())
+        cols.append((6 * idx[on][:, None] + np.arange(6)).ravel())
+        rws.append(np.repeat(row_ids[on], 6))
+    jac = sparse.csr_matrix(
+        (np.concatenate(data), (np.concatenate(rws), np.concatenate(cols))), shape=(m, dim)
+    )
+    eye = sparse.identity(m, format="csr")
+    blocks_a, bounds = [], []
+    lo, hi, eq = senses > 0, senses < 0, senses == 0
+    # value + J d + s >= target  ->  -J d - s <= value - target
+    blocks_a.append(sparse.hstack([-jac[lo], -eye[lo]]))
+    bounds.append(values[lo] - targets[lo])
+    # value + J d - s <= target  ->  J d - s <= target - value (equalities: both ways)
+    sel = hi | eq
+    blocks_a.append(sparse.hstack([jac[sel], -eye[sel]]))
+    bounds.append(targets[sel] - values[sel])
+    blocks_a.append(sparse.hstack([-jac[eq], -eye[eq]]))
+    bounds.append(values[eq] - targets[eq])
+    blocks_a.append(sparse.hstack([sparse.csr_matrix((m, dim)), -eye]))  # slacks >= 0
+    bounds.append(np.zeros(m))
+    # The trust region, and no chip further from where the physics left it than the
+    # bottom-up route allows (a larger motion is not a resolution but a new stack).
+    step = radius * np.tile(np.r_[[_STEP_MM] * 3, [_STEP_RAD] * 3], n)
+    limit = np.tile(np.r_[[r._MAX_MOVE_MM] * 3, [r._MAX_TURN_RAD] * 3], n)
+    upper = np.maximum(np.minimum(step, limit - total), 0.0)
+    lower = np.maximum(np.minimum(step, limit + total), 0.0)
+    box = sparse.hstack([sparse.identity(dim), sparse.csr_matrix((dim, m))])
+    blocks_a += [box, -box]
+    bounds += [upper, lower]
+    a_matrix = sparse.vstack(blocks_a, format="csc")
+    settings = clarabel.DefaultSettings()
+    settings.verbose = False
+    solver = clarabel.DefaultSolver(
+        sparse.triu(p_matrix, format="csc"),
+        linear,
+        a_matrix,
+        np.concatenate(bounds),
+        [clarabel.NonnegativeConeT(a_matrix.shape[0])],
+        settings,
+    )
+    solution = solver.solve()
+    if str(solution.status) not in ("Solved", "AlmostSolved"):
+        return None
+    return np.asarray(solution.x[:dim])
