@@ -37,7 +37,7 @@ log = logging.getLogger(__name__)
 
 _LOWER_PENALTY = 1e5  # per mm below a lower bound
 _SURFACE_PENALTY = 1e4  # per mm out of a surface contact's plane
-_SOFT_PENALTY = 1.0  # per mm beyond an upper bound or off parallel
+_SOFT_PENALTY = 1e3  # per mm beyond an upper bound or off parallel (keeps contact classes)
 _ALIGN_PENALTY = 1e3  # per radian off alignment
 # Two chips in a shared plane whose outlines cross at less than this are turned (about
 # the plane's normal) until their edges are parallel: outlines crossing at a shallow

@@ -600,7 +600,10 @@ def _rules(contacts: ContactTable, gap_mm: float, contact_gap_mm: float):
     # clearance leaves room for it.
     within = 0.9 * contact_gap_mm
     upper = within if within > gap_mm + 0.005 else np.inf
-    apart = Rule(max(gap_mm, contact_gap_mm))
+    # A pair apart must stay apart for the geometry stage's test too, which inflates each
+    # box by half the contact gap along its face normals: along a diagonal axis a corner
+    # grows by sqrt(3) times that.
+    apart = Rule(max(gap_mm, 1.05 * np.sqrt(3) * contact_gap_mm))
 
     def rule(chip: int, partner: int) -> Rule:
         kind = kinds.get((min(chip, partner), max(chip, partner)))
