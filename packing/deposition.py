@@ -577,7 +577,8 @@ def deposit(
     ``deposition.chips`` have been poured; only the final state is recorded.
     ``progress`` is called after each batch with (batch number, its result; for
     containers the result of the last batch only, else ``None``).
-    All random draws come from ``numpy.random.default_rng(scenario.seed)``.
+    All random draws come from ``numpy.random.default_rng(scenario.seed)`` (a release
+    effect's spins from a stream of the seed and the batch number).
     ``effects`` switches unmodelled effects on (``{name: strength}``, see
     :mod:`packing.effects`); the diagnosis uses them.
 
@@ -793,6 +794,9 @@ def _soften_floor(world: ChipWorld, contact, reference_mass_g: float) -> None:
     )
 
 
+_RELEASE_STREAM = 0x5E1E  # tags the release effects' random stream (any fixed number)
+
+
 def _release_batch(
     world: ChipWorld,
     scenario: Scenario,
@@ -813,6 +817,26 @@ def _release_batch(
         world.add_chip(shape, p, q)
         for shape, p, q in zip(shapes, positions, quaternions, strict=True)
     ]
+    # Release effects (a spin as the chip leaves its holder), as in a drop. Their draws
+    # come from a stream of their own (the scenario's seed and the batch), so that a
+    # stack with the effect at strength 0 is the stack without it.
+    releasing = [
+        (EFFECTS.get(name), value)
+        for name, value in strengths.items()
+        if type(EFFECTS.get(name)).release is not Effect.release
+    ]
+    if releasing:
+        draws = np.random.default_rng([scenario.seed, batch, _RELEASE_STREAM]).normal(
+            size=(count, 3)
+        )
+        spin = np.zeros((count, 3))
+        for effect, value in releasing:
+            extra = effect.release(draws, value)
+            if extra is not None:
+                spin += extra
+        for chip, omega in zip(new, spin, strict=True):
+            if omega.any():
+                world.set_velocity(chip, np.zeros(3), omega)
     work.batch_of += [batch] * count
     work.shapes_of += shapes
     return new

@@ -114,3 +114,18 @@ def test_chips_deep_under_the_surface_are_buried_and_the_rest_are_not():
     # The column is the surface over the cells next to its own too (25 mm away).
     beside = np.vstack([column, [[25.0, 0.0, 0.0]]])
     assert buried_under(beside, np.full(13, 10.0), 2.0)[-1]
+
+
+def test_a_release_spin_acts_in_a_stack_and_strength_zero_changes_nothing():
+    """The release hook is called in deposition as in a drop (it was declared for stacks
+    but never called, so the stack study counted a planted effect that did nothing): a
+    spin of 20 rad/s changes where the chips come to rest; strength 0 leaves the stack
+    exactly as without the effect."""
+    scenario = scenario_from_dict(
+        {"seed": 3, "deposition": {"chips": 24, "batch_size": 12, "target_size_mm": 80.0}}
+    )
+    plain = deposit(scenario)
+    spun = deposit(scenario, effects={"release_perturbation": 20.0})
+    zero = deposit(scenario, effects={"release_perturbation": 0.0})
+    assert np.array_equal(zero.positions, plain.positions)
+    assert np.abs(spun.positions - plain.positions).max() > 1.0  # mm
