@@ -136,23 +136,9 @@ def relax(
     # leaves a neck as narrow in the face around it: it is moved away from the edge's
     # line, on the side it is on, to the flush distance. (Put exactly on the line, it
     # left degenerate tetrahedra: OpenCASCADE merges within its own tolerance.)
-    corner_on_edge = []
-    for pair, ((pa, fa), face_b) in sorted(surface.items()):
-        if pair[1] == r.GROUND or pair in align:
-            continue
-        pb, fb = face_b
-        normal = worlds[pair[1]].normals[pb][fb]
-        for first, (p1, f1), (p2, f2) in ((0, (pa, fa), (pb, fb)), (1, (pb, fb), (pa, fa))):
-            corners = _face_edges(worlds[pair[first]], p1, f1)
-            edges = _face_edges(worlds[pair[1 - first]], p2, f2)
-            for i, (corner, _) in enumerate(corners):
-                for j, (s, t) in enumerate(edges):
-                    length = np.linalg.norm(t - s)
-                    edge = (t - s) / length
-                    along = (corner - s) @ edge
-                    value = np.cross(normal, edge) @ (corner - s)
-                    if abs(value) < _FLUSH_MM and 0 < along < length:
-                        corner_on_edge.append((pair, first, i, j, 1.0 if value >= 0 else -1.0))
+    # Corners are looked for again whenever the rest has settled: the motions can bring
+    # a corner near an edge that was far from it at the start.
+    corner_on_edge = _near_corners(worlds, surface, align, set())
     let_go: set = set()
     dropped: set = set()
     chosen: dict = {}
@@ -264,7 +250,20 @@ def relax(
         # The lower bounds carry a margin (resolve._SLACK_MM) above the gap: a
         # micrometre short of it is still clear, and the final check is against the gap.
         if worst >= -1e-6 and off_plane < 1e-8 and turned < 1e-8:
-            break
+            known = {entry[:4] for entry in corner_on_edge}
+            kept = {pair: f for pair, f in surface.items() if pair not in let_go}
+            new = [
+                entry
+                for entry in _near_corners(worlds, kept, align, known)
+                if ("corner", *entry[:4]) not in dropped
+            ]
+            if not new:
+                break
+            corner_on_edge += new
+            rows = build(worlds)
+            current = merit(rows, total)
+            radius = 1.0
+            continue
         delta = _qp(rows, total, metric, positions, n, radius)
         if delta is None:
             log.debug("relax: programme failed at step %d", iteration)
@@ -400,6 +399,34 @@ def _facing_faces(worlds, chip, partner, contacts, positions, cos_snap):
     if best is None:
         return None
     return (best[1], best[2]), face_b
+
+
+def _near_corners(worlds, surface, align, known):
+    """(pair, which face's corner, corner, edge, side) of every corner of a surface pair
+    (not aligned) within the flush distance of the other face's edge, alongside it, and
+    not in ``known`` (its first four entries)."""
+    from geometry import resolve as r
+
+    out = []
+    for pair, ((pa, fa), face_b) in sorted(surface.items()):
+        if pair[1] == r.GROUND or pair in align:
+            continue
+        pb, fb = face_b
+        normal = worlds[pair[1]].normals[pb][fb]
+        for first, (p1, f1), (p2, f2) in ((0, (pa, fa), (pb, fb)), (1, (pb, fb), (pa, fa))):
+            corners = _face_edges(worlds[pair[first]], p1, f1)
+            edges = _face_edges(worlds[pair[1 - first]], p2, f2)
+            for i, (corner, _) in enumerate(corners):
+                for j, (s, t) in enumerate(edges):
+                    if (pair, first, i, j) in known:
+                        continue
+                    length = np.linalg.norm(t - s)
+                    edge = (t - s) / length
+                    along = (corner - s) @ edge
+                    value = np.cross(normal, edge) @ (corner - s)
+                    if abs(value) < _FLUSH_MM and 0 < along < length:
+                        out.append((pair, first, i, j, 1.0 if value >= 0 else -1.0))
+    return out
 
 
 def _face_edges(world, piece, face):
