@@ -33,6 +33,8 @@ import numpy as np
 import scipy.sparse as sparse
 from scipy.spatial.transform import Rotation
 
+from geometry.contacts import GROUND, candidate_pairs
+
 log = logging.getLogger(__name__)
 
 _LOWER_PENALTY = 1e5  # per mm below a lower bound
@@ -80,7 +82,7 @@ def relax(
     """Resolve every chip at once. Returns (rotations, positions, surface contacts kept
     as (chip, partner) with partner -1 for the conveyor, surface contacts let go) or None
     when the lower bounds cannot all be met."""
-    from geometry import resolve as r
+    from geometry import _rigid as r
 
     n = arrangement.n_chips
     pieces = [r._pieces(s) for s in arrangement.shapes]
@@ -100,14 +102,14 @@ def relax(
         return r._place(pieces[arrangement.shape_index[k]], rotations[k], positions[k])
 
     worlds = [world(k) for k in range(n)]
-    near = [(int(a), int(b)) for a, b in r.candidate_pairs(arrangement.bounds, gap_mm + 1.0)]
+    near = [(int(a), int(b)) for a, b in candidate_pairs(arrangement.bounds, gap_mm + 1.0)]
     # Surface contacts: (chip, partner) with the partner placed first (or the conveyor).
     surface = {}
     for a, b, kind in zip(contacts.chip_a, contacts.chip_b, contacts.kind, strict=True):
         if kind != r._SURFACE:
             continue
         a, b = int(a), int(b)
-        if b != r.GROUND and rank[b] > rank[a]:
+        if b != GROUND and rank[b] > rank[a]:
             a, b = b, a
         faces = _facing_faces(worlds, a, b, contacts, positions, cos_snap)
         if faces is not None:
@@ -115,7 +117,7 @@ def relax(
     align = {
         pair
         for pair in surface
-        if pair[1] != r.GROUND
+        if pair[1] != GROUND
         and all(arrangement.shapes[arrangement.shape_index[k]].kind == "box" for k in pair)
         and abs(_misalignment(rotations, *pair, worlds, surface[pair])) < np.radians(_ALIGN_DEG)
     }
@@ -153,8 +155,8 @@ def relax(
             if frozenset((a, b)) not in equal_pairs:
                 rows += _pair_rows(worlds, a, b, rule(a, b), chosen)
         for k in range(n):
-            if (k, r.GROUND) not in kept:
-                rows += _floor_rows(worlds[k], k, rule(k, r.GROUND))
+            if (k, GROUND) not in kept:
+                rows += _floor_rows(worlds[k], k, rule(k, GROUND))
         for (a, b), (face_a, face_b) in kept.items():
             rows += _surface_rows(worlds, a, b, face_a, face_b)
             if (a, b) in align and ("align", a, b) not in dropped:
@@ -350,7 +352,7 @@ def _violation(row) -> float:
 
 
 def _metric(rotations, inertia, weights):
-    from geometry import resolve as r
+    from geometry import _rigid as r
 
     blocks = []
     for k in range(len(rotations)):
@@ -365,14 +367,13 @@ def _facing_faces(worlds, chip, partner, contacts, positions, cos_snap):
     """((piece, face) of the chip, (piece, face) of the partner or None for the conveyor)
     that face each other in a surface contact, or None when no pair is within the snap
     angle."""
-    from geometry import resolve as r
 
     rows = np.flatnonzero(
         ((contacts.chip_a == chip) & (contacts.chip_b == partner))
         | ((contacts.chip_a == partner) & (contacts.chip_b == chip))
     )
     centre = contacts.centre_mm[rows[0]]
-    if partner == r.GROUND:
+    if partner == GROUND:
         target_normal, face_b = np.array([0.0, 0.0, 1.0]), None
     else:
         best = None
@@ -405,11 +406,10 @@ def _near_corners(worlds, surface, align, known):
     """(pair, which face's corner, corner, edge, side) of every corner of a surface pair
     (not aligned) within the flush distance of the other face's edge, alongside it, and
     not in ``known`` (its first four entries)."""
-    from geometry import resolve as r
 
     out = []
     for pair, ((pa, fa), face_b) in sorted(surface.items()):
-        if pair[1] == r.GROUND or pair in align:
+        if pair[1] == GROUND or pair in align:
             continue
         pb, fb = face_b
         normal = worlds[pair[1]].normals[pb][fb]
@@ -497,7 +497,7 @@ def _surface_rows(worlds, chip, partner, face_a, face_b):
 
 
 def _floor_rows(world, chip, rule):
-    from geometry import resolve as r
+    from geometry import _rigid as r
 
     up = np.array([0.0, 0.0, 1.0])
     out = []
@@ -527,7 +527,7 @@ def _floor_rows(world, chip, rule):
 
 def _pair_rows(worlds, a, b, rule, chosen):
     """Rows of a pair of chips along its separating axes (see resolve._near_features)."""
-    from geometry import resolve as r
+    from geometry import _rigid as r
 
     wa, wb = worlds[a], worlds[b]
     candidates = []
@@ -600,7 +600,7 @@ def _qp(rows, total, metric, positions, n, radius):
     region; None when the programme fails."""
     import clarabel
 
-    from geometry import resolve as r
+    from geometry import _rigid as r
 
     m = len(rows)
     dim = 6 * n

@@ -1,0 +1,171 @@
+"""Rigid chips for contact resolution: convex pieces placed in the world, their
+separating-axis gaps, and the rule each pair keeps (shared by the bottom-up route in
+:mod:`geometry.resolve` and the global route in :mod:`geometry._relax`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from geometry.contacts import KINDS, ContactTable
+from geometry.solids import shape_pieces
+
+_SURFACE = KINDS.index("surface")
+_MAX_MOVE_MM = 1.0  # the largest motion asked of a chip (a tenth of its thickness is typical)
+_MAX_TURN_RAD = np.radians(6.0)
+_TURN_WEIGHT = 10.0  # turns cost this many times their inertia: a turn sweeps corners far
+_REACH_MM = 0.3  # pairs further apart than their lower bound by this are left out of a step
+_CORNER_REACH_MM = 0.2  # corners this close to a pair's extreme are constrained too
+_SLACK_MM = 2e-4  # margin kept above the gap so rounding cannot bring a pair under it
+
+
+@dataclass(frozen=True)
+class _Piece:
+    """A convex piece in its chip's frame: corners, outward face planes, edge directions."""
+
+    vertices: np.ndarray  # (V, 3) mm
+    normals: np.ndarray  # (F, 3)
+    offsets: np.ndarray  # (F,) mm
+    edges: np.ndarray  # (E, 3) unit edge directions, one per parallel family
+
+
+def _edge_directions(vertices, normals, offsets) -> np.ndarray:
+    scale = max(1.0, float(np.abs(vertices).max()))
+    on = np.abs(vertices @ normals.T - offsets) < 1e-7 * scale  # (V, F)
+    directions: list[np.ndarray] = []
+    for a in range(len(normals)):
+        for b in range(a + 1, len(normals)):
+            if np.count_nonzero(on[:, a] & on[:, b]) < 2:
+                continue
+            d = np.cross(normals[a], normals[b])
+            norm = np.linalg.norm(d)
+            if norm < 1e-9:
+                continue
+            d /= norm
+            if not any(abs(float(d @ e)) > 1 - 1e-9 for e in directions):
+                directions.append(d)
+    return np.array(directions).reshape(-1, 3)
+
+
+def _pieces(shape) -> tuple[_Piece, ...]:
+    out = []
+    for piece in shape_pieces(shape):
+        v, n, d = (
+            np.asarray(a, dtype=float) for a in (piece.vertices, piece.normals, piece.offsets)
+        )
+        out.append(_Piece(v, n, d, _edge_directions(v, n, d)))
+    return tuple(out)
+
+
+@dataclass
+class _World:
+    """One chip's pieces placed in the world (for separating-axis tests)."""
+
+    vertices: list[np.ndarray]
+    normals: list[np.ndarray]
+    edges: list[np.ndarray]
+    offsets: list[np.ndarray]  # face planes in the world: normals . x <= offsets
+
+
+def _place(pieces: tuple[_Piece, ...], rotation: np.ndarray, position: np.ndarray) -> _World:
+    vertices = [p.vertices @ rotation.T + position for p in pieces]
+    normals = [p.normals @ rotation.T for p in pieces]
+    offsets = [p.offsets + n @ position for p, n in zip(pieces, normals, strict=True)]
+    return _World(vertices, normals, [p.edges @ rotation.T for p in pieces], offsets)
+
+
+def _piece_separation(va, na, ea, vb, nb, eb) -> float:
+    cross = np.cross(ea[:, None, :], eb[None, :, :]).reshape(-1, 3)
+    norms = np.linalg.norm(cross, axis=1)
+    cross = cross[norms > 1e-6] / norms[norms > 1e-6, None]
+    axes = np.vstack([na, nb, cross])
+    pa = va @ axes.T
+    pb = vb @ axes.T
+    gap = np.maximum(pb.min(axis=0) - pa.max(axis=0), pa.min(axis=0) - pb.max(axis=0))
+    return float(gap.max())
+
+
+def _separation(a: _World, b: _World) -> float:
+    """Separating-axis distance of two placed chips (mm): positive, a lower bound on the
+    distance between them; negative, minus the depth of their deepest interpenetration."""
+    return min(
+        _piece_separation(va, na, ea, vb, nb, eb)
+        for va, na, ea in zip(a.vertices, a.normals, a.edges, strict=True)
+        for vb, nb, eb in zip(b.vertices, b.normals, b.edges, strict=True)
+    )
+
+
+def _rules(contacts: ContactTable, gap_mm: float, contact_gap_mm: float):
+    """rule(chip, partner) -> :class:`Rule` for a pair (partner GROUND: the conveyor),
+    from its class in the settled stack."""
+    kinds = {
+        (int(min(a, b)), int(max(a, b))): int(k)
+        for a, b, k in zip(contacts.chip_a, contacts.chip_b, contacts.kind, strict=True)
+    }
+    # Touching pairs stay within the contact gap (less a tenth, for rounding) when the
+    # clearance leaves room for it.
+    within = 0.9 * contact_gap_mm
+    upper = within if within > gap_mm + 0.005 else np.inf
+    # A pair apart must stay apart for the geometry stage's test too, which inflates each
+    # box by half the contact gap along its face normals: along a diagonal axis a corner
+    # grows by sqrt(3) times that.
+    apart = Rule(max(gap_mm, 1.05 * np.sqrt(3) * contact_gap_mm))
+
+    def rule(chip: int, partner: int) -> Rule:
+        kind = kinds.get((min(chip, partner), max(chip, partner)))
+        if kind is None:
+            return apart
+        return Rule(gap_mm, upper, kind != KINDS.index("point"))
+
+    return rule
+
+
+class Rule(NamedTuple):
+    """What a pair must keep: a separation of at least ``lower`` and at most ``upper``
+    (mm; the settled pair's contact class is kept: a touching pair stays within the
+    contact gap, a pair apart stays apart), and, for a line or surface contact cleared
+    by the gap, the touching edge or face ``parallel`` to its partner at that gap."""
+
+    lower: float
+    upper: float = np.inf
+    parallel: bool = False
+
+
+def _axes(na, ea, nb, eb):
+    cross = np.cross(ea[:, None, :], eb[None, :, :]).reshape(-1, 3)
+    norms = np.linalg.norm(cross, axis=1)
+    valid = norms > 1e-6
+    cross = np.where(valid[:, None], cross / np.where(valid, norms, 1.0)[:, None], 0.0)
+    return np.vstack([na, nb, cross]), np.concatenate([np.ones(len(na) + len(nb), bool), valid])
+
+
+def _axis_gaps(va, na, ea, vb, nb, eb):
+    """Gap along every separating axis (mm; -inf for degenerate ones) and on which side
+    of the chip the neighbour lies along it (True: the positive side)."""
+    axes, valid = _axes(na, ea, nb, eb)
+    pa, pb = va @ axes.T, vb @ axes.T
+    ahead = pb.min(axis=0) - pa.max(axis=0)
+    behind = pa.min(axis=0) - pb.max(axis=0)
+    gaps = np.where(valid, np.maximum(ahead, behind), -np.inf)
+    return gaps, ahead >= behind
+
+
+def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    return np.array(
+        [u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]]
+    )
+
+
+def _axis(world, other, a, b, k) -> np.ndarray:
+    """Separating axis ``k`` of piece ``a`` of the chip and piece ``b`` of a neighbour
+    (the order of :func:`_axes`)."""
+    na, ea, nb, eb = world.normals[a], world.edges[a], other.normals[b], other.edges[b]
+    if k < len(na):
+        return na[k]
+    if k < len(na) + len(nb):
+        return nb[k - len(na)]
+    i, j = divmod(k - len(na) - len(nb), len(eb))
+    axis = _cross(ea[i], eb[j])
+    return axis / np.sqrt(axis @ axis)
