@@ -435,10 +435,9 @@ class MeshSpec:
     kind: str = _key(
         "voxel",
         "",
-        "`voxel` (hexahedra, always succeeds), `conformal` (gmsh tetrahedra), `both`, or "
-        "`contact` (every chip meshed on its own, contact pairs and rigid platens: the "
-        "model the solve stage runs)",
-        _one_of("voxel", "conformal", "both", "contact"),
+        "mesh kind, from the mesh-kind registry (see Meshes): `voxel` (hexahedra, always "
+        "succeeds), `conformal` (gmsh tetrahedra), `both`, or `contact` (every chip meshed "
+        "on its own, contact pairs and rigid platens: the model the solve stage runs)",
     )
     voxel_mm: float = _key(0.5, "mm", "voxel of the hexahedral mesh", _between(0.05, 100.0))
     size_mm: float = _key(

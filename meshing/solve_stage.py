@@ -5,7 +5,6 @@ force against the press as CSV and a figure."""
 from __future__ import annotations
 
 import csv
-import json
 import logging
 import shutil
 import tempfile
@@ -14,9 +13,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from core.errors import InputError
 from core.schema import Scenario
 from core.stages import Stage, StageInputs, StageOutput
+from meshing.solve_models import solve_model
 
 # The solver's driver, readers and writers are imported where used: every command-line
 # start registers this stage, and they bring numpy and scipy.
@@ -54,40 +53,18 @@ class SolveStage(Stage):
     in_ensembles = False
 
     def check_run(self, scenario: Scenario) -> None:
-        spec = scenario.mesh
-        volume = spec.kind == "voxel" and spec.crop != "none" and spec.pore_space == "box"
-        if spec.kind != "contact" and not volume:
-            raise InputError(
-                "--to solve: needs the contact model (mesh.kind = 'contact') or a cropped "
-                "voxel volume (mesh.kind = 'voxel', mesh.crop, mesh.pore_space = 'box'); "
-                f"mesh.kind is {spec.kind!r}"
-            )
-        if volume and "inp" not in spec.formats:
-            raise InputError(
-                "--to solve: the voxel volume is solved from its .inp; add inp to mesh.formats"
-            )
+        solve_model(scenario).check(scenario)
         from meshing.calculix import ccx_path
 
         ccx_path()
 
     def compute(self, inputs: StageInputs) -> Compaction:
-        from export.calculix import write_volume_compaction
         from meshing.calculix import SolverError, read_node_prints, run_ccx
 
         mesh = inputs.result("mesh")
         scratch = Path(tempfile.mkdtemp(prefix="chipstack-solve-"))
-        solve = inputs.scenario.solve
-        if inputs.scenario.mesh.kind == "contact":
-            shutil.copy(mesh.folder / "stack_contact.inp", scratch / f"{JOB}.inp")
-            press = None
-        else:
-            shutil.copy(mesh.folder / "stack_voxel.inp", scratch / "stack_voxel.inp")
-            checks = json.loads((mesh.folder / "stack_voxel_checks.json").read_text())
-            low, high = checks["bounds_mm"]
-            press = write_volume_compaction(
-                scratch / f"{JOB}.inp", "stack_voxel.inp", high[2] - low[2], solve,
-                inputs.scenario.mesh.periodic,
-            )  # fmt: skip
+        model = solve_model(inputs.scenario)
+        prepared = model.prepare(mesh.folder, scratch, JOB, inputs.scenario)
         report = inputs.options.progress
 
         def progress(step_time: float) -> None:
@@ -95,21 +72,17 @@ class SolveStage(Stage):
                 report(self.name, round(100 * step_time), 100, {})
 
         try:
+            solve = inputs.scenario.solve
             run = run_ccx(scratch, JOB, solve.threads, solve.time_limit_s, progress)
         except SolverError as exc:
             raise SolverError(f"{exc}; the deck and its log are kept in {scratch}") from None
         prints = read_node_prints(scratch / f"{JOB}.dat")
-        if press is None:  # the contact model: its platens' reference nodes
-            top, bottom = prints["REF_TOP"], prints["REF_BOTTOM"]
-            moved = -top["displacements"][:, 2]
-        else:  # a volume: the faces' forces summed; the press ramps with the step time
-            top, bottom = prints["TOP"], prints["BOTTOM"]
-            moved = press * top["time"]
+        moved, force, bottom_force = model.forces(prints, prepared)
         return Compaction(
             scratch=scratch,
             press_mm=moved,
-            force_n=-top["forces"][:, 2],
-            bottom_force_n=bottom["forces"][:, 2],
+            force_n=force,
+            bottom_force_n=bottom_force,
             wall_time_s=run.wall_time_s,
         )
 
@@ -126,8 +99,7 @@ class SolveStage(Stage):
             "solver_wall_time_s": round(result.wall_time_s, 2),
             "files": sorted(files),
         }
-        if inputs.scenario.mesh.kind == "contact":
-            summary.update(_contact_summary(folder / f"{JOB}.vtu", inputs))
+        summary.update(solve_model(inputs.scenario).summary(folder / f"{JOB}.vtu", inputs))
         return StageOutput(summary)
 
     def load(self, folder: Path, scenario: Scenario) -> Path:
@@ -175,43 +147,3 @@ def _write_results(result: Compaction, folder: Path, figures: bool) -> list[str]
         plot_force_displacement(folder / "force_displacement.png", result.press_mm, result.force_n)
         files.append("force_displacement.png")
     return files
-
-
-def _contact_summary(vtu: Path, inputs: StageInputs) -> dict[str, Any]:
-    """How many chips carry contact pressure at the end of the press, and the largest
-    pressure (MPa). CalculiX writes the contact state at slave nodes, which are chip
-    nodes: COPEN, CSLIP1, CSLIP2, CPRESS, CSHEAR1, CSHEAR2."""
-    import meshio
-    import numpy as np
-
-    if not vtu.is_file():
-        return {"chips_in_contact": 0, "contact_pressure_max_mpa": 0.0}
-    solved = meshio.read(vtu)
-    contact = solved.point_data.get("CONTACT")
-    if contact is None or np.ndim(contact) != 2 or contact.shape[1] < 4:
-        return {"chips_in_contact": 0, "contact_pressure_max_mpa": 0.0}
-    pressure = np.asarray(contact)[:, 3]
-    owner = _chip_of_node(inputs, solved.points)
-    touched = np.unique(owner[(pressure > 0) & (owner >= 0)])
-    return {
-        "chips_in_contact": int(len(touched)),
-        "contact_pressure_max_mpa": round(float(pressure.max(initial=0.0)), 4),
-    }
-
-
-def _chip_of_node(inputs: StageInputs, points: np.ndarray) -> np.ndarray:
-    """(N,) the chip of every node of the solved mesh (-1: platens). The converter keeps
-    the deck's node order, chips first; the coordinates are checked to be sure."""
-    import meshio
-    import numpy as np
-
-    model = meshio.read(inputs.result("mesh").folder / "stack_contact.vtu")
-    cells = model.cells[0].data
-    chip = np.asarray(model.cell_data["chip"][0])
-    n = int(cells.max()) + 1  # the chips' nodes come first in the deck
-    owner = np.full(len(points), -1)
-    if len(points) < n or not np.allclose(points[:n], model.points[:n], rtol=1e-4, atol=1e-3):
-        log.warning("solve: the result's nodes are not the model's; no contact count")
-        return owner
-    owner[cells.ravel()] = np.repeat(chip, cells.shape[1])
-    return owner

@@ -545,3 +545,47 @@ def test_a_single_chip_meshes_conformally():
     mesh = conformal_mesh(arrange([((0, 0, 1.0), 30.0)]), size_mm=2.0)
     assert mesh.chip_volumes() == pytest.approx([800.0], rel=1e-9)
     assert mesh.quality.min() > 0.3
+
+
+def test_an_unknown_mesh_kind_lists_the_registered_ones(tmp_path, small_scenario):
+    lines, out = _refused_mesh_run(tmp_path, small_scenario, '[mesh]\nkind = "tetra"\n')
+    assert lines[0].endswith(
+        "small.toml: mesh.kind: unknown mesh kind 'tetra'; "
+        "valid kinds: conformal, contact, voxel, both"
+    )
+    assert not out.exists()
+
+
+def test_a_registered_mesh_kind_is_built_checked_and_written_by_the_stage(tmp_path):
+    """A new kind is one subclass and one registration: the stage builds, checks and
+    writes it without knowing its name."""
+    from core.schema import scenario_from_dict
+    from core.stages import StageInputs, StageOptions
+    from meshing.kinds import MESH_KINDS, VoxelKind
+    from meshing.stage import STAGE
+
+    class CoarseVoxels(VoxelKind):
+        name = "coarse_voxel"
+
+        def build(self, arrangement, scenario, scratch):
+            built = super().build(arrangement, scenario, scratch)
+            built.mesh.info["coarse"] = True
+            return built
+
+    MESH_KINDS.register("coarse_voxel", CoarseVoxels())
+    try:
+        scenario = scenario_from_dict(
+            {"mesh": {"kind": "coarse_voxel", "voxel_mm": 1.0, "formats": ["vtu"]}}
+        )
+        stack = type("Stack", (), {})()
+        stack._history = [arrange([((0.0, 0.0, 1.0), 0.0)])]  # what stack_history keeps
+        stage_inputs = StageInputs(scenario, StageOptions(figures=False), lambda name: stack)
+        result = STAGE.compute(stage_inputs)
+        assert list(result.built) == ["coarse_voxel"] and result.reports["coarse_voxel"]["valid"]
+        summary = STAGE.write(result, tmp_path, stage_inputs).summary
+        assert summary["coarse_voxel"]["info"]["coarse"] is True
+        assert (tmp_path / "stack_coarse_voxel.vtu").is_file()
+        assert meshio.read(tmp_path / "stack_coarse_voxel.vtu").cells[0].data.shape[0] == 800
+        assert STAGE.report(summary, tmp_path)[0].startswith("coarse_voxel mesh: 800 elements")
+    finally:
+        MESH_KINDS._items.pop("coarse_voxel")

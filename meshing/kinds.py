@@ -1,0 +1,413 @@
+"""Mesh kinds, registered by name: what ``mesh.kind`` may ask for.
+
+A mesh kind is one object: it builds its mesh of the settled stack, checks it, writes
+its files and says in a line or two what it wrote. The mesh stage loops over the kinds a
+scenario asks for and knows none of them by name; a new kind is a subclass of
+:class:`MeshKind` and one ``MESH_KINDS.register`` call. Each kind also names the solve
+models (:mod:`meshing.solve_models`) that can run on what it writes.
+
+Heavy modules (numpy, gmsh, the meshers) are imported inside the methods: every
+command-line start imports this registry.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from core.errors import InputError, printable
+from core.registry import Registry
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    import numpy as np
+
+    from core.schema import Scenario
+    from core.stages import StageInputs
+    from geometry.arrangement import Arrangement
+    from meshing.contact_model import ContactModel
+    from meshing.mesh import VolumeMesh
+
+__all__ = ["Built", "MeshKind", "MESH_KINDS", "COMBINED", "mesh_kinds"]
+
+# Names of ``mesh.kind`` that stand for several kinds, built in this order.
+COMBINED = {"both": ("voxel", "conformal")}
+
+
+@dataclass
+class Built:
+    """What a kind built: its mesh (as a :class:`VolumeMesh`, for checks and files), files
+    its mesher wrote itself (format -> scratch path), and what else it keeps for
+    ``write`` (a contact resolution, a contact model)."""
+
+    mesh: VolumeMesh
+    native: dict[str, Path] = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+class MeshKind:
+    """One mesher of the settled stack (subclass and register in :data:`MESH_KINDS`)."""
+
+    name: str = ""
+    doc: str = ""
+    crops: bool = False  # takes mesh.crop
+    solve_models: tuple[str, ...] = ()  # names in meshing.solve_models.SOLVE_MODELS
+    # Errors of the mesher that mean "this stack cannot be meshed this way" (a one-line
+    # message); with mesh.kind = "both" the other kind's mesh still stands.
+    failures: tuple[type[Exception], ...] = ()
+
+    def build(self, arrangement: Arrangement, scenario: Scenario, scratch: Path) -> Built:
+        raise NotImplementedError
+
+    def check(
+        self,
+        built: Built,
+        arrangement: Arrangement,
+        scenario: Scenario,
+        surface_pairs: Callable[[], np.ndarray],
+    ) -> dict[str, Any]:
+        """The check report (``"valid"`` among its keys); raise when it is not valid."""
+        raise NotImplementedError
+
+    def write(self, folder: Path, built: Built, report: dict, inputs: StageInputs) -> dict:
+        """The kind's files in ``folder``; returns its manifest entry."""
+        return write_volume_mesh(folder, self.name, built, report, inputs)
+
+    def report(self, summary: dict[str, Any]) -> list[str]:
+        """Lines for the run's report, from the manifest entry."""
+        return [
+            f"{self.name} mesh: {summary['elements']:,} elements, {summary['nodes']:,} nodes, "
+            f"quality min {summary['quality_min']:.3f}, largest chip volume error "
+            f"{100 * summary['chip_volume_error_max']:.2f} %; in "
+            f"{summary['info']['mesh_time_s']:.1f} s"
+            + (
+                f"; NOT VALID: {summary['chips_in_pieces_count']} chips in pieces"
+                if summary.get("chips_in_pieces_count")
+                else ""
+            )
+        ]
+
+
+MESH_KINDS: Registry[MeshKind] = Registry("mesh kind")
+
+
+def mesh_kinds(name: str, key: str = "mesh.kind") -> list[MeshKind]:
+    """The kinds ``mesh.kind = name`` builds, in order; an unknown name is refused with
+    the valid ones listed."""
+    if name in COMBINED:
+        return [MESH_KINDS.get(n) for n in COMBINED[name]]
+    if name not in MESH_KINDS:
+        valid = ", ".join([*MESH_KINDS.names(), *COMBINED])
+        raise InputError(f"{key}: unknown mesh kind {printable(name)!r}; valid kinds: {valid}")
+    return [MESH_KINDS.get(name)]
+
+
+def write_volume_mesh(
+    folder: Path, kind: str, built: Built, report: dict, inputs: StageInputs
+) -> dict[str, Any]:
+    """A volume mesh's files, picture and check report; returns its manifest entry."""
+    from export.mesh_files import write_mesh
+
+    stem = f"stack_{kind}"
+    spec = inputs.scenario.mesh
+    native = [f for f in built.native if f in spec.formats]
+    formats = [f for f in spec.formats if f not in native]
+    files = [p.name for p in write_mesh(folder, stem, built.mesh, formats)]
+    for name in native:
+        shutil.move(built.native[name], folder / f"{stem}.{name}")
+        files.append(f"{stem}.{name}")
+    if inputs.options.figures:
+        from export.run_figures import mesh_figure  # pyvista only when drawing
+
+        files += mesh_figure(folder / f"{stem}.png", built.mesh)
+    (folder / f"{stem}_checks.json").write_text(json.dumps(report, indent=2) + "\n")
+    files.append(f"{stem}_checks.json")
+    mesh = built.mesh
+    return {
+        "elements": mesh.n_elements,
+        "nodes": len(mesh.points),
+        "quality_min": round(report["quality_min"], 4),
+        "quality_p1": round(report["quality_p1"], 4),
+        "chip_volume_error_max": report["chip_volume_error_max"],
+        "total_volume_error": report["total_volume_error"],
+        "chips_in_pieces_count": report["chips_in_pieces_count"],
+        "valid": report["valid"],
+        "info": mesh.info,
+        "files": sorted(files),
+    }
+
+
+def _checked_volume(mesh, arrangement, pairs, min_quality, tolerance, kind) -> dict[str, Any]:
+    import logging
+
+    from meshing.checks import assert_valid, check_mesh, split_warning
+
+    report = check_mesh(
+        mesh,
+        arrangement,
+        pairs,
+        min_quality,
+        chip_tolerance=tolerance,
+        region_mm=mesh.info.get("region_mm"),
+    )
+    assert_valid(report)
+    if (warning := split_warning(report, kind)) is not None:
+        logging.getLogger("meshing.stage").warning("%s", warning)
+    return report
+
+
+class VoxelKind(MeshKind):
+    name = "voxel"
+    doc = "hexahedra from the exact voxel image (always succeeds)"
+    crops = True
+    solve_models = ("volume",)
+
+    def build(self, arrangement, scenario, scratch):
+        from meshing.voxel import voxel_mesh
+
+        spec = scenario.mesh
+        _check_voxel_size(spec.voxel_mm, arrangement)
+        mesh = voxel_mesh(
+            arrangement,
+            spec.voxel_mm,
+            spec.pore_space,
+            scenario.geometry.layer_mm,
+            crop_region(scenario),
+            spec.periodic,
+        )
+        return Built(mesh)
+
+    def check(self, built, arrangement, scenario, surface_pairs):
+        # Voxel centres alias on plates tilted at rational slopes: a chip can gain or lose
+        # a fraction of a voxel layer through its thickness (measured: 2.6 % for a 2 mm
+        # plate tilted 14 deg at 0.5 mm voxels). Allow a quarter of a layer.
+        thinnest = min(s.thickness_mm for s in arrangement.shapes)
+        tolerance = max(0.02, 0.25 * scenario.mesh.voxel_mm / thinnest)
+        return _checked_volume(built.mesh, arrangement, surface_pairs(), 0.99, tolerance, self.name)
+
+
+class ConformalKind(MeshKind):
+    name = "conformal"
+    doc = "gmsh tetrahedra of the resolved arrangement, touching chips sharing faces"
+
+    @property
+    def failures(self):
+        from geometry.resolve import UnresolvedError
+        from meshing.conformal import MeshingError
+
+        return (MeshingError, UnresolvedError)
+
+    def build(self, arrangement, scenario, scratch):
+        from geometry.resolve import resolve_contacts
+        from meshing.conformal import conformal_mesh
+
+        spec, g = scenario.mesh, scenario.geometry
+        native = {}
+        if "msh" in spec.formats:  # written by gmsh itself, physical groups and all
+            native["msh"] = scratch / f"stack_{self.name}.msh"
+        # The mesh-ready arrangement: the settled one is left as it is (descriptors and
+        # the voxel mesh keep the physics' poses).
+        resolution = resolve_contacts(
+            arrangement,
+            spec.gap_mm,
+            spec.snap_angle_deg,
+            contact_gap_mm=g.contact_gap_mm,
+            contact_extent_mm=g.contact_extent_mm,
+        )
+        mesh = conformal_mesh(
+            resolution.arrangement,
+            spec.size_mm,
+            spec.pore_space,
+            g.layer_mm,
+            spec.min_quality,
+            msh_path=native.get("msh"),
+        )
+        info = dict(mesh.info)
+        info["resolution"] = resolution.summary()
+        info["mesh_time_s"] = round(info["mesh_time_s"] + resolution.seconds, 3)
+        mesh = type(mesh)(**{**mesh.__dict__, "info": info})
+        return Built(mesh, native, {"resolution": resolution})
+
+    def check(self, built, arrangement, scenario, surface_pairs):
+        import numpy as np
+
+        # Surface contacts the resolution could not make coplanar were cleared by the
+        # gap (counted in its report); the others must share faces.
+        resolution = built.extra["resolution"]
+        cleared = {frozenset(p) for p in resolution.surface_cleared}
+        pairs = np.array(
+            [p for p in surface_pairs().tolist() if frozenset(p) not in cleared]
+        ).reshape(-1, 2)
+        return _checked_volume(
+            built.mesh,
+            resolution.arrangement,
+            pairs,
+            scenario.mesh.min_quality,
+            0.02,
+            self.name,
+        )
+
+    def report(self, summary):
+        lines = super().report(summary)
+        if (r := summary["info"].get("resolution")) is not None:
+            lines.insert(
+                1,
+                f"  contact resolution: chips moved at most {r['max_translation_mm']:.3f} mm "
+                f"and {r['max_rotation_deg']:.2f} deg; {r['snapped_chip_chip']} chip and "
+                f"{r['snapped_conveyor']} conveyor surface contacts made coplanar, "
+                f"{r['pairs_cleared']} near pairs cleared to {r['gap_mm']:g} mm, "
+                f"{r['surface_contacts_cleared']} surface contacts cleared instead of snapped",
+            )
+        return lines
+
+
+class ContactKind(MeshKind):
+    name = "contact"
+    doc = (
+        "every chip meshed on its own, contact pairs and rigid platens: the model the "
+        "solve stage runs"
+    )
+    solve_models = ("contact",)
+
+    def build(self, arrangement, scenario, scratch):
+        from meshing.contact_model import contact_model
+
+        spec = scenario.mesh
+        model = contact_model(
+            arrangement,
+            spec.element_mm,
+            spec.through_thickness,
+            spec.contact_gap_mm,
+            scenario.geometry.layer_mm,
+        )
+        return Built(contact_volume_mesh(model, arrangement), extra={"model": model})
+
+    def check(self, built, arrangement, scenario, surface_pairs):
+        return check_contact_model(built.extra["model"], built.mesh, arrangement)
+
+    def write(self, folder, built, report, inputs):
+        return write_contact(folder, built.extra["model"], built.mesh, report, inputs)
+
+    def report(self, m):
+        return [
+            f"contact model: {m['chips']} chips, {m['elements']:,} {m['element']} "
+            f"elements, {m['chip_pairs']} chip pairs, {m['floor_chips']} chips on the "
+            f"conveyor; overlaps cleared by moving chips at most {m['max_move_mm']:.3f} mm"
+        ]
+
+
+def check_contact_model(
+    model: ContactModel, mesh: VolumeMesh, arrangement: Arrangement
+) -> dict[str, Any]:
+    """Every element (``mesh``: the model's chips) has positive volume, every chip's
+    meshed volume is its exact volume, and every chip has an outer surface."""
+    import numpy as np
+
+    volumes = mesh.element_volumes()
+    exact = np.array([s.volume_mm3 for s in arrangement.shapes])[arrangement.shape_index]
+    meshed = np.bincount(model.chip, weights=volumes, minlength=model.n_chips)
+    error = np.abs(meshed - exact) / exact
+    faces = np.array([len(f) for f in model.surfaces])
+    report = {
+        "elements": int(model.n_elements),
+        "nodes": int(len(model.points)),
+        "volume_min_mm3": float(volumes.min()),
+        "chip_volume_error_max": float(error.max()),
+        "surface_faces_min": int(faces.min()),
+        "max_move_mm": model.info["max_move_mm"],
+        "chips_moved_apart": model.info["chips_moved_apart"],
+    }
+    problems = []
+    if volumes.min() <= 0:
+        problems.append(f"{int((volumes <= 0).sum())} elements with non-positive volume")
+    if error.max() > 1e-6:
+        problems.append(
+            f"chip {int(error.argmax())} meshed volume off by {100 * error.max():.3g} %"
+        )
+    report["valid"] = not problems
+    report["problems"] = problems
+    return report
+
+
+def contact_volume_mesh(model: ContactModel, arrangement: Arrangement) -> VolumeMesh:
+    """The chips of a contact model as a :class:`VolumeMesh` (for checks and files)."""
+    import numpy as np
+
+    from meshing.mesh import VolumeMesh, element_attributes
+
+    n = len(model.cells)
+    attributes = element_attributes(arrangement, model.chip, 2.0)
+    return VolumeMesh(
+        points=model.points,
+        cell_type="hexahedron",
+        cells=model.cells,  # C3D8 and VTK_HEXAHEDRON share the node order
+        chip=model.chip,
+        quality=np.ones(n),
+        node_sets={},
+        n_chips=model.n_chips,
+        kind="contact",
+        info=dict(model.info),
+        **attributes,
+    )
+
+
+def write_contact(
+    folder: Path, model: ContactModel, chips: VolumeMesh, report: dict, inputs: StageInputs
+) -> dict[str, Any]:
+    """The CalculiX deck, a VTU of the chips and the check report; the manifest entry."""
+    from export.calculix import press_mm, write_contact_deck
+    from export.mesh_files import write_mesh
+    from meshing.conformal import MeshingError
+
+    spec = inputs.scenario.mesh
+    write_contact_deck(folder / "stack_contact.inp", model, inputs.scenario.solve, spec.element)
+    files = ["stack_contact.inp"]
+    files += [p.name for p in write_mesh(folder, "stack_contact", chips, ["vtu"])]
+    (folder / "stack_contact_checks.json").write_text(json.dumps(report, indent=2) + "\n")
+    files.append("stack_contact_checks.json")
+    if not report["valid"]:
+        raise MeshingError(f"contact model: {'; '.join(report['problems'])}")
+    return {
+        "chips": model.n_chips,
+        "elements": model.n_elements,
+        "element": spec.element,
+        "nodes": len(model.points),
+        "chip_pairs": len(model.pairs),
+        "floor_chips": len(model.floor_chips),
+        "height_mm": round(model.height_mm, 4),
+        "press_mm": round(press_mm(model, inputs.scenario.solve), 4),
+        "max_move_mm": round(model.info["max_move_mm"], 5),
+        "info": model.info,
+        "files": sorted(files),
+    }
+
+
+def crop_region(scenario: Scenario) -> tuple[float, float, float, float] | None:
+    """The crop of ``[mesh]`` as (x_min, x_max, y_min, y_max) mm, or None."""
+    spec = scenario.mesh
+    if spec.crop == "target":
+        half = scenario.deposition.target_size_mm / 2
+        return (-half, half, -half, half)
+    if spec.crop == "region":
+        x0, x1, y0, y1 = spec.region_mm
+        return (x0, x1, y0, y1)
+    return None
+
+
+def _check_voxel_size(voxel_mm: float, arrangement: Arrangement) -> None:
+    """A voxel as thick as a chip samples it once through its thickness: tilted chips
+    fall apart into pieces joined at edges (half the reference stack at 2 mm)."""
+    thinnest = min(2 * float(min(s.half_extents)) for s in arrangement.shapes)
+    if voxel_mm >= thinnest:
+        raise InputError(
+            f"mesh.voxel_mm: {voxel_mm:g} mm is not below the thinnest chip dimension "
+            f"({thinnest:g} mm); use at most {thinnest / 2:g} mm (2 voxels through a chip)"
+        )
+
+
+for _kind in (VoxelKind(), ConformalKind(), ContactKind()):
+    MESH_KINDS.register(_kind.name, _kind)

@@ -1,0 +1,173 @@
+"""Solve models, registered by name: what the solve stage can press in CalculiX.
+
+A solve model takes the files one mesh kind wrote (:mod:`meshing.kinds`, whose
+``solve_models`` name it), writes the compaction deck in the solver's folder, and reads
+the platen forces back from the solver's node prints. The solve stage picks the first
+model of the scenario's mesh kinds that accepts the scenario and knows none by name; a
+new model is a subclass of :class:`SolveModel` and one ``SOLVE_MODELS.register`` call.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from core.errors import InputError
+from core.registry import Registry
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from core.schema import Scenario
+    from core.stages import StageInputs
+
+__all__ = ["SolveModel", "SOLVE_MODELS", "solve_model"]
+
+log = logging.getLogger(__name__)
+
+
+class SolveModel:
+    """One way of pressing a meshed stack (subclass and register in :data:`SOLVE_MODELS`)."""
+
+    name: str = ""
+    needs: str = ""  # what it needs, for the message when nothing accepts a scenario
+
+    def accepts(self, scenario: Scenario) -> bool:
+        """Whether this model can press what ``[mesh]`` asks for."""
+        raise NotImplementedError
+
+    def check(self, scenario: Scenario) -> None:
+        """Refuse, in one line, a scenario it accepts but cannot run (before any work)."""
+
+    def prepare(self, mesh_folder: Path, scratch: Path, job: str, scenario: Scenario):
+        """Write ``job.inp`` (and what it includes) in ``scratch``; returns what
+        :meth:`forces` needs."""
+        raise NotImplementedError
+
+    def forces(self, prints: dict, prepared) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(press mm, top platen force N, conveyor force N) at each increment."""
+        raise NotImplementedError
+
+    def summary(self, vtu: Path, inputs: StageInputs) -> dict[str, Any]:
+        """What the stage's summary adds for this model."""
+        return {}
+
+
+SOLVE_MODELS: Registry[SolveModel] = Registry("solve model")
+
+
+def solve_model(scenario: Scenario) -> SolveModel:
+    """The model that presses the scenario's mesh; refused in one line when none can."""
+    from meshing.kinds import mesh_kinds
+
+    for kind in mesh_kinds(scenario.mesh.kind):
+        for name in kind.solve_models:
+            model = SOLVE_MODELS.get(name)
+            if model.accepts(scenario):
+                return model
+    needs = " or ".join(SOLVE_MODELS.get(n).needs for n in SOLVE_MODELS.in_order())
+    raise InputError(f"--to solve: needs {needs}; mesh.kind is {scenario.mesh.kind!r}")
+
+
+class ContactPress(SolveModel):
+    """The contact model's own deck: chips, contact pairs and rigid platens."""
+
+    name = "contact"
+    needs = "the contact model (mesh.kind = 'contact')"
+
+    def accepts(self, scenario):
+        return scenario.mesh.kind == "contact"
+
+    def prepare(self, mesh_folder, scratch, job, scenario):
+        shutil.copy(mesh_folder / "stack_contact.inp", scratch / f"{job}.inp")
+        return None
+
+    def forces(self, prints, prepared):
+        top, bottom = prints["REF_TOP"], prints["REF_BOTTOM"]  # the platens' reference nodes
+        return -top["displacements"][:, 2], -top["forces"][:, 2], bottom["forces"][:, 2]
+
+    def summary(self, vtu, inputs):
+        return contact_summary(vtu, inputs)
+
+
+class VolumePress(SolveModel):
+    """A cropped voxel volume, pore space and all, between whole-face platens."""
+
+    name = "volume"
+    needs = "a cropped voxel volume (mesh.kind = 'voxel', mesh.crop, mesh.pore_space = 'box')"
+
+    def accepts(self, scenario):
+        spec = scenario.mesh
+        return spec.crop != "none" and spec.pore_space == "box"
+
+    def check(self, scenario):
+        if "inp" not in scenario.mesh.formats:
+            raise InputError(
+                "--to solve: the voxel volume is solved from its .inp; add inp to mesh.formats"
+            )
+
+    def prepare(self, mesh_folder, scratch, job, scenario):
+        from export.calculix import write_volume_compaction
+
+        shutil.copy(mesh_folder / "stack_voxel.inp", scratch / "stack_voxel.inp")
+        checks = json.loads((mesh_folder / "stack_voxel_checks.json").read_text())
+        low, high = checks["bounds_mm"]
+        return write_volume_compaction(
+            scratch / f"{job}.inp",
+            "stack_voxel.inp",
+            high[2] - low[2],
+            scenario.solve,
+            scenario.mesh.periodic,
+        )
+
+    def forces(self, prints, press):
+        # The faces' forces summed; the press ramps with the step time.
+        top, bottom = prints["TOP"], prints["BOTTOM"]
+        return press * top["time"], -top["forces"][:, 2], bottom["forces"][:, 2]
+
+
+def contact_summary(vtu: Path, inputs: StageInputs) -> dict[str, Any]:
+    """How many chips carry contact pressure at the end of the press, and the largest
+    pressure (MPa). CalculiX writes the contact state at slave nodes, which are chip
+    nodes: COPEN, CSLIP1, CSLIP2, CPRESS, CSHEAR1, CSHEAR2."""
+    import meshio
+    import numpy as np
+
+    if not vtu.is_file():
+        return {"chips_in_contact": 0, "contact_pressure_max_mpa": 0.0}
+    solved = meshio.read(vtu)
+    contact = solved.point_data.get("CONTACT")
+    if contact is None or np.ndim(contact) != 2 or contact.shape[1] < 4:
+        return {"chips_in_contact": 0, "contact_pressure_max_mpa": 0.0}
+    pressure = np.asarray(contact)[:, 3]
+    owner = chip_of_node(inputs, solved.points)
+    touched = np.unique(owner[(pressure > 0) & (owner >= 0)])
+    return {
+        "chips_in_contact": int(len(touched)),
+        "contact_pressure_max_mpa": round(float(pressure.max(initial=0.0)), 4),
+    }
+
+
+def chip_of_node(inputs: StageInputs, points: np.ndarray) -> np.ndarray:
+    """(N,) the chip of every node of the solved mesh (-1: platens). The converter keeps
+    the deck's node order, chips first; the coordinates are checked to be sure."""
+    import meshio
+    import numpy as np
+
+    model = meshio.read(inputs.result("mesh").folder / "stack_contact.vtu")
+    cells = model.cells[0].data
+    chip = np.asarray(model.cell_data["chip"][0])
+    n = int(cells.max()) + 1  # the chips' nodes come first in the deck
+    owner = np.full(len(points), -1)
+    if len(points) < n or not np.allclose(points[:n], model.points[:n], rtol=1e-4, atol=1e-3):
+        log.warning("solve: the result's nodes are not the model's; no contact count")
+        return owner
+    owner[cells.ravel()] = np.repeat(chip, cells.shape[1])
+    return owner
+
+
+for _model in (ContactPress(), VolumePress()):
+    SOLVE_MODELS.register(_model.name, _model)
