@@ -45,6 +45,8 @@ _ALIGN_PENALTY = 1e3  # per radian off alignment
 # the plane's normal) until their edges are parallel: outlines crossing at a shallow
 # angle cut the shared face into a thin wedge, and no tetrahedron on it can be sound.
 _ALIGN_DEG = 6.0
+_EXTRA_ITERATIONS = 30  # steps given after stuck surface contacts are let go at the end
+_EXTENSIONS = 3  # at most this many times
 _FLUSH_MM = 0.3  # parallel edges closer than this in a shared plane are made flush
 _STEP_MM = 0.1  # trust region per step
 _STEP_RAD = 0.01
@@ -242,7 +244,29 @@ def relax(
     radius = 1.0  # trust region, in units of (_STEP_MM, _STEP_RAD)
     rows = build(worlds)
     current = merit(rows, total)
-    for iteration in range(_ITERATIONS):
+    limit, extended = _ITERATIONS, 0
+
+    def let_go_stuck_surfaces() -> bool:
+        """At the end of the budget (or of the trust region): the surface contacts that
+        hold the rest up are let go and the rest given more steps (a few times)."""
+        nonlocal rows, current, radius, limit, extended
+        stuck = _stuck_groups(rows)
+        if extended >= _EXTENSIONS or not stuck:
+            return False
+        extended += 1
+        let_go.update(stuck)
+        rows = build(worlds)
+        current = merit(rows, total)
+        radius = 1.0
+        limit = iteration + 1 + _EXTRA_ITERATIONS
+        log.debug("relax: %d surface contacts let go at step %d", len(stuck), iteration)
+        return True
+
+    iteration = -1
+    while True:
+        iteration += 1
+        if iteration >= limit and not let_go_stuck_surfaces():
+            break
         worst = min(
             (row.value - row.target for row in rows if row.penalty == _LOWER_PENALTY),
             default=np.inf,
@@ -303,7 +327,7 @@ def relax(
             radius = min(1.0, 2 * radius)
         else:
             radius /= 4
-            if radius < 1e-6:
+            if radius < 1e-6 and not let_go_stuck_surfaces():
                 break
         # What cannot hold with the rest once it has settled is let go: first an edge
         # made flush or a corner put on an edge (the mesh copes with a narrow strip
@@ -313,11 +337,7 @@ def relax(
             stuck_edges = {
                 row.key for row in rows if row.key is not None and _violation(row) > 1e-6
             }
-            stuck = set()
-            if iteration != _CHECKPOINTS[0]:
-                stuck = {
-                    row.group for row in rows if row.group is not None and abs(row.value) > 1e-5
-                }
+            stuck = set() if iteration == _CHECKPOINTS[0] else _stuck_groups(rows)
             if stuck or stuck_edges:
                 let_go.update(stuck)
                 dropped.update(stuck_edges)
@@ -328,7 +348,22 @@ def relax(
         (row.value - row.target for row in rows if row.penalty == _LOWER_PENALTY),
         default=np.inf,
     )
+    # A surface contact left out of its plane would be snapped into it afterwards, by as
+    # much: that counts against the result like a pair short of its gap.
+    off_plane = max((abs(row.value) for row in rows if row.group is not None), default=0.0)
+    worst = min(worst, -off_plane if off_plane > 1e-5 else 0.0)
     return rotations, positions, start_rot, start_pos, surface, let_go, worst
+
+
+def _stuck_groups(rows) -> set:
+    """The surface contacts out of their plane by more than 10 um and by more than a tenth
+    of the worst one: the ones that hold the rest up, not those still on their way."""
+    off = {}
+    for row in rows:
+        if row.group is not None:
+            off[row.group] = max(off.get(row.group, 0.0), abs(row.value))
+    worst = max(off.values(), default=0.0)
+    return {group for group, value in off.items() if value > max(1e-5, 0.1 * worst)}
 
 
 def _misalignment(rotations, chip, partner, worlds, faces) -> float:

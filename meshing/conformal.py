@@ -293,9 +293,15 @@ def _grade_thin_faces(gmsh, size_mm: float) -> None:
             level = int(np.ceil(np.log2(size_mm / max(length, size_mm / 4096))))
             classes.setdefault(level, []).append(curve)
     points: dict[int, list[int]] = {}  # width class: corners near an edge of their face
-    for point, gap in _corners_near_edges(gmsh, size_mm / 2).items():
+    near_points, near_curves = _corners_near_edges(gmsh, size_mm / 2)
+    for point, gap in near_points.items():
         level = int(np.ceil(np.log2(size_mm / max(gap, size_mm / 4096))))
         points.setdefault(level, []).append(point)
+    for curve, gap in near_curves.items():
+        if gap < size_mm / 64:  # a corner on an edge, not a strip: the corner's field does
+            continue  # (a whole edge graded to a micrometre would be millions of elements)
+        level = int(np.ceil(np.log2(size_mm / max(gap, size_mm / 4096))))
+        classes.setdefault(level, []).append(curve)
     fields = []
     for level in sorted(set(classes) | set(points)):
         width = size_mm / 2**level
@@ -325,15 +331,18 @@ def _grade_thin_faces(gmsh, size_mm: float) -> None:
     )
 
 
-def _corners_near_edges(gmsh, reach_mm: float) -> dict[int, float]:
+def _corners_near_edges(gmsh, reach_mm: float) -> tuple[dict[int, float], dict[int, float]]:
     """Corners of a face closer than ``reach_mm`` to an edge of the same face that does
-    not end at them: point tag -> that distance (mm).
+    not end at them: (point tag -> that distance, curve tag -> the least such distance of
+    the edge or of an edge ending at such a corner), mm.
 
     Such a corner leaves the face a sliver between itself and the edge (a corner of one
-    outline on, or nearly on, another outline in a shared plane): with edge nodes an
-    element apart, the triangle spanning the corner and two nodes of that edge is flat
-    (measured: a corner 0.2 um off an edge gave a triangle of quality 2e-7 and a flat
-    tetrahedron above it), unless the elements there are as small as the distance."""
+    outline on, or nearly on, another outline in a shared plane; or two outlines running
+    side by side a gap apart, whose ends are such corners): with edge nodes an element
+    apart, the triangle spanning the corner and two nodes of that edge is flat (measured:
+    a corner 0.2 um off an edge gave a triangle of quality 2e-7 and a flat tetrahedron
+    above it; two edges 0.03 mm apart along 1 mm, triangles of quality 0.002), unless the
+    elements there, along both edges, are as small as the distance."""
     model = gmsh.model
     ends: dict[int, tuple[int, ...]] = {}
     polyline: dict[int, np.ndarray] = {}
@@ -351,6 +360,7 @@ def _corners_near_edges(gmsh, reach_mm: float) -> dict[int, float]:
         for _, point in model.getEntities(0)
     }
     near: dict[int, float] = {}
+    near_curves: dict[int, float] = {}
     for _, surface in model.getEntities(2):
         curves = [abs(c) for _, c in model.getBoundary([(2, surface)], oriented=False)]
         corners = sorted({p for c in curves for p in ends[c]})
@@ -370,8 +380,11 @@ def _corners_near_edges(gmsh, reach_mm: float) -> dict[int, float]:
             gap = np.linalg.norm(xyz[:, None, :] - foot, axis=2).min(axis=1)
             for point, d in zip(corners, gap, strict=True):
                 if point not in ends[curve] and d < reach_mm:
-                    near[point] = min(near.get(point, np.inf), float(d))
-    return near
+                    d = float(d)
+                    near[point] = min(near.get(point, np.inf), d)
+                    for edge in [curve, *(c for c in curves if point in ends[c])]:
+                        near_curves[edge] = min(near_curves.get(edge, np.inf), d)
+    return near, near_curves
 
 
 def _check_quality(mesh: VolumeMesh, min_quality: float) -> None:
@@ -423,22 +436,63 @@ def _polish(gmsh, min_quality: float) -> None:
 
 
 def _remesh_delaunay(gmsh, volumes: list[tuple[int, int]]) -> None:
-    """Mesh ``volumes`` again with the Delaunay mesher, every other volume kept as it is
-    (only visible entities are meshed; the surface meshes are not touched)."""
+    """Mesh ``volumes`` again with gmsh's Delaunay mesher inside their surface meshes,
+    which are kept (so each stays conformal with its neighbours).
+
+    Each volume is meshed in a model of its own, built from its surface triangles: in the
+    stack's model, gmsh's Delaunay meshes the whole connected group of volumes again
+    (measured: 77 s for one chip of the reference stack, against 1 s alone)."""
     model, option = gmsh.model, gmsh.option
     log.info("conformal mesh: %d volumes meshed again with Delaunay (slivers)", len(volumes))
-    model.mesh.clear(volumes)
-    others = [(3, v) for _, v in model.getEntities(3) if (3, v) not in volumes]
-    algorithm = option.getNumber("Mesh.Algorithm3D")
-    model.setVisibility(others, 0)
-    option.setNumber("Mesh.MeshOnlyVisible", 1)
-    option.setNumber("Mesh.Algorithm3D", 1)
-    try:
-        model.mesh.generate(3)
-    finally:
-        option.setNumber("Mesh.Algorithm3D", algorithm)
-        option.setNumber("Mesh.MeshOnlyVisible", 0)
-        model.setVisibility(others, 1)
+    stack = model.getCurrent()
+    node_tags, node_xyz, _ = model.mesh.getNodes()
+    order = np.argsort(node_tags)
+    node_tags, node_xyz = node_tags[order], node_xyz.reshape(-1, 3)[order]
+    next_node = int(model.mesh.getMaxNodeTag()) + 1
+    next_element = int(model.mesh.getMaxElementTag()) + 1
+    saved = {
+        name: option.getNumber(name)
+        for name in ("Mesh.Algorithm3D", "Mesh.MeshSizeExtendFromBoundary", "Mesh.Renumber")
+    }
+    for _, volume in volumes:
+        triangles = []
+        for _, surface in model.getBoundary([(3, volume)], oriented=False):
+            types, _, nodes = model.mesh.getElements(2, abs(surface))
+            triangles += [n for t, n in zip(types, nodes, strict=True) if t == 2]
+        triangles = np.concatenate(triangles).astype(np.int64)
+        boundary = np.unique(triangles)
+        xyz = node_xyz[np.searchsorted(node_tags, boundary)]
+        model.add("chipstack-remesh")
+        try:
+            option.setNumber("Mesh.Algorithm3D", 1)
+            option.setNumber("Mesh.MeshSizeExtendFromBoundary", 1)  # no field here
+            option.setNumber("Mesh.Renumber", 0)  # the surface's nodes keep their tags
+            surface = model.addDiscreteEntity(2)
+            model.mesh.addNodes(2, surface, boundary, xyz.ravel())
+            model.mesh.addElementsByType(surface, 2, [], triangles)
+            # A volume of the geo kernel over the discrete surface: a discrete volume is
+            # not meshed, and the surface's own triangles are kept as they are.
+            alone = model.geo.addVolume([model.geo.addSurfaceLoop([surface])])
+            model.geo.synchronize()
+            model.mesh.generate(3)
+            inner, inner_xyz, _ = model.mesh.getNodes(3, alone)
+            _, _, tets = model.mesh.getElements(3, alone)
+        finally:
+            for name, value in saved.items():
+                option.setNumber(name, value)
+            model.remove()
+            model.setCurrent(stack)
+        if not len(tets) or not len(tets[0]):
+            continue
+        renumber = dict(zip(inner.tolist(), range(next_node, next_node + len(inner)), strict=True))
+        tets = np.array([renumber.get(int(t), int(t)) for t in tets[0]], dtype=np.int64)
+        new_inner = np.arange(next_node, next_node + len(inner))
+        elements = np.arange(next_element, next_element + len(tets) // 4)
+        next_node += len(inner)
+        next_element += len(elements)
+        model.mesh.clear([(3, volume)])
+        model.mesh.addNodes(3, volume, new_inner, np.asarray(inner_xyz).ravel())
+        model.mesh.addElementsByType(volume, 4, elements, tets)
 
 
 def _generate(gmsh, arrangement: Arrangement, owner: dict[int, int], min_quality: float) -> None:

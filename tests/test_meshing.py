@@ -589,3 +589,36 @@ def test_a_registered_mesh_kind_is_built_checked_and_written_by_the_stage(tmp_pa
         assert STAGE.report(summary, tmp_path)[0].startswith("coarse_voxel mesh: 800 elements")
     finally:
         MESH_KINDS._items.pop("coarse_voxel")
+
+
+def test_a_volume_meshed_again_keeps_its_faces_and_its_neighbour():
+    """The sliver fallback meshes one volume again with Delaunay in a model of its own: the
+    shared face's triangles stay as they were (the neighbour stays conformal), every new
+    tetrahedron is positive and the two volumes still fill the two boxes exactly."""
+    from meshing.conformal import _remesh_delaunay
+
+    with GmshSession() as gmsh:
+        model = gmsh.model
+        a, b = model.occ.addBox(0, 0, 0, 1, 1, 1), model.occ.addBox(1, 0, 0, 1, 1, 1)
+        model.occ.fragment([(3, a)], [(3, b)])
+        model.occ.synchronize()
+        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.2)
+        gmsh.option.setNumber("Mesh.Algorithm3D", 10)
+        model.mesh.generate(3)
+
+        def faces():
+            return {s: model.mesh.getElements(2, s)[2][0].tolist() for _, s in model.getEntities(2)}
+
+        before, kept = faces(), model.mesh.getElements(3, 2)[1][0].tolist()
+        first = model.mesh.getElements(3, 1)[1][0].tolist()
+        _remesh_delaunay(gmsh, [(3, 1)])
+        assert faces() == before and model.mesh.getElements(3, 2)[1][0].tolist() == kept
+        assert model.mesh.getElements(3, 1)[1][0].tolist() != first  # meshed again
+        _, tags, nodes = model.mesh.getElements(3)
+        quality = model.mesh.getElementQualities(np.concatenate(tags), "minSICN")
+        assert quality.min() > 0.2
+        node_tags, xyz, _ = model.mesh.getNodes()
+        where = dict(zip(node_tags.tolist(), xyz.reshape(-1, 3), strict=True))
+        tets = np.array([where[t] for t in np.concatenate(nodes).tolist()]).reshape(-1, 4, 3)
+        volume = np.abs(np.linalg.det(tets[:, 1:] - tets[:, :1])).sum() / 6
+        assert volume == pytest.approx(2.0, rel=1e-12)
