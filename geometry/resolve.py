@@ -376,14 +376,8 @@ def resolve_contacts(
             f"contact resolution: {len(unresolved)} chips cannot be cleared by {gap_mm:g} mm "
             f"with small motions: chips {names}; use the voxel mesh (mesh.kind = 'voxel')"
         )
-    quaternions = Rotation.from_matrix(rotations).as_quat()
-    resolved = Arrangement(
-        arrangement.shapes,
-        arrangement.shape_index,
-        positions,
-        quaternions,
-        arrangement.batch,
-        arrangement.target_size_mm,
+    resolved = dataclasses.replace(
+        arrangement, positions=positions, quaternions=Rotation.from_matrix(rotations).as_quat()
     )
     moved = np.linalg.norm(positions - arrangement.positions, axis=1)
     turned = (
@@ -470,14 +464,8 @@ def _resolve_globally(arrangement, contacts, gap_mm, snap_angle_deg, contact_gap
         for b in near[a]
         if a < b and _separation(start_worlds[a], start_worlds[b]) < rule(a, b).lower
     )
-    quaternions = Rotation.from_matrix(rotations).as_quat()
-    resolved = Arrangement(
-        arrangement.shapes,
-        arrangement.shape_index,
-        positions,
-        quaternions,
-        arrangement.batch,
-        arrangement.target_size_mm,
+    resolved = dataclasses.replace(
+        arrangement, positions=positions, quaternions=Rotation.from_matrix(rotations).as_quat()
     )
     turned = (Rotation.from_matrix(rotations) * Rotation.from_matrix(start_rot).inv()).magnitude()
     surface_pairs = [

@@ -20,7 +20,6 @@ if TYPE_CHECKING:
     import numpy as np
 
     from geometry.arrangement import Arrangement
-    from meshing.mesh import VolumeMesh
 
 __all__ = ["MeshStage", "STAGE", "check_formats"]
 
@@ -36,10 +35,6 @@ class MeshedStack:
     reports: dict[str, dict[str, Any]] = field(default_factory=dict)
     errors: dict[str, str] = field(default_factory=dict)
     scratch: tempfile.TemporaryDirectory | None = None
-
-    @property
-    def meshes(self) -> dict[str, VolumeMesh]:
-        return {kind: built.mesh for kind, built in self.built.items()}
 
 
 class MeshStage(Stage):
