@@ -23,6 +23,23 @@ def _write_csv(path: Path, header: list[str], rows) -> None:
         writer.writerows(rows)
 
 
+# Ten significant digits: the last ones of a float depend on which OpenBLAS kernel the CPU
+# gets (Haswell, SkylakeX and Sandybridge kernels differ in the 16th digit of the
+# orientation tensor), and a result file must not change with the machine it ran on.
+JSON_DIGITS = 10
+
+
+def _rounded(value: Any) -> Any:
+    """``value`` with every finite float cut to ``JSON_DIGITS`` significant digits."""
+    if isinstance(value, dict):
+        return {key: _rounded(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_rounded(item) for item in value]
+    if isinstance(value, (float, np.floating)) and np.isfinite(value):
+        return float(f"{float(value):.{JSON_DIGITS}g}")
+    return value
+
+
 def write_description(
     folder: Path, description: Description, arrangement, extra: dict[str, Any]
 ) -> list[str]:
@@ -31,7 +48,7 @@ def write_description(
     ``arrangement`` is the described stack (its final state). Returns the files written.
     """
     written = [_write_chips(folder, description, arrangement)]
-    data = {**description.to_json(), **extra}
+    data = _rounded({**description.to_json(), **extra})
     (folder / "descriptors.json").write_text(json.dumps(data, indent=2) + "\n")
     written.append("descriptors.json")
     for name, record in description.records.items():
