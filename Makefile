@@ -6,10 +6,19 @@ STAMP  := $(VENV)/.installed
 
 .PHONY: run test lint bench docs clean
 
+# The image mesh kind needs CGAL and Eigen headers to build pygalmesh: installed from
+# Debian's packages when they are missing and apt-get is there (as root, or with sudo).
 $(STAMP): pyproject.toml
+	@if ! dpkg -s libcgal-dev libeigen3-dev >/dev/null 2>&1 && command -v apt-get >/dev/null; then \
+		SUDO=; [ "$$(id -u)" -eq 0 ] || SUDO=sudo; \
+		echo "make: installing libcgal-dev and libeigen3-dev for the image mesh kind"; \
+		$$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq --no-install-recommends libcgal-dev libeigen3-dev; \
+	fi
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -e '.[test]'
+	@$(BIN)/pip install --quiet -e '.[image]' || \
+		echo "make: pygalmesh (CGAL) did not build; every mesh kind but 'image' works (it needs libcgal-dev and libeigen3-dev)"
 	touch $(STAMP)
 
 # The paper scenario through every stage: deposition, descriptors, voxel mesh; then a

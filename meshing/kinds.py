@@ -265,6 +265,41 @@ class ConformalKind(MeshKind):
         return lines
 
 
+class ImageKind(MeshKind):
+    name = "image"
+    doc = (
+        "CGAL Mesh_3 tetrahedra of the labelled voxel image (any chip shape; needs "
+        "pygalmesh), touching chips sharing faces"
+    )
+
+    @property
+    def failures(self):
+        from meshing.conformal import MeshingError
+
+        return (MeshingError,)
+
+    def build(self, arrangement, scenario, scratch):
+        from meshing.image import image_mesh
+
+        spec = scenario.mesh
+        mesh = image_mesh(
+            arrangement,
+            spec.image_voxel_mm,
+            spec.size_mm,
+            spec.pore_space,
+            scenario.geometry.layer_mm,
+            spec.image_optimise,
+            seed=scenario.seed,
+        )
+        return Built(mesh)
+
+    def check(self, built, arrangement, scenario, surface_pairs):
+        # The chips' faces lie within half a voxel of the exact ones: a chip's volume is
+        # held to 4 % (measured on the reference stack at 0.25 mm voxels: at most 1.1 %),
+        # and only inverted elements are refused (Mesh_3 leaves slivers it cannot exude).
+        return _checked_volume(built.mesh, arrangement, surface_pairs(), 0.0, 0.04, self.name)
+
+
 class ContactKind(MeshKind):
     name = "contact"
     doc = (
@@ -409,5 +444,5 @@ def _check_voxel_size(voxel_mm: float, arrangement: Arrangement) -> None:
         )
 
 
-for _kind in (VoxelKind(), ConformalKind(), ContactKind()):
+for _kind in (VoxelKind(), ConformalKind(), ImageKind(), ContactKind()):
     MESH_KINDS.register(_kind.name, _kind)

@@ -1,0 +1,373 @@
+"""Image route: tetrahedra of the labelled voxel image, by CGAL's Mesh_3 (``pygalmesh``).
+
+The exact route (:mod:`meshing.conformal`) needs a mesh-ready arrangement and curved or
+many-sided chips it cannot take; this route needs only a labelled image (chip id per
+voxel), so it takes any stack the geometry stage can voxelize, and later a CT scan. The
+chips' faces are Mesh_3's approximation of the label boundaries (a staircase between
+voxel centres: nodes within about a voxel of the exact faces, volumes within ~1 %),
+and touching chips share their interface faces by construction.
+
+How, and why so:
+
+* The stack's image is cut into its face-connected pieces, each meshed on its own (chips
+  are first grouped by bounding boxes within two voxels, so that no image spans the
+  empty conveyor between groups). Mesh_3 finds a subdomain only from points its
+  refinement reaches: chips lying alone on the conveyor, up to 170 mm from the pile, were
+  left out of a whole-stack image (10 of 270 chips of the reference stack, seed 0), and
+  so was a chip 2 voxels from the pile's image.
+* With ``pore_space = "box"``, the pore space of the box over the chips (as for the voxel
+  mesh) is given a label of its own, so the whole box is one cluster: Mesh_3 meshes only
+  non-zero labels.
+* Mesh_3 renumbers the labels; each subdomain is mapped back to a chip by the label of the
+  voxel under most of its elements' centroids.
+* Mesh_3 runs in a child process: it writes its progress to the process's own output
+  (whatever ``verbose`` says), and a crash of the C++ mesher must become a one-line error,
+  not the end of the pipeline.
+
+Element quality is the signed inverse condition number (SICN) of each tetrahedron, the
+measure gmsh reports for the conformal mesh (1 for a regular tetrahedron, negative when
+inverted).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import logging
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from core.errors import InputError
+from geometry.arrangement import Arrangement
+from geometry.voxels import voxelize
+from meshing.boundaries import side_node_sets
+from meshing.conformal import MeshingError
+from meshing.mesh import PORE, VolumeMesh, element_attributes
+
+__all__ = ["image_mesh", "image_voxel_mm", "tetra_sicn", "cgal_available"]
+
+log = logging.getLogger(__name__)
+
+_PAD = 2  # empty voxels around a cluster's image: its chips' outer faces are boundaries
+# A regular tetrahedron's circumradius over its edge: ``size_mm`` is an edge length.
+_CIRCUMRADIUS_PER_EDGE = math.sqrt(6) / 4
+# The regular tetrahedron's edge vectors (columns), the reference of the SICN.
+_REGULAR = np.array(
+    [
+        [1.0, 0.5, 0.5],
+        [0.0, math.sqrt(3) / 2, math.sqrt(3) / 6],
+        [0.0, 0.0, math.sqrt(2 / 3)],
+    ]
+)
+_REGULAR_INVERSE = np.linalg.inv(_REGULAR)
+# The largest label Mesh_3 reads from a 16-bit image, the pore space's among them.
+MAX_LABELS = 65_534
+
+
+def cgal_available() -> bool:
+    """True when ``pygalmesh`` (CGAL's Mesh_3) can be imported."""
+    return importlib.util.find_spec("pygalmesh") is not None
+
+
+def image_voxel_mm(arrangement: Arrangement, voxel_mm: float = 0.0) -> float:
+    """The image route's voxel (mm): ``voxel_mm``, or for 0 an eighth of the thinnest chip
+    dimension; raises naming ``mesh.image_voxel_mm`` when it is not below that dimension.
+
+    Why an eighth: the reference stack's chips (2 mm thick) come within 1.1 % of their
+    exact volumes at 0.25 mm; at a twelfth (0.167 mm) its main cluster of 256 touching
+    chips, spread over 280 x 273 mm, is a 415-million-voxel image, over the voxelizer's
+    cap and, measured at 0.25 mm (3 GB), well over 4 GB in Mesh_3."""
+    thinnest = min(2 * float(min(s.half_extents)) for s in arrangement.shapes)
+    if voxel_mm == 0:
+        return thinnest / 8
+    if voxel_mm >= thinnest:
+        raise InputError(
+            f"mesh.image_voxel_mm: {voxel_mm:g} mm is not below the thinnest chip dimension "
+            f"({thinnest:g} mm); use at most {thinnest / 4:g} mm (4 voxels through a chip)"
+        )
+    return voxel_mm
+
+
+def tetra_sicn(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """(M,) signed inverse condition number of every tetrahedron (1: regular, <= 0:
+    flat or inverted); dimensionless."""
+    p = points[cells]
+    edges = np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]], axis=2)
+    shape = edges @ _REGULAR_INVERSE
+    det = np.linalg.det(shape)
+    flat = np.abs(det) < 1e-300
+    safe = np.where(flat[:, None, None], np.eye(3), shape)
+    condition = np.linalg.norm(safe, axis=(1, 2)) * np.linalg.norm(np.linalg.inv(safe), axis=(1, 2))
+    return np.where(flat, 0.0, np.sign(det) * 3 / condition)
+
+
+@dataclass(frozen=True)
+class _Cluster:
+    """One image to mesh: labels (uint16: 1 + index into ``chips``; ``pore`` for the pore
+    space), the centre of its first voxel (mm) and the chips (global ids) its labels
+    stand for."""
+
+    labels: np.ndarray
+    origin_mm: np.ndarray
+    chips: np.ndarray
+    pore: int  # the pore space's label, 0 when there is none
+
+
+def image_mesh(
+    arrangement: Arrangement,
+    voxel_mm: float = 0.0,
+    size_mm: float = 1.5,
+    pore_space: str = "none",
+    layer_mm: float = 2.0,
+    optimise: bool = False,
+    seed: int = 0,
+) -> VolumeMesh:
+    """Tetrahedral mesh of the stack's labelled image (see the module docstring).
+
+    voxel_mm: the image's voxel (0: an eighth of the thinnest chip dimension). size_mm:
+    the largest element edge. seed: Mesh_3's random seed: without ``optimise`` the same
+    seed and image give the same mesh. optimise: perturb and exude slivers after the
+    refinement (reference stack, 0.25 mm voxels: 288 s instead of 60 s, the worst SICN
+    0.036 instead of 0.0006), but CGAL's optimisers then give a different mesh each run
+    (measured: the same seed, nodes up to 20 mm apart in their order)."""
+    if pore_space not in ("none", "box"):
+        raise InputError(f"mesh.pore_space: must be 'none' or 'box', got {pore_space!r}")
+    if not cgal_available():
+        raise InputError(
+            "mesh.kind: 'image' needs pygalmesh (CGAL's Mesh_3), which is not installed: "
+            "install Debian's libcgal-dev and libeigen3-dev, then pip install pygalmesh "
+            "(make does both)"
+        )
+    start = time.perf_counter()
+    voxel = image_voxel_mm(arrangement, voxel_mm)
+    clusters = _clusters(arrangement, voxel, pore_space)
+    parts = _mesh_clusters(clusters, voxel, size_mm, optimise, seed)
+    points, cells, chip = [], [], []
+    offset = 0
+    for cluster, (cluster_points, cluster_cells, refs) in zip(clusters, parts, strict=True):
+        cluster_chip = _chips_of_subdomains(cluster, cluster_points, cluster_cells, refs, voxel)
+        points.append(cluster_points + cluster.origin_mm)
+        cells.append(cluster_cells + offset)
+        chip.append(cluster_chip)
+        offset += len(cluster_points)
+    points = np.concatenate(points)
+    cells = np.concatenate(cells).astype(np.int64)
+    chip, keep = _absorb_strays(points, cells, np.concatenate(chip))
+    used, cells = np.unique(cells[keep], return_inverse=True)
+    points, cells, chip = points[used], cells.reshape(-1, 4), chip[keep]
+    missing = np.setdiff1d(np.arange(arrangement.n_chips), chip)
+    if len(missing):
+        shown = ", ".join(map(str, missing[:10])) + (", ..." if len(missing) > 10 else "")
+        raise MeshingError(
+            f"image mesh: Mesh_3 left out chips {shown} at {voxel:g} mm voxels; use a "
+            "smaller mesh.image_voxel_mm"
+        )
+    return VolumeMesh(
+        points=points,
+        cell_type="tetra",
+        cells=cells,
+        chip=chip,
+        **element_attributes(arrangement, chip, layer_mm),
+        quality=tetra_sicn(points, cells),
+        node_sets=side_node_sets(points, tolerance_mm=voxel / 4),
+        n_chips=arrangement.n_chips,
+        kind="image",
+        info={
+            "voxel_mm": round(voxel, 6),
+            "size_mm": size_mm,
+            "pore_space": pore_space,
+            "optimise": optimise,
+            "seed": seed,
+            "clusters": len(clusters),
+            "mesh_time_s": round(time.perf_counter() - start, 3),
+        },
+    )
+
+
+def _clusters(arrangement: Arrangement, voxel: float, pore_space: str) -> list[_Cluster]:
+    """The images to mesh: one per cluster of chips, or the whole box with the pore space."""
+    from scipy import ndimage
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from geometry.contacts import candidate_pairs
+
+    n = arrangement.n_chips
+    if pore_space == "box":
+        groups = [np.arange(n)]
+    else:
+        pairs = candidate_pairs(arrangement.bounds, 2 * voxel)
+        graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+        _, label = connected_components(graph, directed=False)
+        groups = [np.flatnonzero(label == k) for k in range(label.max() + 1)]
+    clusters = []
+    for chips in groups:
+        if len(chips) + 1 > MAX_LABELS:
+            raise InputError(
+                f"mesh.kind: the image route takes at most {MAX_LABELS - 1:,} chips in a "
+                f"cluster, got {len(chips):,}"
+            )
+        part = Arrangement(
+            arrangement.shapes,
+            arrangement.shape_index[chips],
+            arrangement.positions[chips],
+            arrangement.quaternions[chips],
+            arrangement.batch[chips],
+            arrangement.target_size_mm,
+        )
+        try:
+            image = voxelize(part, voxel)
+        except InputError as error:  # too many voxels: name the key the user sets
+            raise InputError(f"mesh.image_voxel_mm: {str(error).partition(': ')[2]}") from None
+        labels = image.labels
+        origin = np.asarray(image.origin_mm, dtype=float)
+        solid = labels > 0
+        pore = 0
+        if pore_space == "box":  # the box over the chips' footprint, as the voxel mesh's
+            pore = len(chips) + 1
+            ii, jj, kk = (np.flatnonzero(solid.any(axis=axes)) for axes in ((1, 2), (0, 2), (0, 1)))
+            box = np.zeros_like(solid)
+            box[ii.min() : ii.max() + 1, jj.min() : jj.max() + 1, : kk.max() + 1] = True
+            labels = np.where(box & ~solid, pore, labels)
+            solid = labels > 0
+        # Each face-connected piece of the image on its own: chips whose boxes come near
+        # but whose voxels do not meet are separate pieces (a chip 0.3 mm from the pile
+        # was left out of the pile's image), and chips meeting only at a voxel's edge
+        # or corner could be too.
+        pieces, count = ndimage.label(solid)
+        for k, box_slices in enumerate(ndimage.find_objects(pieces), start=1):
+            low = np.array([s.start for s in box_slices])
+            piece = np.where(pieces[box_slices] == k, labels[box_slices], 0)
+            padded = np.pad(piece, _PAD).astype(np.uint16)
+            # Mesh_3 puts voxel (i, j, k) of an image at (i, j, k) x voxel: its centre.
+            centre_of_first = origin + (low - _PAD + 0.5) * voxel
+            clusters.append(_Cluster(padded, centre_of_first, np.asarray(chips), pore))
+    return clusters
+
+
+def _mesh_clusters(clusters, voxel, size_mm, optimise, seed):
+    """Mesh_3 on every cluster's image, each in a child process (:mod:`meshing._mesh3`):
+    [(points, tetrahedra, subdomain of each tetrahedron)], points in the cluster's frame
+    (mm)."""
+    import subprocess
+    import sys
+    import tempfile
+    from pathlib import Path
+
+    # Mesh_3 takes a C int as its seed.
+    settings = [voxel, size_mm * _CIRCUMRADIUS_PER_EDGE, voxel / 2, int(optimise), seed % 2**31]
+    results: list = [None] * len(clusters)
+    with tempfile.TemporaryDirectory(prefix="chipstack-mesh3-") as scratch:
+        for k in range(len(clusters)):
+            log.info(
+                "Mesh_3: cluster %d of %d (%d chips, %s voxels)",
+                k + 1,
+                len(clusters),
+                len(clusters[k].chips),
+                f"{clusters[k].labels.size:,}",
+            )
+            image, out = Path(scratch) / f"{k}.npy", Path(scratch) / f"{k}.npz"
+            np.save(image, clusters[k].labels)
+            command = [sys.executable, "-m", "meshing._mesh3", str(image), str(out)]
+            done = subprocess.run(
+                command + [repr(v) for v in settings],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.PIPE,
+                cwd=Path(__file__).resolve().parent.parent,
+            )
+            if done.returncode != 0 or not out.is_file():
+                last = (done.stderr.decode(errors="replace").strip().splitlines() or ["?"])[-1]
+                chips = clusters[k].chips
+                shown = ", ".join(map(str, chips[:5])) + (", ..." if len(chips) > 5 else "")
+                log.debug("Mesh_3 child: %s", done.stderr.decode(errors="replace"))
+                raise MeshingError(
+                    f"image mesh: CGAL's Mesh_3 failed on the cluster of chips {shown} "
+                    f"(exit status {done.returncode}: {last[:200]})"
+                )
+            with np.load(out) as data:
+                results[k] = (data["points"], data["cells"], data["refs"])
+    return results
+
+
+def _absorb_strays(
+    points: np.ndarray, cells: np.ndarray, chip: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``chip`` with stray elements given to their neighbours, and which elements to keep.
+
+    Mesh_3 labels a tetrahedron by the image under its circumcentre, so where three chips
+    meet a lone tetrahedron can take the label of a chip it touches only at an edge (the
+    24-chip test stack: one, making its chip two pieces for a solver). A face-connected piece of a chip
+    (or of the pore space) that is not its largest and holds under 1 % of its volume goes
+    to the region it shares most faces with; one that shares no face with anything (a
+    sliver hanging by an edge: the reference stack, seed 0, three pieces of 0.001 to
+    0.006 mm3) is dropped."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    local = ((0, 1, 2), (0, 1, 3), (0, 2, 3), (1, 2, 3))
+    faces = np.sort(np.concatenate([cells[:, list(f)] for f in local]), axis=1)
+    owner = np.tile(np.arange(len(cells)), 4)
+    order = np.lexsort(faces.T[::-1])
+    faces, owner = faces[order], owner[order]
+    twin = np.flatnonzero(np.all(faces[1:] == faces[:-1], axis=1))
+    a, b = owner[twin], owner[twin + 1]
+    n = len(cells)
+    same = chip[a] == chip[b]
+    graph = coo_matrix((np.ones(int(same.sum())), (a[same], b[same])), shape=(n, n))
+    _, piece = connected_components(graph, directed=False)
+    p = points[cells]
+    edges = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    volume = np.abs(np.einsum("ij,ij->i", edges, p[:, 3] - p[:, 0])) / 6
+    piece_volume = np.bincount(piece, weights=volume)
+    region = np.zeros(len(piece_volume), dtype=np.int64)
+    region[piece] = chip - chip.min()
+    by_region = np.lexsort((piece_volume, region))  # by region, then volume
+    largest = np.zeros(len(region), dtype=bool)
+    largest[by_region[np.r_[region[by_region][1:] != region[by_region][:-1], True]]] = True
+    region_volume = np.bincount(region, weights=piece_volume)
+    stray = ~largest & (piece_volume < 0.01 * region_volume[region])
+    if not stray.any():
+        return chip, np.ones(len(chip), dtype=bool)
+    # Each stray piece goes to the region across most of its faces.
+    forward, backward = ~same & stray[piece[a]], ~same & stray[piece[b]]
+    sources = np.concatenate([piece[a[forward]], piece[b[backward]]])
+    targets = np.concatenate([chip[b[forward]], chip[a[backward]]])
+    if not len(sources):
+        return chip, ~stray[piece]
+    pairs, counts = np.unique(np.column_stack([sources, targets]), axis=0, return_counts=True)
+    best = np.lexsort((counts, pairs[:, 0]))
+    last = best[np.r_[pairs[best][1:, 0] != pairs[best][:-1, 0], True]]
+    unset = np.iinfo(np.int64).min
+    new_chip = np.full(len(region), unset, dtype=np.int64)
+    new_chip[pairs[last, 0]] = pairs[last, 1]
+    moved = stray[piece] & (new_chip[piece] != unset)
+    chip = np.where(moved, new_chip[piece], chip)
+    keep = ~stray[piece] | moved
+    log.debug(
+        "image mesh: %d stray pieces, %d elements given to their neighbours, %d dropped",
+        int(stray.sum()),
+        int(moved.sum()),
+        int((~keep).sum()),
+    )
+    return chip, keep
+
+
+def _chips_of_subdomains(cluster: _Cluster, points, cells, refs, voxel) -> np.ndarray:
+    """(M,) chip id (global; ``PORE`` for the pore space) of every tetrahedron: each Mesh_3
+    subdomain takes the label under most of its tetrahedra's centroids."""
+    if not len(cells):
+        return np.empty(0, dtype=np.int64)
+    index = np.rint(points[cells].mean(axis=1) / voxel).astype(np.int64)
+    index = np.clip(index, 0, np.array(cluster.labels.shape) - 1)
+    under = cluster.labels[index[:, 0], index[:, 1], index[:, 2]].astype(np.int64)
+    pairs, counts = np.unique(np.column_stack([refs, under]), axis=0, return_counts=True)
+    label_of = np.zeros(int(refs.max()) + 1, dtype=np.int64)
+    for ref in np.unique(refs):
+        mine = pairs[:, 0] == ref
+        label_of[ref] = pairs[mine][np.argmax(counts[mine]), 1]
+    label = label_of[refs]
+    lookup = np.full(len(cluster.chips) + 2, PORE, dtype=np.int64)  # the pore last
+    lookup[1 : len(cluster.chips) + 1] = cluster.chips
+    return lookup[label]

@@ -1,0 +1,135 @@
+"""Image route (meshing/image.py): CGAL's Mesh_3 on the labelled voxel image, checked with
+the same criteria as the other meshes, on arrangements whose answers are known."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import meshio
+import numpy as np
+import pytest
+from conftest import run_cli
+from scipy.spatial.transform import Rotation
+from test_resolve import arrange
+
+from core.errors import InputError
+from meshing import check_mesh
+from meshing.image import cgal_available, image_mesh, image_voxel_mm, tetra_sicn
+from meshing.mesh import PORE
+
+needs_cgal = pytest.mark.skipif(
+    not cgal_available() and not os.environ.get("CHIPSTACK_REQUIRE_CGAL"),
+    reason="pygalmesh (CGAL) is not installed; .ci/run installs it and CI runs these tests",
+)
+
+# Two squares, the upper one turned 20 deg and lying on the lower (a surface contact), and
+# a third alone on the conveyor 60 mm away.
+PILE_AND_LONE_CHIP = [((0, 0, 1), 0), ((3, 2, 3), 20), ((60, 0, 1), 0)]
+
+
+def test_the_quality_is_the_signed_inverse_condition_number():
+    """1 for the regular tetrahedron whatever its size and place, -1 when it is turned
+    inside out, 0 when it is flat; a needle in between (the value gmsh reports: the
+    module's docstring)."""
+    regular = np.array([[0, 0, 0], [1, 0, 0], [0.5, np.sqrt(3) / 2, 0], [0.5, np.sqrt(3) / 6, 0]])
+    regular[3, 2] = np.sqrt(2 / 3)
+    points = np.concatenate([regular, 3 * regular + 7, regular * [1, 1, 0], regular * [1, 1, 50]])
+    cells = np.array([[0, 1, 2, 3], [4, 5, 6, 7], [0, 2, 1, 3], [8, 9, 10, 11], [12, 13, 14, 15]])
+    sicn = tetra_sicn(points, cells)
+    assert sicn[:3] == pytest.approx([1, 1, -1], abs=1e-12)
+    assert sicn[3] == 0
+    assert 0 < sicn[4] < 0.1
+
+
+def test_the_default_voxel_is_an_eighth_of_the_thinnest_dimension_and_a_thick_one_is_refused():
+    a = arrange(PILE_AND_LONE_CHIP)
+    assert image_voxel_mm(a) == pytest.approx(2 / 8)
+    assert image_voxel_mm(a, 0.3) == 0.3
+    with pytest.raises(InputError, match=r"^mesh.image_voxel_mm: 2 mm is not below the thinnest"):
+        image_voxel_mm(a, 2.0)
+
+
+def test_without_cgal_the_image_kind_says_what_to_install(monkeypatch):
+    import meshing.image
+
+    monkeypatch.setattr(meshing.image, "cgal_available", lambda: False)
+    with pytest.raises(InputError, match=r"^mesh.kind: 'image' needs pygalmesh .*libcgal-dev"):
+        image_mesh(arrange(PILE_AND_LONE_CHIP), 0.5)
+
+
+@needs_cgal
+def test_every_chip_is_meshed_and_touching_chips_share_faces():
+    """The chip alone on the conveyor is meshed too (a whole image left it out: Mesh_3
+    finds only what its refinement reaches), every subdomain goes back to its chip, and
+    the chips' volumes are their exact ones to the surface approximation (< 1.5 %)."""
+    a = arrange(PILE_AND_LONE_CHIP)
+    mesh = image_mesh(a, voxel_mm=0.25, size_mm=1.5, seed=0)
+    assert mesh.info["clusters"] == 2
+    report = check_mesh(mesh, a, np.array([[0, 1]]), min_quality=0.0, chip_tolerance=0.015)
+    assert report["valid"], report
+    assert report["interfaces"]["sharing_faces"] == 1
+    assert (mesh.element_volumes() > 0).all()
+    for chip in range(a.n_chips):
+        mine = mesh.points[mesh.cells[mesh.chip == chip]].mean(axis=1)
+        volumes = mesh.element_volumes()[mesh.chip == chip]
+        centre = (mine * volumes[:, None]).sum(axis=0) / volumes.sum()
+        assert centre == pytest.approx(a.positions[chip], abs=0.05)
+    # The turned chip's nodes lie on its own frame's 20 x 20 x 2 box to about a voxel (the
+    # label boundary is a staircase between voxel centres).
+    local = (
+        Rotation.from_quat(a.quaternions[1])
+        .inv()
+        .apply(mesh.points[np.unique(mesh.cells[mesh.chip == 1])] - a.positions[1])
+    )
+    assert np.abs(local).max(axis=0) == pytest.approx([10, 10, 1], abs=0.32)
+    # The same seed gives the same mesh (without the optimisers: the module's docstring).
+    again = image_mesh(a, voxel_mm=0.25, size_mm=1.5, seed=0)
+    assert np.array_equal(again.cells, mesh.cells) and np.array_equal(again.points, mesh.points)
+
+
+@needs_cgal
+def test_the_pore_space_fills_the_box_over_the_chips():
+    a = arrange(PILE_AND_LONE_CHIP[:2])
+    mesh = image_mesh(a, voxel_mm=0.25, size_mm=1.5, pore_space="box", optimise=False)
+    pore = mesh.chip == PORE
+    assert pore.any() and (mesh.element_volumes() > 0).all()
+    low, high = mesh.points.min(axis=0), mesh.points.max(axis=0)
+    # The box: the chips' voxel footprint from the conveyor to the top of the upper chip.
+    assert low[2] == pytest.approx(0, abs=0.13) and high[2] == pytest.approx(4, abs=0.13)
+    # Its edges and corners are bevelled by the surface approximation like the chips'.
+    assert mesh.element_volumes().sum() == pytest.approx(np.prod(high - low), rel=0.02)
+    report = check_mesh(mesh, a, np.array([[0, 1]]), min_quality=0.0, chip_tolerance=0.015)
+    assert report["valid"], report
+
+
+@needs_cgal
+def test_the_image_kind_from_the_cli_writes_files_that_read_back(tmp_path, small_scenario):
+    text = small_scenario.read_text() + '[mesh]\nkind = "image"\n'
+    text += 'formats = ["msh", "vtu"]\n'
+    small_scenario.write_text(text)
+    out = tmp_path / "run"
+    result = run_cli("run", str(small_scenario), "--to", "mesh", "--out", str(out), "--quiet")
+    assert result.returncode == 0, result.stderr
+    checks = json.loads((out / "mesh" / "stack_image_checks.json").read_text())
+    assert checks["valid"] and checks["chip_volume_error_max"] <= 0.04
+    vtu = meshio.read(out / "mesh" / "stack_image.vtu")
+    assert sorted(np.unique(vtu.cell_data["chip"][0])) == list(range(24))
+    msh = meshio.read(out / "mesh" / "stack_image.msh")
+    assert len(msh.points) == len(vtu.points)
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["mesh"]["image"]["info"]["seed"] == 3
+
+
+@needs_cgal
+def test_a_voxel_thicker_than_a_chip_is_one_line_from_the_cli(tmp_path, small_scenario):
+    small_scenario.write_text(
+        small_scenario.read_text() + '[mesh]\nkind = "image"\nimage_voxel_mm = 2.5\n'
+    )
+    out = tmp_path / "run"
+    result = run_cli("run", str(small_scenario), "--to", "mesh", "--out", str(out), "--quiet")
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "mesh.image_voxel_mm: 2.5 mm is not below" in lines[0]
+    assert "Traceback" not in result.stderr
+    assert not (out / "mesh").exists() or not any((out / "mesh").iterdir())
