@@ -298,11 +298,11 @@ def _absorb_strays(
 
     Mesh_3 labels a tetrahedron by the image under its circumcentre, so where three chips
     meet a lone tetrahedron can take the label of a chip it touches only at an edge (the
-    24-chip test stack: one, making its chip two pieces for a solver). A face-connected piece of a chip
-    (or of the pore space) that is not its largest and holds under 1 % of its volume goes
-    to the region it shares most faces with; one that shares no face with anything (a
-    sliver hanging by an edge: the reference stack, seed 0, three pieces of 0.001 to
-    0.006 mm3) is dropped."""
+    24-chip test stack: one, making its chip two pieces for a solver). A face-connected
+    piece of a chip (or of the pore space) that is not its largest and holds under 1 % of
+    its volume goes to the region it shares most faces with; one that shares no face with
+    anything (a sliver hanging by an edge: the reference stack, seed 0, three pieces of
+    0.001 to 0.006 mm3) is dropped."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
