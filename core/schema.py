@@ -454,7 +454,8 @@ class MeshSpec:
     crop: str = _key(
         "none",
         "",
-        "voxel mesh: `target` crops it to the deposition target, `region` to `region_mm`; "
+        "voxel and image meshes: `target` crops them to the deposition target, `region` to "
+        "`region_mm`; "
         "`none`: the whole stack",
         _one_of("none", "target", "region"),
     )

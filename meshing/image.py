@@ -123,8 +123,13 @@ def image_mesh(
     layer_mm: float = 2.0,
     optimise: bool = False,
     seed: int = 0,
+    region_mm: tuple[float, float, float, float] | None = None,
 ) -> VolumeMesh:
     """Tetrahedral mesh of the stack's labelled image (see the module docstring).
+
+    region_mm: (x_min, x_max, y_min, y_max) of a crop (the voxels whose centres lie in
+    it, chips cut at its sides; with the pore space the box spans the whole region), or
+    None for the whole stack.
 
     voxel_mm: the image's voxel (0: an eighth of the thinnest chip dimension). size_mm:
     the largest element edge. seed: Mesh_3's random seed: without ``optimise`` the same
@@ -142,7 +147,8 @@ def image_mesh(
         )
     start = time.perf_counter()
     voxel = image_voxel_mm(arrangement, voxel_mm)
-    clusters = _clusters(arrangement, voxel, pore_space)
+    clusters, meshed_region = _clusters(arrangement, voxel, pore_space, region_mm)
+    expected = np.unique(np.concatenate([c.chips[_labels_in(c) - 1] for c in clusters]))
     parts = _mesh_clusters(clusters, voxel, size_mm, optimise, seed)
     points, cells, chip = [], [], []
     offset = 0
@@ -157,7 +163,7 @@ def image_mesh(
     chip, keep = _absorb_strays(points, cells, np.concatenate(chip))
     used, cells = np.unique(cells[keep], return_inverse=True)
     points, cells, chip = points[used], cells.reshape(-1, 4), chip[keep]
-    missing = np.setdiff1d(np.arange(arrangement.n_chips), chip)
+    missing = np.setdiff1d(expected, chip)
     if len(missing):
         shown = ", ".join(map(str, missing[:10])) + (", ..." if len(missing) > 10 else "")
         raise MeshingError(
@@ -171,6 +177,9 @@ def image_mesh(
         chip=chip,
         **element_attributes(arrangement, chip, layer_mm),
         quality=tetra_sicn(points, cells),
+        # Mesh_3 finds flat sides (the conveyor, a crop's sides, the box's top) by
+        # bisection, to ~0.01 mm: moving the nodes onto the planes flattened elements at
+        # the bevelled edges (tried), so the sets take the nodes within a quarter voxel.
         node_sets=side_node_sets(points, tolerance_mm=voxel / 4),
         n_chips=arrangement.n_chips,
         kind="image",
@@ -181,28 +190,53 @@ def image_mesh(
             "optimise": optimise,
             "seed": seed,
             "clusters": len(clusters),
+            "region_mm": meshed_region,
             "mesh_time_s": round(time.perf_counter() - start, 3),
         },
     )
 
 
-def _clusters(arrangement: Arrangement, voxel: float, pore_space: str) -> list[_Cluster]:
-    """The images to mesh: one per cluster of chips, or the whole box with the pore space."""
+def _labels_in(cluster: _Cluster) -> np.ndarray:
+    """The chip labels (1-based, the pore's left out) in a cluster's image."""
+    labels = np.unique(cluster.labels)
+    return labels[(labels > 0) & (labels != cluster.pore)].astype(np.int64)
+
+
+def _clusters(
+    arrangement: Arrangement, voxel: float, pore_space: str, region_mm=None
+) -> tuple[list[_Cluster], list[float] | None]:
+    """The images to mesh (one per face-connected piece of each group of chips; the whole
+    box with the pore space) and the crop as meshed (voxel boundaries), if any."""
     from scipy import ndimage
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
     from geometry.contacts import candidate_pairs
+    from meshing.voxel import _crop
 
     n = arrangement.n_chips
+    near = np.ones(n, dtype=bool)
+    if region_mm is not None:  # chips whose boxes reach into the crop
+        x0, x1, y0, y1 = region_mm
+        low, high = arrangement.bounds[:, 0], arrangement.bounds[:, 1]
+        near = (high[:, 0] >= x0) & (low[:, 0] <= x1) & (high[:, 1] >= y0) & (low[:, 1] <= y1)
+    empty = InputError(
+        "mesh.region_mm: the crop x {:g} to {:g}, y {:g} to {:g} mm holds no chip of the "
+        "stack".format(*region_mm)
+        if region_mm is not None
+        else "mesh.kind: the image route has no chip to mesh"
+    )
+    if not near.any():
+        raise empty
     if pore_space == "box":
-        groups = [np.arange(n)]
+        groups = [np.flatnonzero(near)]
     else:
         pairs = candidate_pairs(arrangement.bounds, 2 * voxel)
         graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
         _, label = connected_components(graph, directed=False)
-        groups = [np.flatnonzero(label == k) for k in range(label.max() + 1)]
-    clusters = []
+        groups = [np.flatnonzero((label == k) & near) for k in range(label.max() + 1)]
+        groups = [g for g in groups if len(g)]
+    clusters, meshed_region = [], None
     for chips in groups:
         if len(chips) + 1 > MAX_LABELS:
             raise InputError(
@@ -223,13 +257,24 @@ def _clusters(arrangement: Arrangement, voxel: float, pore_space: str) -> list[_
             raise InputError(f"mesh.image_voxel_mm: {str(error).partition(': ')[2]}") from None
         labels = image.labels
         origin = np.asarray(image.origin_mm, dtype=float)
+        if region_mm is not None:
+            try:
+                labels, origin = _crop(labels, origin, voxel, region_mm)
+            except InputError:  # this group's chips only come near the crop
+                continue
+            # Every group's grid is aligned on the target's corner: one crop for all.
+            top = origin[:2] + np.array(labels.shape[:2]) * voxel
+            meshed_region = [float(origin[0]), float(top[0]), float(origin[1]), float(top[1])]
         solid = labels > 0
         pore = 0
         if pore_space == "box":  # the box over the chips' footprint, as the voxel mesh's
             pore = len(chips) + 1
             ii, jj, kk = (np.flatnonzero(solid.any(axis=axes)) for axes in ((1, 2), (0, 2), (0, 1)))
             box = np.zeros_like(solid)
-            box[ii.min() : ii.max() + 1, jj.min() : jj.max() + 1, : kk.max() + 1] = True
+            if region_mm is not None:  # the whole region: its sides are full faces
+                box[:, :, : kk.max() + 1] = True
+            else:
+                box[ii.min() : ii.max() + 1, jj.min() : jj.max() + 1, : kk.max() + 1] = True
             labels = np.where(box & ~solid, pore, labels)
             solid = labels > 0
         # Each face-connected piece of the image on its own: chips whose boxes come near
@@ -244,7 +289,9 @@ def _clusters(arrangement: Arrangement, voxel: float, pore_space: str) -> list[_
             # Mesh_3 puts voxel (i, j, k) of an image at (i, j, k) x voxel: its centre.
             centre_of_first = origin + (low - _PAD + 0.5) * voxel
             clusters.append(_Cluster(padded, centre_of_first, np.asarray(chips), pore))
-    return clusters
+    if not clusters:
+        raise empty
+    return clusters, meshed_region
 
 
 def _mesh_clusters(clusters, voxel, size_mm, optimise, seed):

@@ -271,6 +271,7 @@ class ImageKind(MeshKind):
         "CGAL Mesh_3 tetrahedra of the labelled voxel image (any chip shape; needs "
         "pygalmesh), touching chips sharing faces"
     )
+    crops = True
 
     @property
     def failures(self):
@@ -282,6 +283,11 @@ class ImageKind(MeshKind):
         from meshing.image import image_mesh
 
         spec = scenario.mesh
+        if spec.periodic:
+            raise InputError(
+                "mesh.periodic: the voxel mesh only (Mesh_3's opposite sides do not match "
+                "node for node)"
+            )
         mesh = image_mesh(
             arrangement,
             spec.image_voxel_mm,
@@ -290,6 +296,7 @@ class ImageKind(MeshKind):
             scenario.geometry.layer_mm,
             spec.image_optimise,
             seed=scenario.seed,
+            region_mm=crop_region(scenario),
         )
         return Built(mesh)
 

@@ -133,3 +133,22 @@ def test_a_voxel_thicker_than_a_chip_is_one_line_from_the_cli(tmp_path, small_sc
     assert len(lines) == 1 and "mesh.image_voxel_mm: 2.5 mm is not below" in lines[0]
     assert "Traceback" not in result.stderr
     assert not (out / "mesh").exists() or not any((out / "mesh").iterdir())
+
+
+@needs_cgal
+def test_a_crop_with_the_pore_space_is_a_full_box_and_its_chips_are_cut_exactly():
+    """The crop x -5 to 5 mm cuts both chips; with the pore space the mesh fills the
+    whole region from the conveyor to the top, and the chips' parts inside it are their
+    exact solids cut to the crop (the check's rule for crops), to 1.5 %."""
+    a = arrange(PILE_AND_LONE_CHIP)
+    mesh = image_mesh(a, 0.25, 1.5, "box", region_mm=(-5.0, 5.0, -12.0, 14.0))
+    assert mesh.info["region_mm"] == pytest.approx([-5, 5, -12, 14])
+    assert sorted(np.unique(mesh.chip)) == [PORE, 0, 1]  # the lone chip is outside
+    low, high = mesh.points.min(axis=0), mesh.points.max(axis=0)
+    # Mesh_3 finds the flat sides by bisection: to about 0.01 mm.
+    assert low[:2] == pytest.approx([-5, -12], abs=0.02)
+    assert high[:2] == pytest.approx([5, 14], abs=0.02)
+    report = check_mesh(mesh, a, np.array([[0, 1]]), 0.0, 0.015, region_mm=mesh.info["region_mm"])
+    assert report["valid"], report
+    with pytest.raises(InputError, match=r"^mesh.region_mm: the crop x 100 to 110, y"):
+        image_mesh(a, 0.25, 1.5, "box", region_mm=(100.0, 110.0, 0.0, 10.0))
