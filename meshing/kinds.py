@@ -272,6 +272,7 @@ class ImageKind(MeshKind):
         "pygalmesh), touching chips sharing faces"
     )
     crops = True
+    solve_models = ("volume",)
 
     @property
     def failures(self):

@@ -94,10 +94,19 @@ class ContactPress(SolveModel):
 
 
 class VolumePress(SolveModel):
-    """A cropped voxel volume, pore space and all, between whole-face platens."""
+    """A cropped volume (voxel or image mesh), pore space and all, between whole-face
+    platens."""
 
     name = "volume"
-    needs = "a cropped voxel volume (mesh.kind = 'voxel', mesh.crop, mesh.pore_space = 'box')"
+    needs = "a cropped volume (mesh.kind = 'voxel' or 'image', mesh.crop, mesh.pore_space = 'box')"
+
+    @staticmethod
+    def stem(scenario) -> str:
+        """The files of the first of the scenario's mesh kinds that this model presses."""
+        from meshing.kinds import mesh_kinds
+
+        kind = next(k for k in mesh_kinds(scenario.mesh.kind) if "volume" in k.solve_models)
+        return f"stack_{kind.name}"
 
     def accepts(self, scenario):
         spec = scenario.mesh
@@ -106,18 +115,19 @@ class VolumePress(SolveModel):
     def check(self, scenario):
         if "inp" not in scenario.mesh.formats:
             raise InputError(
-                "--to solve: the voxel volume is solved from its .inp; add inp to mesh.formats"
+                "--to solve: the volume is solved from its .inp; add inp to mesh.formats"
             )
 
     def prepare(self, mesh_folder, scratch, job, scenario):
         from export.calculix import write_volume_compaction
 
-        shutil.copy(mesh_folder / "stack_voxel.inp", scratch / "stack_voxel.inp")
-        checks = json.loads((mesh_folder / "stack_voxel_checks.json").read_text())
+        stem = self.stem(scenario)
+        shutil.copy(mesh_folder / f"{stem}.inp", scratch / f"{stem}.inp")
+        checks = json.loads((mesh_folder / f"{stem}_checks.json").read_text())
         low, high = checks["bounds_mm"]
         return write_volume_compaction(
             scratch / f"{job}.inp",
-            "stack_voxel.inp",
+            f"{stem}.inp",
             high[2] - low[2],
             scenario.solve,
             scenario.mesh.periodic,
