@@ -76,8 +76,20 @@ def _place(pieces: tuple[_Piece, ...], rotation: np.ndarray, position: np.ndarra
     return _World(vertices, normals, [p.edges @ rotation.T for p in pieces], offsets)
 
 
+def _edge_crosses(ea: np.ndarray, eb: np.ndarray) -> np.ndarray:
+    """(len(ea) * len(eb), 3) cross products of every edge of ``ea`` with every edge of
+    ``eb``, ``ea``'s index outer. The same arithmetic as ``np.cross``, whose set-up cost
+    dominated on these few-row arrays (15.7 of 38 s of building the resolution's rows on
+    the reference stack, profiled)."""
+    a0, a1, a2 = (ea[:, None, k] for k in range(3))
+    b0, b1, b2 = (eb[None, :, k] for k in range(3))
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1).reshape(
+        -1, 3
+    )
+
+
 def _piece_separation(va, na, ea, vb, nb, eb) -> float:
-    cross = np.cross(ea[:, None, :], eb[None, :, :]).reshape(-1, 3)
+    cross = _edge_crosses(ea, eb)
     norms = np.linalg.norm(cross, axis=1)
     cross = cross[norms > 1e-6] / norms[norms > 1e-6, None]
     axes = np.vstack([na, nb, cross])
@@ -134,7 +146,7 @@ class Rule(NamedTuple):
 
 
 def _axes(na, ea, nb, eb):
-    cross = np.cross(ea[:, None, :], eb[None, :, :]).reshape(-1, 3)
+    cross = _edge_crosses(ea, eb)
     norms = np.linalg.norm(cross, axis=1)
     valid = norms > 1e-6
     cross = np.where(valid[:, None], cross / np.where(valid, norms, 1.0)[:, None], 0.0)
