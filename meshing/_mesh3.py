@@ -1,10 +1,11 @@
 """Child process of the image route: CGAL's Mesh_3 (pygalmesh) on one labelled image.
 
-``python -m meshing._mesh3 IMAGE.npy OUT.npz VOXEL CIRCUMRADIUS FACET_DISTANCE OPTIMISE SEED``
+``python meshing/_mesh3.py IMAGE.npy OUT.npz VOXEL CIRCUMRADIUS FACET_DISTANCE OPTIMISE SEED``
 reads a uint16 label image, meshes it and writes the tetrahedra (``points`` mm in the
 image's frame, ``cells``, ``refs``: Mesh_3's subdomain of each). A process of its own:
-Mesh_3 writes its progress to the process's output whatever ``verbose`` says, and a crash
-of the C++ mesher must not take the pipeline with it.
+Mesh_3 writes its progress to stderr whatever ``verbose`` says, and a crash of the C++
+mesher must not take the pipeline with it. Run by path, it imports only numpy and
+pygalmesh.
 """
 
 from __future__ import annotations

@@ -20,9 +20,9 @@ How, and why so:
   non-zero labels.
 * Mesh_3 renumbers the labels; each subdomain is mapped back to a chip by the label of the
   voxel under most of its elements' centroids.
-* Mesh_3 runs in a child process: it writes its progress to the process's own output
-  (whatever ``verbose`` says), and a crash of the C++ mesher must become a one-line error,
-  not the end of the pipeline.
+* Mesh_3 runs in a child process: it writes its progress to stderr (millions of lines on a
+  stack) whatever ``verbose`` says, and a crash of the C++ mesher (or the kernel killing
+  it for memory) must become a one-line error, not the end of the pipeline.
 
 Element quality is the signed inverse condition number (SICN) of each tetrahedron, the
 measure gmsh reports for the conformal mesh (1 for a regular tetrahedron, negative when
@@ -160,6 +160,11 @@ def image_mesh(
         offset += len(cluster_points)
     points = np.concatenate(points)
     cells = np.concatenate(cells).astype(np.int64)
+    if not len(cells):
+        raise MeshingError(
+            f"image mesh: Mesh_3 made no element at {voxel:g} mm voxels; use a smaller "
+            "mesh.image_voxel_mm"
+        )
     chip, keep = _absorb_strays(points, cells, np.concatenate(chip))
     used, cells = np.unique(cells[keep], return_inverse=True)
     points, cells, chip = points[used], cells.reshape(-1, 4), chip[keep]
@@ -262,9 +267,20 @@ def _clusters(
                 labels, origin = _crop(labels, origin, voxel, region_mm)
             except InputError:  # this group's chips only come near the crop
                 continue
-            # Every group's grid is aligned on the target's corner: one crop for all.
+            # Groups' images differ in extent (each covers the target and its chips), so
+            # the crop as meshed is the union of theirs.
             top = origin[:2] + np.array(labels.shape[:2]) * voxel
-            meshed_region = [float(origin[0]), float(top[0]), float(origin[1]), float(top[1])]
+            here = [float(origin[0]), float(top[0]), float(origin[1]), float(top[1])]
+            meshed_region = (
+                here
+                if meshed_region is None
+                else [
+                    min(meshed_region[0], here[0]),
+                    max(meshed_region[1], here[1]),
+                    min(meshed_region[2], here[2]),
+                    max(meshed_region[3], here[3]),
+                ]
+            )
         solid = labels > 0
         pore = 0
         if pore_space == "box":  # the box over the chips' footprint, as the voxel mesh's
@@ -298,6 +314,7 @@ def _mesh_clusters(clusters, voxel, size_mm, optimise, seed):
     """Mesh_3 on every cluster's image, each in a child process (:mod:`meshing._mesh3`):
     [(points, tetrahedra, subdomain of each tetrahedron)], points in the cluster's frame
     (mm)."""
+    import os
     import subprocess
     import sys
     import tempfile
@@ -316,26 +333,43 @@ def _mesh_clusters(clusters, voxel, size_mm, optimise, seed):
                 f"{clusters[k].labels.size:,}",
             )
             image, out = Path(scratch) / f"{k}.npy", Path(scratch) / f"{k}.npz"
+            errors = Path(scratch) / f"{k}.err"
             np.save(image, clusters[k].labels)
-            command = [sys.executable, "-m", "meshing._mesh3", str(image), str(out)]
-            done = subprocess.run(
-                command + [repr(v) for v in settings],
-                stdout=subprocess.DEVNULL,
-                stderr=subprocess.PIPE,
-                cwd=Path(__file__).resolve().parent.parent,
-            )
+            # Run by path: the child needs only numpy and pygalmesh. Mesh_3's progress
+            # goes to stderr (millions of lines on a stack): to a file, not to memory.
+            # TMPDIR: pygalmesh's own temporary files (the image again, the mesh) are
+            # then removed with the scratch folder even when the child is killed.
+            command = [sys.executable, str(Path(__file__).with_name("_mesh3.py"))]
+            with open(errors, "wb") as stderr:
+                done = subprocess.run(
+                    command + [str(image), str(out)] + [repr(v) for v in settings],
+                    stdout=subprocess.DEVNULL,
+                    stderr=stderr,
+                    env={**os.environ, "TMPDIR": scratch},
+                )
             if done.returncode != 0 or not out.is_file():
-                last = (done.stderr.decode(errors="replace").strip().splitlines() or ["?"])[-1]
                 chips = clusters[k].chips
                 shown = ", ".join(map(str, chips[:5])) + (", ..." if len(chips) > 5 else "")
-                log.debug("Mesh_3 child: %s", done.stderr.decode(errors="replace"))
                 raise MeshingError(
-                    f"image mesh: CGAL's Mesh_3 failed on the cluster of chips {shown} "
-                    f"(exit status {done.returncode}: {last[:200]})"
+                    f"image mesh: CGAL's Mesh_3 failed on the piece with chips {shown} "
+                    f"({_failure(done.returncode, errors)})"
                 )
             with np.load(out) as data:
                 results[k] = (data["points"], data["cells"], data["refs"])
     return results
+
+
+def _failure(status: int, errors) -> str:
+    """What ended a Mesh_3 child, in a few words: the signal, or its last error line."""
+    import signal
+
+    if status < 0:
+        name = signal.Signals(-status).name
+        hint = ", out of memory?" if name == "SIGKILL" else ""
+        return f"killed by {name}{hint}"
+    lines = errors.read_bytes()[-4000:].decode(errors="replace").strip().splitlines()
+    found = [line for line in lines if "Error" in line or "error" in line]
+    return f"exit status {status}: {(found or lines or ['?'])[-1][:200]}"
 
 
 def _absorb_strays(
@@ -346,8 +380,8 @@ def _absorb_strays(
     Mesh_3 labels a tetrahedron by the image under its circumcentre, so where three chips
     meet a lone tetrahedron can take the label of a chip it touches only at an edge (the
     24-chip test stack: one, making its chip two pieces for a solver). A face-connected
-    piece of a chip (or of the pore space) that is not its largest and holds under 1 % of
-    its volume goes to the region it shares most faces with; one that shares no face with
+    piece of a chip (never of the pore space) that is not its largest and holds under 1 %
+    of its volume goes to the region it shares most faces with; one that shares no face with
     anything (a sliver hanging by an edge: the reference stack, seed 0, three pieces of
     0.001 to 0.006 mm3) is dropped."""
     from scipy.sparse import coo_matrix
@@ -374,7 +408,9 @@ def _absorb_strays(
     largest = np.zeros(len(region), dtype=bool)
     largest[by_region[np.r_[region[by_region][1:] != region[by_region][:-1], True]]] = True
     region_volume = np.bincount(region, weights=piece_volume)
-    stray = ~largest & (piece_volume < 0.01 * region_volume[region])
+    # The pore space's pieces stay what they are: a pocket the chips close off is pore
+    # (the voxel mesh keeps it so), whatever its size.
+    stray = ~largest & (piece_volume < 0.01 * region_volume[region]) & (region != PORE - chip.min())
     if not stray.any():
         return chip, np.ones(len(chip), dtype=bool)
     # Each stray piece goes to the region across most of its faces.
@@ -409,10 +445,19 @@ def _chips_of_subdomains(cluster: _Cluster, points, cells, refs, voxel) -> np.nd
     index = np.rint(points[cells].mean(axis=1) / voxel).astype(np.int64)
     index = np.clip(index, 0, np.array(cluster.labels.shape) - 1)
     under = cluster.labels[index[:, 0], index[:, 1], index[:, 2]].astype(np.int64)
-    pairs, counts = np.unique(np.column_stack([refs, under]), axis=0, return_counts=True)
+    # Centroids over the void (a tetrahedron across a label boundary) do not vote.
+    votes = under > 0
+    pairs, counts = np.unique(
+        np.column_stack([refs[votes], under[votes]]), axis=0, return_counts=True
+    )
     label_of = np.zeros(int(refs.max()) + 1, dtype=np.int64)
     for ref in np.unique(refs):
         mine = pairs[:, 0] == ref
+        if not mine.any():
+            raise MeshingError(
+                f"image mesh: a Mesh_3 subdomain ({int((refs == ref).sum())} elements) lies "
+                "over no chip; use a smaller mesh.image_voxel_mm"
+            )
         label_of[ref] = pairs[mine][np.argmax(counts[mine]), 1]
     label = label_of[refs]
     lookup = np.full(len(cluster.chips) + 2, PORE, dtype=np.int64)  # the pore last

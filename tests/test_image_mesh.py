@@ -184,3 +184,55 @@ def test_calculix_presses_a_cropped_image_volume_as_stiff_as_the_voxel_one(
         strain = solve["press_mm"] / (z1 - z0)
         moduli[kind] = solve["force_n"] / ((x1 - x0) * (y1 - y0)) / strain
     assert moduli["image"] == pytest.approx(moduli["voxel"], rel=0.05), moduli
+
+
+def _cubes(corners) -> tuple[np.ndarray, np.ndarray]:
+    """Unit cubes at integer ``corners``, six tetrahedra each (Kuhn's split, shared nodes):
+    (points, cells), cube k's tetrahedra at rows 6k .. 6k + 5."""
+    offsets = np.array([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)])
+    paths = [(0, 4, 6, 7), (0, 4, 5, 7), (0, 2, 6, 7), (0, 2, 3, 7), (0, 1, 5, 7), (0, 1, 3, 7)]
+    nodes = (np.asarray(corners)[:, None, :] + offsets[None]).reshape(-1, 3)
+    points, index = np.unique(nodes, axis=0, return_inverse=True)
+    index = index.reshape(-1, 8)
+    cells = np.concatenate([index[:, list(p)] for p in paths], axis=1).reshape(-1, 4)
+    return points.astype(float), cells
+
+
+def test_a_stray_tetrahedron_joins_its_neighbour_and_a_pore_pocket_stays_pore():
+    """Chip 0 is a 4 x 5 slab; chip 1 a 5 x 5 slab far off plus one tetrahedron inside
+    chip 0's first cube (0.7 % of chip 1: a stray, given to chip 0); the pore space a
+    10 x 11 slab plus a one-cube pocket beside chip 0 (0.9 % of the pore space, as small
+    as a stray: a pocket the chips close off stays pore); a tetrahedron of chip 0
+    touching nothing through a face (0.8 % of it) is dropped."""
+    from meshing.image import _absorb_strays
+
+    corners = [(i, j, 0) for i in range(4) for j in range(5)]  # chip 0: rows 0-119
+    corners += [(20 + i, j, 0) for i in range(5) for j in range(5)]  # chip 1: 120-269
+    corners += [(40 + i, j, 0) for i in range(10) for j in range(11)]  # pore: rows 270-929
+    corners += [(0, 5, 0)]  # the pore pocket (0.9 % of the pore), beside chip 0: 930-935
+    points, cells = _cubes(corners)
+    chip = np.repeat([0] * 20 + [1] * 25 + [PORE] * 111, 6)
+    chip[2] = 1  # the stray, face to face with chip 0's tetrahedra
+    # A lone tetrahedron of chip 0 touching nothing: its own four nodes, far away.
+    points = np.concatenate([points, [[90, 0, 0], [91, 0, 0], [90, 1, 0], [90, 0, 1]]])
+    cells = np.concatenate([cells, [np.arange(4) + len(points) - 4]])
+    chip = np.concatenate([chip, [0]])
+    new, keep = _absorb_strays(points, cells, chip)
+    assert new[2] == 0  # the stray joined chip 0
+    assert (new[120:270] == 1).all() and (new[930:936] == PORE).all()  # the pocket stays
+    assert not keep[-1] and keep[:-1].all()  # the lone tetrahedron is dropped
+
+
+def test_a_subdomain_over_the_void_is_refused_not_called_pore():
+    from meshing.conformal import MeshingError
+    from meshing.image import _chips_of_subdomains, _Cluster
+
+    labels = np.zeros((6, 6, 6), dtype=np.uint16)
+    labels[1:3, 1:3, 1:3] = 1
+    points, cells = _cubes([(1, 1, 1), (3, 3, 3)])
+    cluster = _Cluster(labels, np.zeros(3), np.array([7]), 0)
+    refs = np.repeat([1, 2], 6)  # subdomain 2: the cube over the void
+    with pytest.raises(MeshingError, match="subdomain .* lies over no chip"):
+        _chips_of_subdomains(cluster, points, cells, refs, 1.0)
+    chips = _chips_of_subdomains(cluster, points[:8], cells[:6], refs[:6], 1.0)
+    assert (chips == 7).all()
