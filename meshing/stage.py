@@ -38,7 +38,7 @@ class MeshedStack:
 
 
 class MeshStage(Stage):
-    """Voxel hexahedra and/or conformal tetrahedra of the final stack, with checks."""
+    """Voxel hexahedra, conformal or image (CGAL) tetrahedra of the final stack, with checks."""
 
     name = "mesh"
     progress_label = "meshing"
