@@ -71,6 +71,12 @@ class Arrangement:
     def n_chips(self) -> int:
         return len(self.positions)
 
+    @property
+    def thinnest_mm(self) -> float:
+        """The thinnest dimension of any chip shape (mm): twice its smallest half extent
+        (1 mm for no shape at all)."""
+        return min((2 * float(min(s.half_extents)) for s in self.shapes), default=1.0)
+
     @cached_property
     def rotations(self) -> np.ndarray:
         """(n, 3, 3) rotation matrices; column k is the chip's local axis k in the world."""

@@ -177,8 +177,7 @@ def resolve_contacts(
     Raises :class:`UnresolvedError` naming the chips that cannot be cleared.
     """
     start = time.perf_counter()
-    thinnest = min(s.thickness_mm for s in arrangement.shapes) if arrangement.shapes else 1.0
-    check_settings(gap_mm, snap_angle_deg, thinnest)
+    check_settings(gap_mm, snap_angle_deg, arrangement.thinnest_mm)
     if contacts is None:
         contacts = find_contacts(arrangement, contact_gap_mm, contact_extent_mm)
     resolved = _resolve_globally(arrangement, contacts, gap_mm, snap_angle_deg, contact_gap_mm)

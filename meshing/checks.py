@@ -41,10 +41,24 @@ __all__ = [
 
 def element_faces(mesh: VolumeMesh) -> tuple[np.ndarray, np.ndarray]:
     """Every face of every element: (F, k) sorted node ids and (F,) owning element."""
-    local = ELEMENT_FACES[mesh.cell_type]
-    faces = np.concatenate([mesh.cells[:, list(f)] for f in local])
-    owner = np.tile(np.arange(mesh.n_elements), len(local))
+    return _faces(mesh.cells, mesh.cell_type)
+
+
+def _faces(cells: np.ndarray, cell_type: str) -> tuple[np.ndarray, np.ndarray]:
+    local = ELEMENT_FACES[cell_type]
+    faces = np.concatenate([cells[:, list(f)] for f in local])
+    owner = np.tile(np.arange(len(cells)), len(local))
     return np.sort(faces, axis=1), owner
+
+
+def face_neighbours(cells: np.ndarray, cell_type: str) -> tuple[np.ndarray, np.ndarray]:
+    """(a, b): the two elements on either side of every face that two elements share
+    (``cells``: node ids per element, before a :class:`VolumeMesh` exists)."""
+    faces, owner = _faces(cells, cell_type)
+    order = np.lexsort(faces.T[::-1])
+    faces, owner = faces[order], owner[order]
+    twin = np.flatnonzero(np.all(faces[1:] == faces[:-1], axis=1))
+    return owner[twin], owner[twin + 1]
 
 
 def _sorted_faces(mesh: VolumeMesh) -> tuple[np.ndarray, np.ndarray]:

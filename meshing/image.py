@@ -43,8 +43,9 @@ from core.errors import InputError
 from geometry.arrangement import Arrangement
 from geometry.voxels import voxelize
 from meshing.boundaries import side_node_sets
+from meshing.checks import face_neighbours
 from meshing.conformal import MeshingError
-from meshing.mesh import PORE, VolumeMesh, element_attributes
+from meshing.mesh import PORE, VolumeMesh, check_voxel_below_thinnest, element_attributes
 
 __all__ = ["image_mesh", "image_voxel_mm", "tetra_sicn", "cgal_available"]
 
@@ -79,14 +80,9 @@ def image_voxel_mm(arrangement: Arrangement, voxel_mm: float = 0.0) -> float:
     exact volumes at 0.25 mm; at a twelfth (0.167 mm) its main cluster of 256 touching
     chips, spread over 280 x 273 mm, is a 415-million-voxel image, over the voxelizer's
     cap and, measured at 0.25 mm (3 GB), well over 4 GB in Mesh_3."""
-    thinnest = min(2 * float(min(s.half_extents)) for s in arrangement.shapes)
     if voxel_mm == 0:
-        return thinnest / 8
-    if voxel_mm >= thinnest:
-        raise InputError(
-            f"mesh.image_voxel_mm: {voxel_mm:g} mm is not below the thinnest chip dimension "
-            f"({thinnest:g} mm); use at most {thinnest / 4:g} mm (4 voxels through a chip)"
-        )
+        return arrangement.thinnest_mm / 8
+    check_voxel_below_thinnest("mesh.image_voxel_mm", voxel_mm, arrangement, 4)
     return voxel_mm
 
 
@@ -387,13 +383,7 @@ def _absorb_strays(
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    local = ((0, 1, 2), (0, 1, 3), (0, 2, 3), (1, 2, 3))
-    faces = np.sort(np.concatenate([cells[:, list(f)] for f in local]), axis=1)
-    owner = np.tile(np.arange(len(cells)), 4)
-    order = np.lexsort(faces.T[::-1])
-    faces, owner = faces[order], owner[order]
-    twin = np.flatnonzero(np.all(faces[1:] == faces[:-1], axis=1))
-    a, b = owner[twin], owner[twin + 1]
+    a, b = face_neighbours(cells, "tetra")
     n = len(cells)
     same = chip[a] == chip[b]
     graph = coo_matrix((np.ones(int(same.sum())), (a[same], b[same])), shape=(n, n))

@@ -167,10 +167,11 @@ class VoxelKind(MeshKind):
     solve_models = ("volume",)
 
     def build(self, arrangement, scenario, scratch):
+        from meshing.mesh import check_voxel_below_thinnest
         from meshing.voxel import voxel_mesh
 
         spec = scenario.mesh
-        _check_voxel_size(spec.voxel_mm, arrangement)
+        check_voxel_below_thinnest("mesh.voxel_mm", spec.voxel_mm, arrangement, 2)
         mesh = voxel_mesh(
             arrangement,
             spec.voxel_mm,
@@ -439,17 +440,6 @@ def crop_region(scenario: Scenario) -> tuple[float, float, float, float] | None:
         x0, x1, y0, y1 = spec.region_mm
         return (x0, x1, y0, y1)
     return None
-
-
-def _check_voxel_size(voxel_mm: float, arrangement: Arrangement) -> None:
-    """A voxel as thick as a chip samples it once through its thickness: tilted chips
-    fall apart into pieces joined at edges (half the reference stack at 2 mm)."""
-    thinnest = min(2 * float(min(s.half_extents)) for s in arrangement.shapes)
-    if voxel_mm >= thinnest:
-        raise InputError(
-            f"mesh.voxel_mm: {voxel_mm:g} mm is not below the thinnest chip dimension "
-            f"({thinnest:g} mm); use at most {thinnest / 2:g} mm (2 voxels through a chip)"
-        )
 
 
 for _kind in (VoxelKind(), ConformalKind(), ImageKind(), ContactKind()):

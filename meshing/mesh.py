@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from core.errors import InputError
 from meshing.boundaries import PeriodicPairs
 
 # The arrangement (scipy) only when attributes are computed: export.mesh_files imports this
@@ -14,7 +15,13 @@ from meshing.boundaries import PeriodicPairs
 if TYPE_CHECKING:
     from geometry.arrangement import Arrangement
 
-__all__ = ["VolumeMesh", "PORE", "chip_attributes", "element_attributes"]
+__all__ = [
+    "VolumeMesh",
+    "PORE",
+    "check_voxel_below_thinnest",
+    "chip_attributes",
+    "element_attributes",
+]
 
 PORE = -1  # chip id of elements in the pore space (void or matrix-rich region)
 
@@ -79,6 +86,21 @@ class VolumeMesh:
 
 def _tet_volumes(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->i", np.cross(b - a, c - a), d - a) / 6.0
+
+
+def check_voxel_below_thinnest(
+    key: str, voxel_mm: float, arrangement: Arrangement, advised_through: int
+) -> None:
+    """Refuse (naming ``key``) a voxel not below the thinnest chip dimension: sampled once
+    through its thickness, a tilted chip falls apart into pieces joined at edges (half the
+    reference stack at 2 mm). The message advises ``advised_through`` voxels through it."""
+    thinnest = arrangement.thinnest_mm
+    if voxel_mm >= thinnest:
+        raise InputError(
+            f"{key}: {voxel_mm:g} mm is not below the thinnest chip dimension ({thinnest:g} "
+            f"mm); use at most {thinnest / advised_through:g} mm ({advised_through} voxels "
+            "through a chip)"
+        )
 
 
 def chip_attributes(arrangement: Arrangement, layer_mm: float) -> tuple[np.ndarray, ...]:

@@ -63,6 +63,34 @@ def run_cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
     )
 
 
+def _content(path: Path):
+    """A file's bytes; for the sparse giants of the bad-input catalogue, its size and mtime
+    (reading 10 GB of zeros would take the test a minute)."""
+    if not path.is_file():
+        return None
+    status = path.stat()
+    if status.st_size > 2**24:
+        return (status.st_size, status.st_mtime_ns)
+    return path.read_bytes()
+
+
+def tree(folder: Path) -> dict[str, bytes | tuple | None]:
+    """Every path under ``folder`` (hidden ones too) with its content."""
+    return {p.relative_to(folder).as_posix(): _content(p) for p in sorted(folder.rglob("*"))}
+
+
+def assert_refused(result: subprocess.CompletedProcess, named: str, folder: Path, before) -> None:
+    """The command was refused as every bad input must be: exit status 2, one line on
+    stderr holding ``named``, no traceback, and ``folder`` exactly as ``before``
+    (:func:`tree`): nothing written, not even half."""
+    assert result.returncode == 2, (result.returncode, result.stderr)
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    assert "Traceback" not in result.stderr
+    assert named in lines[0], lines[0]
+    assert tree(folder) == before, "a refused input wrote something"
+
+
 @pytest.fixture
 def small_scenario(tmp_path: Path) -> Path:
     path = tmp_path / "small.toml"

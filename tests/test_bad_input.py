@@ -20,33 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import SMALL_SCENARIO, drop_spec, run_cli
-
-
-def _content(path: Path):
-    """A file's bytes; for the sparse giants of the catalogue, its size and mtime (reading
-    10 GB of zeros would take the test a minute)."""
-    if not path.is_file():
-        return None
-    status = path.stat()
-    if status.st_size > 2**24:
-        return (status.st_size, status.st_mtime_ns)
-    return path.read_bytes()
-
-
-def _tree(folder: Path) -> dict[str, bytes | tuple | None]:
-    """Every path under ``folder`` (hidden ones too) with its content."""
-    return {p.relative_to(folder).as_posix(): _content(p) for p in sorted(folder.rglob("*"))}
-
-
-def assert_refused(result: subprocess.CompletedProcess, named: str, folder: Path, before) -> None:
-    assert result.returncode == 2, (result.returncode, result.stderr)
-    lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1, result.stderr
-    assert "Traceback" not in result.stderr
-    assert named in lines[0], lines[0]
-    assert _tree(folder) == before, "a refused input wrote something"
-
+from conftest import SMALL_SCENARIO, assert_refused, drop_spec, run_cli, tree
 
 # -- scenarios -----------------------------------------------------------------------------
 BAD_SCENARIOS = {
@@ -137,7 +111,7 @@ BAD_SCENARIOS = {
 def test_bad_scenario(case, tmp_path):
     text, named = BAD_SCENARIOS[case]
     (tmp_path / "bad.toml").write_text(text)
-    before = _tree(tmp_path)
+    before = tree(tmp_path)
     result = run_cli("run", str(tmp_path / "bad.toml"), "--out", str(tmp_path / "out"))
     assert_refused(result, named, tmp_path, before)
 
@@ -238,7 +212,7 @@ def test_bad_geometry_file(case, tmp_path):
         _write_case_file(tmp_path / name, content)
     units = 'units = "m"\n' if case.startswith("metres") else ""
     (tmp_path / "s.toml").write_text(f'[chip]\nshape = "file"\nfile = "{name}"\n{units}')
-    before = _tree(tmp_path)
+    before = tree(tmp_path)
     result = run_cli("run", str(tmp_path / "s.toml"), "--out", str(tmp_path / "out"))
     assert_refused(result, named, tmp_path, before)
 
@@ -335,7 +309,7 @@ def test_bad_observation_file(case, tmp_path):
         _write_case_file(data, (header, rows))
     else:
         _write_drops(data, rows, header)
-    before = _tree(tmp_path)
+    before = tree(tmp_path)
     result = run_cli("diagnose", str(spec), "--out", str(tmp_path / "out"), "--workers", "1")
     assert_refused(result, named, tmp_path, before)
 
@@ -393,7 +367,7 @@ def test_bad_experiment_spec(case, tmp_path):
     text, named = BAD_SPECS[case]
     _write_drops(tmp_path / "data.csv", _good_rows())
     (tmp_path / "spec.toml").write_text(text)
-    before = _tree(tmp_path)
+    before = tree(tmp_path)
     result = run_cli("diagnose", str(tmp_path / "spec.toml"), "--out", str(tmp_path / "o"))
     assert_refused(result, named, tmp_path, before)
 
@@ -408,7 +382,7 @@ def test_a_file_not_in_the_expected_format_is_never_quoted(tmp_path):
     folder.mkdir()
     spec = drop_spec(folder, effects=("friction",))
     spec.write_text(spec.read_text().replace('"data.csv"', '"../private/token.txt"'))
-    before = _tree(tmp_path)
+    before = tree(tmp_path)
     result = run_cli("diagnose", str(spec), "--out", str(tmp_path / "out"), "--workers", "1")
     assert_refused(result, "token.txt: missing column 'condition'", tmp_path, before)
     assert "SECRET" not in result.stderr and "root:x" not in result.stderr
@@ -450,7 +424,7 @@ def test_synth_on_a_full_disk_leaves_no_partial_file(tmp_path):
     """The observations are written to a temporary name and renamed: a disk that fills
     while writing is one line, and neither the file nor its temporary is left."""
     spec = drop_spec(tmp_path)
-    before = _tree(tmp_path)
+    before = tree(tmp_path)
     result = subprocess.run(
         [sys.executable, "-m", "pipeline", "synth", str(spec), "-o", str(tmp_path / "d.csv")]
         + ["--drops", "40", "--workers", "1"],
@@ -655,7 +629,7 @@ def test_bad_run_directory(case, tmp_path, finished_run):
     d = tmp_path / "case"
     d.mkdir()
     args, named, undo = _case_run_dir(case, d, finished_run)
-    before = _tree(d)
+    before = tree(d)
     try:
         result = run_cli(*args, cwd=d)
     finally:
@@ -673,7 +647,7 @@ def _run_on_a_full_disk(tmp_path, limit) -> tuple[subprocess.CompletedProcess, d
     """The small scenario run into ``tmp_path`` by a process whose file-size limit is set
     by ``limit``; returns the result and the folder as it was before."""
     (tmp_path / "s.toml").write_text(SMALL_SCENARIO)
-    before = _tree(tmp_path)
+    before = tree(tmp_path)
     result = subprocess.run(
         [sys.executable, "-m", "pipeline", "run", str(tmp_path / "s.toml")]
         + ["--out", str(tmp_path / "out"), "--quiet"],
@@ -737,7 +711,7 @@ def test_bad_flag(case, tmp_path):
     if args[0] == "run" and not (len(args) > 1 and args[1].endswith((".toml", "."))):
         (tmp_path / "s.toml").write_text(SMALL_SCENARIO)
         args = ["run", "s.toml", *args[1:]]
-    before = _tree(tmp_path)
+    before = tree(tmp_path)
     result = (
         run_cli(*args, "--out", "out", cwd=tmp_path)
         if args[0] == "run"
@@ -764,7 +738,7 @@ BAD_SYNTH_FLAGS = {
 def test_bad_synth_flag(case, tmp_path):
     args, named = BAD_SYNTH_FLAGS[case]
     spec = drop_spec(tmp_path)
-    before = _tree(tmp_path)
+    before = tree(tmp_path)
     result = run_cli("synth", str(spec), "-o", str(tmp_path / "data.csv"), *args)
     assert_refused(result, named, tmp_path, before)
 

@@ -10,7 +10,7 @@ import shutil
 import meshio
 import numpy as np
 import pytest
-from conftest import run_cli
+from conftest import assert_refused, run_cli, tree
 from scipy.spatial.transform import Rotation
 from test_resolve import arrange
 
@@ -127,13 +127,10 @@ def test_a_voxel_thicker_than_a_chip_is_one_line_from_the_cli(tmp_path, small_sc
     small_scenario.write_text(
         small_scenario.read_text() + '[mesh]\nkind = "image"\nimage_voxel_mm = 2.5\n'
     )
+    before = tree(tmp_path)
     out = tmp_path / "run"
     result = run_cli("run", str(small_scenario), "--to", "mesh", "--out", str(out), "--quiet")
-    assert result.returncode == 2
-    lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1 and "mesh.image_voxel_mm: 2.5 mm is not below" in lines[0]
-    assert "Traceback" not in result.stderr
-    assert not (out / "mesh").exists() or not any((out / "mesh").iterdir())
+    assert_refused(result, "mesh.image_voxel_mm: 2.5 mm is not below", tmp_path, before)
 
 
 @needs_cgal

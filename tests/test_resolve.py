@@ -164,15 +164,13 @@ def test_settings_that_cannot_work_are_refused(gap, angle, message):
 
 
 def test_a_gap_above_a_tenth_of_the_chip_is_one_line_from_the_cli(tmp_path, small_scenario):
-    from conftest import run_cli
+    from conftest import assert_refused, run_cli, tree
 
     small_scenario.write_text(
         small_scenario.read_text() + '[mesh]\nkind = "conformal"\ngap_mm = 0.5\n'
     )
+    before = tree(tmp_path)
     out = tmp_path / "run"
     result = run_cli("run", str(small_scenario), "--to", "mesh", "--out", str(out), "--quiet")
-    assert result.returncode == 2
-    lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1 and "Traceback" not in result.stderr
-    assert "mesh.gap_mm: 0.5 mm is above a tenth of the thinnest chip dimension" in lines[0]
-    assert not out.exists()
+    named = "mesh.gap_mm: 0.5 mm is above a tenth of the thinnest chip dimension"
+    assert_refused(result, named, tmp_path, before)
