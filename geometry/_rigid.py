@@ -164,6 +164,70 @@ def _axis_gaps(va, na, ea, vb, nb, eb):
     return gaps, ahead >= behind
 
 
+def _batched_axis_gaps(worlds: list[_World], pairs: list[tuple[int, int]]):
+    """:func:`_axis_gaps` of every piece of ``a`` against every piece of ``b`` for every
+    pair (a, b), computed together: a list per pair of (piece of a, piece of b, gaps,
+    sides). Pieces with the same numbers of corners, faces and edges are stacked, and the
+    arithmetic is written out element by element (the same on every CPU, where a matrix
+    product's rounding depends on the BLAS kernel); one call per chip pair was most of the
+    global route's time (reference stack: 119,058 calls, 6.9 of 27.6 s)."""
+    entries: dict[tuple, list[tuple[int, int, int]]] = {}
+    for index, (a, b) in enumerate(pairs):
+        wa, wb = worlds[a], worlds[b]
+        for pa in range(len(wa.vertices)):
+            for pb in range(len(wb.vertices)):
+                kind = (
+                    wa.vertices[pa].shape[0],
+                    wa.normals[pa].shape[0],
+                    wa.edges[pa].shape[0],
+                    wb.vertices[pb].shape[0],
+                    wb.normals[pb].shape[0],
+                    wb.edges[pb].shape[0],
+                )
+                entries.setdefault(kind, []).append((index, pa, pb))
+    out: list[list] = [[] for _ in pairs]
+    for group in entries.values():
+
+        def stacked(which: str, side: int, group=group) -> np.ndarray:
+            return np.stack(
+                [getattr(worlds[pairs[i][side]], which)[(p, q)[side]] for i, p, q in group]
+            )
+
+        va, na, ea = stacked("vertices", 0), stacked("normals", 0), stacked("edges", 0)
+        vb, nb, eb = stacked("vertices", 1), stacked("normals", 1), stacked("edges", 1)
+        a0, a1, a2 = (ea[:, :, None, k] for k in range(3))
+        b0, b1, b2 = (eb[:, None, :, k] for k in range(3))
+        cross = np.stack(
+            [a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1
+        ).reshape(len(group), -1, 3)
+        norms = np.sqrt(cross[..., 0] ** 2 + cross[..., 1] ** 2 + cross[..., 2] ** 2)
+        valid = norms > 1e-6
+        cross = np.where(valid[..., None], cross / np.where(valid, norms, 1.0)[..., None], 0.0)
+        axes = np.concatenate([na, nb, cross], axis=1)  # (G, K, 3)
+        faces = np.ones((len(group), na.shape[1] + nb.shape[1]), bool)
+        valid = np.concatenate([faces, valid], axis=1)
+
+        pa, pb = _project(va, axes), _project(vb, axes)
+        ahead = pb.min(axis=1) - pa.max(axis=1)
+        behind = pa.min(axis=1) - pb.max(axis=1)
+        gaps = np.where(valid, np.maximum(ahead, behind), -np.inf)
+        sides = ahead >= behind
+        for row, (i, p, q) in enumerate(group):
+            out[i].append((p, q, gaps[row], sides[row]))
+    for items in out:
+        items.sort(key=lambda item: item[:2])
+    return out
+
+
+def _project(v: np.ndarray, axes: np.ndarray) -> np.ndarray:
+    """(G, V, K) projections of corners (G, V, 3) on axes (G, K, 3), term by term."""
+    return (
+        v[:, :, None, 0] * axes[:, None, :, 0]
+        + v[:, :, None, 1] * axes[:, None, :, 1]
+        + v[:, :, None, 2] * axes[:, None, :, 2]
+    )
+
+
 def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.array(
         [u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]]

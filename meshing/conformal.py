@@ -23,6 +23,7 @@ import threading
 import time
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from core.errors import ChipstackError, InputError
 from geometry.arrangement import Arrangement
@@ -95,8 +96,14 @@ def _add_chip(occ, arrangement: Arrangement, chip: int) -> int:
         )
     hx, hy, hz = (float(v) for v in shape.half_extents)
     tag = occ.addBox(-hx, -hy, -hz, 2 * hx, 2 * hy, 2 * hz)
-    matrix = np.hstack([arrangement.rotations[chip], arrangement.positions[chip][:, None]])
-    occ.affineTransform([(3, tag)], [float(v) for v in matrix.ravel()])
+    # A rotation and a translation, not an affine transform: OpenCASCADE turns the planes
+    # of a generally transformed box into B-spline surfaces, and fragmenting those was
+    # ten times slower (reference stack, seed 0: 9.2 s against 0.85 s).
+    turn = Rotation.from_matrix(arrangement.rotations[chip]).as_rotvec()
+    angle = float(np.linalg.norm(turn))
+    if angle > 0:
+        occ.rotate([(3, tag)], 0.0, 0.0, 0.0, *(float(v) for v in turn / angle), angle)
+    occ.translate([(3, tag)], *(float(v) for v in arrangement.positions[chip]))
     return tag
 
 
@@ -269,6 +276,10 @@ def _set_mesh_size(gmsh, size_mm: float) -> None:
     option = gmsh.option.setNumber
     option("Mesh.MeshSizeMax", float(size_mm))
     option("Mesh.MeshSizeMin", float(size_mm) / 1000)
+    # The size field integrated along each curve to a relative 1e-3, not gmsh's 1e-9: the
+    # same edge nodes to within a few in a million (reference stack, seed 0), and the
+    # curves meshed in 0.7 s instead of 5.9 s.
+    option("Mesh.LcIntegrationPrecision", 1e-3)
     _grade_thin_faces(gmsh, float(size_mm))
     option("Mesh.Algorithm", 6)
     option("Mesh.Algorithm3D", 10)
