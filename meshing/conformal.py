@@ -75,27 +75,62 @@ class GmshSession:
             _LOCK.release()
 
 
+def _box_centres(arrangement: Arrangement) -> tuple[np.ndarray, np.ndarray]:
+    """Each chip's local bounding box in the world: (n, 3) centres and (n, 3) half sizes
+    (mm). A star's or a random polygon's box is not centred on its centre of mass."""
+    offsets = np.array([arrangement.shapes[k].box_centre for k in arrangement.shape_index])
+    centres = arrangement.positions + np.einsum("nij,nj->ni", arrangement.rotations, offsets)
+    half = np.array([arrangement.shapes[k].half_extents for k in arrangement.shape_index])
+    return centres.reshape(-1, 3), half.reshape(-1, 3)
+
+
+def _pairs_closer_than(arrangement: Arrangement, inflate_mm: float, depth_mm: float):
+    """Pairs (i, j) of chips that interpenetrate by more than ``depth_mm`` once each is
+    grown by ``inflate_mm`` (mm): exact for boxes (separating axes on the boxes), and for
+    other chips the boxes' test refined by the separating axes of their convex pieces."""
+    from geometry._rigid import _pieces, _place, _separation
+
+    centres, half = _box_centres(arrangement)
+    pairs, depth = penetrating_pairs(centres, arrangement.quaternions, half + inflate_mm)
+    boxes = np.array([_fills_box(arrangement.shapes[k]) for k in arrangement.shape_index])
+    kept = []
+    placed: dict[int, object] = {}
+
+    def world(k: int):
+        if k not in placed:
+            shape = arrangement.shapes[arrangement.shape_index[k]]
+            placed[k] = _place(_pieces(shape), arrangement.rotations[k], arrangement.positions[k])
+        return placed[k]
+
+    for (i, j), d in zip(pairs.tolist(), depth, strict=True):
+        if boxes[i] and boxes[j]:
+            if d > depth_mm:
+                kept.append((i, j))
+        elif -_separation(world(i), world(j)) + 2 * inflate_mm > depth_mm:
+            kept.append((i, j))
+    return kept
+
+
 def overlapping_pairs(arrangement: Arrangement) -> list[tuple[int, int]]:
     """(lower, upper) chips that interpenetrate, lower first in the bottom-up order: the
     lower one keeps the shared material (see :meth:`Arrangement.bottom_up_order`).
-    Exact for boxes (separating axes), the only chips this mesher takes."""
-    half = np.array([arrangement.shapes[k].half_extents for k in arrangement.shape_index])
-    pairs, depth = penetrating_pairs(arrangement.positions, arrangement.quaternions, half)
-    # Faces made coplanar by the contact resolution overlap by rounding only: they touch.
-    pairs = pairs[depth > _TOUCHING_MM]
+    Faces made coplanar by the contact resolution overlap by rounding only: they touch."""
     rank = arrangement.bottom_up_rank()
-    return [(int(i), int(j)) if rank[i] < rank[j] else (int(j), int(i)) for i, j in pairs.tolist()]
+    return [
+        (i, j) if rank[i] < rank[j] else (j, i)
+        for i, j in _pairs_closer_than(arrangement, 0.0, _TOUCHING_MM)
+    ]
 
 
 def _add_chip(occ, arrangement: Arrangement, chip: int) -> int:
+    """The chip as an OpenCASCADE solid: a box, or built from its faces (stars, polygons,
+    file shapes: every exact solid of the project is a polyhedron)."""
     shape = arrangement.shapes[arrangement.shape_index[chip]]
-    if shape.kind != "box":
-        raise InputError(
-            f"chip {chip}: conformal meshing supports box chips only (shape {shape.name!r}); "
-            "use the voxel mesh (mesh.kind = 'voxel')"
-        )
-    hx, hy, hz = (float(v) for v in shape.half_extents)
-    tag = occ.addBox(-hx, -hy, -hz, 2 * hx, 2 * hy, 2 * hz)
+    if _fills_box(shape):
+        low = np.asarray(shape.box_centre) - shape.half_extents
+        tag = occ.addBox(*(float(v) for v in low), *(float(2 * v) for v in shape.half_extents))
+    else:  # the exact solid is a polyhedron for every shape (a rod's: a 16-sided prism)
+        tag = _add_polyhedron(occ, shape.vertices, shape.faces)
     # A rotation and a translation, not an affine transform: OpenCASCADE turns the planes
     # of a generally transformed box into B-spline surfaces, and fragmenting those was
     # ten times slower (reference stack, seed 0: 9.2 s against 0.85 s).
@@ -105,6 +140,30 @@ def _add_chip(occ, arrangement: Arrangement, chip: int) -> int:
         occ.rotate([(3, tag)], 0.0, 0.0, 0.0, *(float(v) for v in turn / angle), angle)
     occ.translate([(3, tag)], *(float(v) for v in arrangement.positions[chip]))
     return tag
+
+
+def _fills_box(shape) -> bool:
+    """Whether the chip is its own bounding box (a square, a beam), where the boxes'
+    separating axes are exact."""
+    return abs(shape.volume_mm3 - 8 * float(np.prod(shape.half_extents))) <= 1e-9 * shape.volume_mm3
+
+
+def _add_polyhedron(occ, vertices: np.ndarray, faces) -> int:
+    """A solid bounded by planar face loops (vertex indices, counter-clockwise seen from
+    outside), its corners and edges shared between faces."""
+    points = [occ.addPoint(*(float(v) for v in corner)) for corner in vertices]
+    lines: dict[tuple[int, int], int] = {}
+    surfaces = []
+    for loop in faces:
+        curves = []
+        for a, b in zip(loop, (*loop[1:], loop[0]), strict=True):
+            if (b, a) in lines:
+                curves.append(-lines[(b, a)])
+            else:
+                lines[(a, b)] = occ.addLine(points[a], points[b])
+                curves.append(lines[(a, b)])
+        surfaces.append(occ.addPlaneSurface([occ.addCurveLoop(curves)]))
+    return occ.addVolume([occ.addSurfaceLoop(surfaces)])
 
 
 def conformal_mesh(
@@ -223,10 +282,8 @@ def _touching_groups(arrangement: Arrangement) -> list[list[int]]:
     from scipy.sparse.csgraph import connected_components
 
     n = arrangement.n_chips
-    half = np.array([arrangement.shapes[k].half_extents for k in arrangement.shape_index])
-    pairs, _ = penetrating_pairs(
-        arrangement.positions, arrangement.quaternions, half + 10 * _TOUCHING_MM
-    )
+    pairs = np.array(_pairs_closer_than(arrangement, 10 * _TOUCHING_MM, 0.0), dtype=int)
+    pairs = pairs.reshape(-1, 2)
     graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
     count, label = connected_components(graph, directed=False)
     return [np.flatnonzero(label == k).tolist() for k in range(count)]
