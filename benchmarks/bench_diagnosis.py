@@ -80,16 +80,18 @@ SWEEP_POINTS = 6
 # (the detection, all null cases see, is unchanged). 3: split-halves folds over every
 # condition; adequacy at every plausible strength, combined over the held-out datasets
 # by Fisher's method; (and the physics of 2026-11-23: rolling resistance on round chips
-# only).
+# only). 4 (nulls 2): the detection and "where" one max-T over the energy statistics and
+# every observable's and region's difference (per condition and summed over them), with
+# Westfall-Young adjusted flags (issue 35).
 METHOD = {
-    "nulls": 1,
-    "effects": 3,
-    "outside": 3,
-    "seeds": 3,
-    "sweep": 3,
+    "nulls": 2,
+    "effects": 4,
+    "outside": 4,
+    "seeds": 4,
+    "sweep": 4,
     # Fitted tilt 2: its confidence set from 97.5 % intervals, clipped to its box.
-    **{part + "-fitted-tilt": 2 for part in ("effects", "outside")},
-    **{part + "-100-drops": 1 for part in ("effects", "outside")},
+    **{part + "-fitted-tilt": 3 for part in ("effects", "outside")},
+    **{part + "-100-drops": 2 for part in ("effects", "outside")},
 }
 STANDARD_CONDITIONS = ((200, 0), (500, 0), (1000, 30))
 # The release conditions null cases draw from: (height mm, yaw deg).

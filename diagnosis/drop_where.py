@@ -1,15 +1,32 @@
-"""Where a drop experiment departs from its baseline simulation, with every test exact:
-the labels (experiment, simulation) of a condition's drops are permuted, the same
-permutations serving every statistic of the condition, so
+"""Where a drop experiment departs from its baseline simulation, with every test exact.
 
-- each condition gets a test of its whole distribution of drops: the energy statistics
-  of the position, yaw and tilt blocks and of their sum, combined by max-T; and the
-  experiment one overall test, stratified by condition (each statistic summed over the
-  conditions under the same permutations, then max-T): the detection;
-- every observable and every ring and sector of the scatter gets a permutation p-value,
-  Holm-adjusted across all of them in every condition (one family), with a bootstrap
-  interval of its difference and the noise floor (what 95 % of differences look like
-  when there is no gap)."""
+The labels (experiment, simulation) of each condition's pooled drops are permuted
+(``PERMUTATIONS`` times); row r of every condition's permutations together is one
+labelling of the whole experiment, stratified by condition, and every statistic below is
+computed under the observed labelling and under each of those rows, so all of them share
+one exact joint null.
+
+- Per condition: the energy statistics of the position, yaw and tilt blocks and of their
+  sum, standardised by their nulls and combined by max-T; Holm across conditions.
+- Targeted statistics: for each condition c and observable k the difference experiment
+  minus simulation standardised by its permutation null's mean and sd, Z[c, k], taken
+  two-sided (|Z|); for each observable the stratified sum over the C conditions,
+  sum_c Z[c, k] / sqrt(C) (standardised again, two-sided), which gathers a shift in the
+  same direction in every condition; for each ring and sector of every condition the
+  standardised difference of its share of drops (two-sided).
+- The detection: one max-T over the whole family (each block's energy statistic summed
+  over the conditions and standardised, one-sided; the stratified sums; every |Z[c, k]|;
+  every region's |Z|), the largest per permutation row, its p-value against the null
+  rows' largest. The family-wise error is alpha under the exact stratified null, and a
+  shift in one feature is found without being diluted into the omnibus statistic.
+- "Where": every row of that family gets its Westfall-Young step-down max-T adjusted
+  p-value from the same rows (``statistics.max_t_adjusted``); an observable is beyond the
+  noise, a region notable, when it is below alpha, so the flags keep the family-wise
+  error at alpha, and the detection is significant exactly when some row of the family
+  is. Each row keeps its difference, direction, z, bootstrap interval and noise floor
+  (what 95 % of differences look like when there is no gap). The report reads them
+  hierarchically: each condition's test, then the observables flagged in it.
+"""
 
 from __future__ import annotations
 
@@ -23,53 +40,166 @@ from diagnosis.statistics import (
     PERMUTATIONS,
     energy_statistics,
     exceedance_p,
-    holm,
     interval,
     max_t,
+    max_t_adjusted,
     permutation_masks,
     standardise,
 )
 
-__all__ = ["locate_gap", "energy_test"]
+__all__ = ["locate_gap", "energy_test", "gap_family"]
 
 RING_QUANTILES = (0.25, 0.5, 0.75, 0.9)
 SECTORS = 8
+
+# The parts of the family, in the order ``gap_family`` stacks them.
+FAMILY_PARTS = ("energy", "across conditions", "per condition", "regions")
 
 
 def locate_gap(
     full: dict[str, Dataset], sims: DropSimulations, rng: np.random.Generator, alpha: float
 ) -> dict:
-    """The "where" section: the overall test, and per condition its test, observables
-    and regions."""
-    rows, tests, regions = [], [], []
-    total = 0.0
+    """The "where" section: the overall test (the detection), per condition its test and
+    the observables beyond the noise in it; every observable and region of every
+    condition, and every observable across the conditions, with its adjusted p-value."""
+    perms, tests, rows, regions = [], [], [], []
     for c, ds in full.items():
         perm = _ConditionPermutations(ds, sims, sims.baseline(c, None), rng)
-        total = total + perm.standardised
+        perms.append(perm)
         tests.append(perm.test())
-        rows += perm.observable_rows(rng)
-        regions += perm.region_rows()
+        rows.append(perm.observable_rows(rng))
+        regions.append(perm.region_rows())
         sims.observable_sd[c] = perm.observable_sd
     adjust_tests(tests, alpha)
-    adjusted = holm([r["p_value"] for r in rows + regions])
-    for r, p in zip(rows + regions, adjusted, strict=True):
-        r["p_holm"] = float(p)
-        r["beyond_noise" if "observable" in r else "notable"] = bool(p < alpha)
-    # Each statistic (block or total) summed over conditions under the same
-    # permutations, then the largest: the detection, stratified by condition.
-    overall_t = max_t(total)
+    # Each block's energy statistic summed over conditions under the same permutations.
+    total = sum(perm.standardised for perm in perms)
+    labels, family = gap_family(total, [p.z for p in perms], [p.region_z for p in perms])
+    adjusted = dict(zip(labels, max_t_adjusted(family), strict=True))
+    for c, (t, own, shares) in enumerate(zip(tests, rows, regions, strict=True)):
+        for k, r in enumerate(own):
+            r["p_adjusted"] = float(adjusted[FAMILY_PARTS[2], c, k])
+        for g, r in enumerate(shares):
+            r["p_adjusted"] = float(adjusted[FAMILY_PARTS[3], c, g])
+        for r in own + shares:
+            r["beyond_noise" if "observable" in r else "notable"] = r["p_adjusted"] < alpha
+        # The hierarchical reading: within the condition, what is off, surest first.
+        t["observables_beyond_noise"] = [
+            {k: r[k] for k in ("observable", "difference", "direction", "z", "p_adjusted")}
+            for r in sorted(own, key=lambda r: (r["p_adjusted"], -abs(r["z"])))
+            if r["beyond_noise"]
+        ]
+    across = [
+        dict(row, p_adjusted=float(adjusted[FAMILY_PARTS[1], k]))
+        for k, row in enumerate(_across_rows(perms, sims.names))
+    ]
+    for row in across:
+        row["beyond_noise"] = row["p_adjusted"] < alpha
+    described = _descriptions(labels, perms, rows, regions, across)
+    overall = _overall(labels, family, described, total, perms[-1].statistic_names, alpha)
+    return dict(
+        overall=overall,
+        tests=tests,
+        across_conditions=across,
+        observables=[r for own in rows for r in own],
+        regions=[r for shares in regions for r in shares],
+    )
+
+
+def gap_family(
+    energy: np.ndarray, z: list[np.ndarray], region_z: list[np.ndarray]
+) -> tuple[list[tuple], np.ndarray]:
+    """The statistics (S, R) of the detection and of "where", on a common scale, with
+    their labels (part first, then indices). ``energy`` (B, R): each block's energy
+    statistic summed over the conditions (one-sided, standardised here); ``z`` and
+    ``region_z``: per condition the standardised signed differences (K, R) of the
+    observables and (G, R) of the regions' shares, two-sided; the observables' stratified
+    sums over conditions (two-sided) come between. Column r of every input must be the
+    same labelling of the whole experiment (row 0 the observed one)."""
+    conditions = len(z)
+    stratified = standardise(np.sum(z, axis=0) / np.sqrt(conditions))
+    parts = [
+        ([(FAMILY_PARTS[0], b) for b in range(len(energy))], standardise(energy)),
+        ([(FAMILY_PARTS[1], k) for k in range(len(stratified))], np.abs(stratified)),
+        (
+            [(FAMILY_PARTS[2], c, k) for c in range(conditions) for k in range(len(z[c]))],
+            np.abs(np.vstack(z)),
+        ),
+        (
+            [(FAMILY_PARTS[3], c, g) for c in range(conditions) for g in range(len(region_z[c]))],
+            np.abs(np.vstack(region_z)),
+        ),
+    ]
+    labels = [label for part, _ in parts for label in part]
+    return labels, np.vstack([statistics for _, statistics in parts])
+
+
+def _across_rows(perms: list[_ConditionPermutations], names: list[str]) -> list[dict]:
+    """Every observable across the conditions: the stratified sum of its z-scores (its
+    sign the direction), the mean of its differences, its raw p-value."""
+    stratified = standardise(np.sum([p.z for p in perms], axis=0) / np.sqrt(len(perms)))
+    rows = []
+    for k, name in enumerate(names):
+        z = stratified[k]
+        rows.append(
+            dict(
+                observable=name,
+                mean_difference=float(np.mean([p.differences[0, k] for p in perms])),
+                direction=int(np.sign(z[0])),
+                z=float(z[0]),
+                p_value=exceedance_p(np.abs(z[1:]), abs(z[0])),
+            )
+        )
+    return rows
+
+
+def _descriptions(labels, perms, rows, regions, across) -> list[str]:
+    """Each family label in words, the direction of a two-sided statistic with it."""
+
+    def signed(row: dict) -> str:
+        return f" ({'+-'[row['direction'] < 0]})" if row["direction"] else ""
+
+    words = []
+    for label in labels:
+        part, *index = label
+        if part == FAMILY_PARTS[0]:
+            block = perms[0].statistic_names[index[0]]
+            words.append(f"energy statistic ({block}) summed over the conditions")
+        elif part == FAMILY_PARTS[1]:
+            row = across[index[0]]
+            words.append(f"{row['observable']} across the conditions{signed(row)}")
+        elif part == FAMILY_PARTS[2]:
+            row = rows[index[0]][index[1]]
+            words.append(f"{row['observable']} in {row['condition']}{signed(row)}")
+        else:
+            row = regions[index[0]][index[1]]
+            words.append(f"{row['region']} {row['where']} in {row['condition']}{signed(row)}")
+    return words
+
+
+def _overall(labels, family, described, total, block_names, alpha) -> dict:
+    """The detection: the largest statistic of the family against the null rows'
+    largest; each part's own max-T p-value; which statistic carried it."""
+    largest = family.max(axis=0)
+    by_statistic = {}
+    for part in FAMILY_PARTS:
+        rows = [i for i, label in enumerate(labels) if label[0] == part]
+        if rows:
+            t = family[rows].max(axis=0)
+            by_statistic[part] = exceedance_p(t[1:], t[0])
     overall = dict(
-        statistic=float(overall_t[0]),
-        null_mean=float(overall_t[1:].mean()),
-        p_value=exceedance_p(overall_t[1:], overall_t[0]),
+        statistic=float(largest[0]),
+        null_mean=float(largest[1:].mean()),
+        p_value=exceedance_p(largest[1:], largest[0]),
         by_block={
-            name: exceedance_p(total[k, 1:], total[k, 0])
-            for k, name in enumerate(perm.statistic_names)
+            name: exceedance_p(total[k, 1:], total[k, 0]) for k, name in enumerate(block_names)
         },
-        permutations=PERMUTATIONS,
+        by_statistic=by_statistic,
+        carried_by=described[int(np.argmax(family[:, 0]))],
+        family_size=len(labels),
+        permutations=len(largest) - 1,
     )
     overall["significant"] = overall["p_value"] < alpha
-    return dict(overall=overall, tests=tests, observables=rows, regions=regions)
+    return overall
 
 
 def block_statistics(distances: np.ndarray, masks: np.ndarray) -> np.ndarray:
@@ -120,6 +250,13 @@ class _ConditionPermutations:
             ]
         )
         self.observable_sd = np.maximum(self.differences[1:].std(axis=0), 1e-12)
+        # Each difference standardised by its null's mean and sd (K, R); a quantile of
+        # the smaller sample is biased even without a gap, and the mean takes that out.
+        self.z = standardise(self.differences.T)
+        self.regions = self._regions()
+        share_exp, share_sim = self._shares()
+        self.region_shares = share_exp[0], share_sim[0]
+        self.region_z = standardise((share_exp - share_sim).T)  # (G, R)
 
     def test(self) -> dict:
         ds, names = self.ds, self.sims.names
@@ -147,7 +284,7 @@ class _ConditionPermutations:
         rows = []
         for k, name in enumerate(sims.names):
             d = float(self.differences[0, k])
-            null = np.abs(self.differences[1:, k])
+            z = self.z[k]
             rows.append(
                 dict(
                     condition=ds.condition,
@@ -155,17 +292,18 @@ class _ConditionPermutations:
                     experiment=float(ds.observed[k]),
                     simulation=float(sim[k]),
                     difference=d,
+                    direction=int(np.sign(d)),
                     ci95=list(interval(boot[:, k])),
-                    noise_floor=float(np.percentile(null, 95)),
-                    z=float(d / self.observable_sd[k]),
-                    p_value=exceedance_p(null, abs(d)),
+                    noise_floor=float(np.percentile(np.abs(self.differences[1:, k]), 95)),
+                    z=float(z[0]),
+                    p_value=exceedance_p(np.abs(z[1:]), abs(z[0])),
                 )
             )
         return rows
 
-    def region_rows(self) -> list[dict]:
-        """Rings (by the pooled drops' distance quantiles) and 45-degree sectors: the
-        share of drops in each, experiment against simulation."""
+    def _regions(self) -> list[tuple[str, str, np.ndarray]]:
+        """Rings (by the pooled drops' distance quantiles) and 45-degree sectors: (kind,
+        label, which pooled drops lie in it)."""
         positions = self.pooled.positions
         r = np.hypot(*positions.T)
         edges = np.concatenate([[0.0], np.quantile(r, RING_QUANTILES), [np.inf]])
@@ -179,23 +317,34 @@ class _ConditionPermutations:
         sector = ((angle + width / 2) % 360.0 // width).astype(int)
         for k in range(SECTORS):
             regions.append(("sector", f"{k * width:.0f} deg from the chip's x side", sector == k))
+        return regions
+
+    def _shares(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each region's share of the experiment's and of the simulation's drops under
+        every labelling: (R, G) each."""
+        inside = np.column_stack([r[2] for r in self.regions]).astype(float)
         masks = self.masks.astype(float)
         n, m = self.ds.data.n, self.sim.n
+        return masks @ inside / n, (1.0 - masks) @ inside / m
+
+    def region_rows(self) -> list[dict]:
+        """Every region: the share of drops in it, experiment against simulation."""
+        share_exp, share_sim = self.region_shares
         rows = []
-        for kind, label, inside in regions:
-            share_exp = masks @ inside / n
-            share_sim = (1.0 - masks) @ inside / m
-            diff = share_exp - share_sim
-            sd = max(float(diff[1:].std()), 1e-12)
+        for g, (kind, label, _) in enumerate(self.regions):
+            z = self.region_z[g]
+            difference = float(share_exp[g] - share_sim[g])
             rows.append(
                 dict(
                     condition=self.ds.condition,
                     region=kind,
                     where=label,
-                    experiment_share=float(share_exp[0]),
-                    simulation_share=float(share_sim[0]),
-                    z=float(diff[0] / sd),
-                    p_value=exceedance_p(np.abs(diff[1:]), abs(diff[0])),
+                    experiment_share=float(share_exp[g]),
+                    simulation_share=float(share_sim[g]),
+                    difference=difference,
+                    direction=int(np.sign(difference)),
+                    z=float(z[0]),
+                    p_value=exceedance_p(np.abs(z[1:]), abs(z[0])),
                 )
             )
         return rows

@@ -2,10 +2,17 @@
 
 Three questions, answered with numbers and intervals:
 
-1. Where: an exact permutation test of the whole distribution of drops, overall
-   (stratified by condition: the detection) and per condition; every observable, ring
-   and sector of the scatter with its permutation p-value, Holm-adjusted as one family.
-   Without a significant overall gap the diagnosis stops there.
+1. Where: exact permutation tests, the labels (experiment, simulation) permuted within
+   each condition, the same permutations for every statistic. The detection is one
+   max-T over a family of standardised statistics: the energy statistics of the whole
+   distribution of drops (position, yaw, tilt, all) summed over conditions, each
+   observable's standardised difference summed over conditions (a shift in the same
+   direction everywhere), and every observable's, ring's and sector's standardised
+   difference in every condition. Each condition also gets its energy test (Holm across
+   conditions), and every member of the family a Westfall-Young max-T adjusted p-value
+   from the same permutations: the observables and regions named beyond the noise, with
+   their direction and size, keep the family-wise error at alpha. Without a significant
+   overall gap the diagnosis stops there.
 2. Which: the refitted baseline (its release tilt range) and every candidate effect,
    each fitted on calibration drops and scored drop by drop on held-out ones (halves of
    every condition's drops, or whole conditions left out: ``[diagnosis] held_out``),
@@ -34,7 +41,7 @@ from diagnosis.drop_simulations import Dataset, DropSimulations
 from diagnosis.drop_where import locate_gap
 from diagnosis.observables import DROP_OBSERVABLES, observable_names
 from diagnosis.spec import DropData, Experiment
-from diagnosis.verdicts import effect_verdict
+from diagnosis.verdicts import effect_verdict, off_text
 from packing.drop import DropProtocol, simulate_drops
 
 __all__ = ["diagnose_drops", "simulate_condition", "TILT_GRID_DEG"]
@@ -100,15 +107,19 @@ class _DropDiagnosis:
             # Nothing (more) to do: no effect is fitted, which keeps an effect-free
             # experiment's diagnosis to seconds.
             if where["overall"]["significant"]:
+                carried = where["overall"]["carried_by"]
                 verdict = dict(
-                    kind="gap detected", text=f"Overall test p = {p:.3g}; no effect fitted."
+                    kind="gap detected",
+                    text=f"Overall test p = {p:.3g} (largest statistic: {carried}); no "
+                    f"effect fitted.{off_text(where)}",
                 )
             else:
                 verdict = dict(
                     kind="no significant gap",
                     text="The experiment is consistent with the baseline simulation: the "
-                    "overall energy test of every condition's drops (position, yaw, tilt) "
-                    f"gives p = {p:.3g} >= {self.settings.alpha}.",
+                    "overall test of every condition's drops (the energy statistics of "
+                    "position, yaw and tilt and every observable, alone and summed over the "
+                    f"conditions, by max-T) gives p = {p:.3g} >= {self.settings.alpha}.",
                 )
             return self._report(where, [], full, None, {}, verdict)
         folds = self._folds(full)

@@ -43,6 +43,7 @@ __all__ = [
     "interval",
     "mean_cross",
     "max_t",
+    "max_t_adjusted",
     "mean_within",
     "permutation_masks",
     "resample_weights",
@@ -119,6 +120,36 @@ def max_t(statistics: np.ndarray) -> np.ndarray:
     """The max-T statistic (R,) of several statistics (S, R): the largest standardised
     one. Its permutation p-value tests all S at once, the multiplicity paid for exactly."""
     return standardise(statistics).max(axis=0)
+
+
+def max_t_adjusted(statistics: np.ndarray, step_down: bool = True) -> np.ndarray:
+    """Westfall-Young max-T adjusted p-values (S,) of statistics (S, R) on a common scale
+    (standardised; two-sided ones as absolute values), computed under the same
+    labellings (column 0: the observed one, the others the permutation null).
+
+    A statistic's adjusted p-value is the share of null labellings whose largest
+    statistic of the family is at least as large as it, counted as in ``exceedance_p``
+    ((1 + #) / (1 + null labellings), never 0). Rejecting where it is below alpha keeps
+    the family-wise error at alpha however the statistics correlate: the null of the
+    maximum is their joint one.
+    Step-down (the default): the k-th largest is compared with the null maximum over
+    itself and the smaller ones only, and the p-values are made monotone in the
+    statistic (never below a larger statistic's); single-step compares every statistic
+    with the maximum over the whole family. The largest statistic's adjusted p-value is
+    the max-T test of the whole family either way."""
+    statistics = np.asarray(statistics, dtype=float)
+    observed, null = statistics[:, 0], statistics[:, 1:]
+    order = np.argsort(-observed, kind="stable")
+    if step_down:
+        # Row j: the null maximum over the statistics ranked j and below.
+        ceiling = np.maximum.accumulate(null[order][::-1], axis=0)[::-1]
+    else:
+        ceiling = np.broadcast_to(null.max(axis=0), null.shape)
+    exceed = (ceiling >= observed[order][:, None]).sum(axis=1)
+    ranked = np.maximum.accumulate((1.0 + exceed) / (1.0 + null.shape[1]))
+    adjusted = np.empty_like(ranked)
+    adjusted[order] = ranked
+    return adjusted
 
 
 def exceedance_p(null: np.ndarray, g: float) -> float:

@@ -8,11 +8,12 @@ import math
 import numpy as np
 
 from core.errors import InputError
+from diagnosis.observables import DROP_OBSERVABLES
 from diagnosis.spec import Experiment
 from packing.deposition import draw_shapes
 from packing.effects import EFFECTS, shaped
 
-__all__ = ["applicable_effects", "effect_verdict", "how_far", "percent"]
+__all__ = ["applicable_effects", "effect_verdict", "how_far", "off_text", "percent"]
 
 
 def percent(value: float) -> str:
@@ -48,7 +49,7 @@ def effect_verdict(
     else ``explained``, with the effects tied with it. An unexplained gap names the
     observables and regions of ``where`` still off (significant after adjustment)."""
     gap = ", ".join(significant)
-    off = _off(where)
+    off = off_text(where)
     if not which["ranking"]:
         return dict(kind="unexplained", text=f"Gap in {gap}; no candidate effect applies.{off}")
     top = which["ranking"][0]
@@ -102,18 +103,25 @@ def _closes_significantly(top: dict, alpha: float) -> bool:
     return top["p_better_than_baseline_holm"] < alpha
 
 
-def _off(where: dict | None, most: int = 8) -> str:
-    """ " Still off: ..." naming the observables and regions of ``where`` beyond the
-    noise (at most ``most`` of them), or nothing."""
+def off_text(where: dict | None, most: int = 8) -> str:
+    """ " Still off: ..." naming the observables (across the conditions, then per
+    condition) and regions of ``where`` beyond the noise after adjustment, with their
+    direction and size where the rows carry one (at most ``most`` of them), or nothing."""
     if not where:
         return ""
     names = [
-        f"{r['observable']} in {r['condition']}"
+        f"{r['observable']} across the conditions{_size(r, r['mean_difference'])}"
+        for r in where.get("across_conditions", [])
+        if r.get("beyond_noise")
+    ]
+    names += [
+        f"{r['observable']} in {r['condition']}{_size(r, r.get('difference'))}"
         for r in where.get("observables", [])
         if r.get("beyond_noise")
     ]
     names += [
         f"{r['region']} {r['where']} in {r['condition']}"
+        + (f" ({100 * r['difference']:+.0f} % of the drops)" if "direction" in r else "")
         for r in where.get("regions", [])
         if r.get("notable")
     ]
@@ -121,6 +129,15 @@ def _off(where: dict | None, most: int = 8) -> str:
         return ""
     more = f" and {len(names) - most} more" if len(names) > most else ""
     return f" Still off: {', '.join(names[:most])}{more}."
+
+
+def _size(row: dict, difference: float | None) -> str:
+    """The signed difference, " (+1.9 mm)", (experiment minus simulation) of a drop
+    observable's row, or nothing for rows without a direction."""
+    if "direction" not in row or difference is None:
+        return ""
+    unit = DROP_OBSERVABLES.get(row["observable"], ("",))[0]
+    return f" ({difference:+.3g}{' ' + unit if unit else ''})"
 
 
 def _still_off(conditions: list[dict], alpha: float) -> list[str]:

@@ -58,19 +58,59 @@ def _where_section(where: dict, drop: bool) -> list[str]:
     lines = ["## 1. Where the gap lies", ""]
     if "overall" in where:
         o = where["overall"]
-        lines += [
-            "Overall test (the detection): the energy distance of the experiment's drops "
-            "(position, yaw over the chip's symmetry, tilt; standardised) to the baseline "
-            "simulation's, summed over conditions, against its exact permutation null "
-            f"({o['permutations']} label permutations within each condition): statistic "
-            f"{_fmt(o['statistic'])}, null mean {_fmt(o['null_mean'])}, "
-            f"p = {_fmt(o['p_value'])}.",
-            "",
-        ]
+        if "family_size" in o:
+            lines += [
+                "Overall test (the detection): one max-T over a family of "
+                f"{o['family_size']} standardised statistics, against their exact "
+                f"permutation null ({o['permutations']} label permutations within each "
+                "condition, the same for every statistic): the energy statistics of the "
+                "experiment's drops (position, yaw over the chip's symmetry, tilt, all) "
+                "against the baseline simulation's, summed over conditions; every "
+                "observable's difference summed over the conditions; every observable's, "
+                "ring's and sector's difference in every condition. Largest statistic "
+                f"{_fmt(o['statistic'])} ({o['carried_by']}), null mean "
+                f"{_fmt(o['null_mean'])}, p = {_fmt(o['p_value'])}.",
+                "",
+            ]
+        else:
+            lines += [
+                "Overall test (the detection): the energy distance of the experiment's "
+                "drops to the baseline simulation's, summed over conditions, against its "
+                f"exact permutation null ({o['permutations']} label permutations within "
+                f"each condition): statistic {_fmt(o['statistic'])}, null mean "
+                f"{_fmt(o['null_mean'])}, p = {_fmt(o['p_value'])}.",
+                "",
+            ]
     return lines + [
         *_tests_table(where["tests"], drop),
+        *_across_table(where.get("across_conditions")),
         *_observables_table(where["observables"], drop),
         *_regions(where.get("regions")),
+    ]
+
+
+def _across_table(rows: list[dict] | None) -> list[str]:
+    """The observables off in the same direction across the conditions (drops)."""
+    if rows is None:
+        return []
+    lines = [
+        "",
+        "Every observable across the conditions (its z-scores summed over the conditions: "
+        "a shift in the same direction everywhere) with its max-T adjusted p-value (the "
+        "same family as the detection); beyond the noise:",
+        "",
+    ]
+    off = [r for r in rows if r["beyond_noise"]]
+    if not off:
+        return lines + ["none."]
+    return lines + [
+        "| observable | mean difference | z | p (max-T) |",
+        "|---|---|---|---|",
+        *(
+            f"| {r['observable']} | {_fmt(r['mean_difference'])} | {_fmt(r['z'], 2)} "
+            f"| {_fmt(r['p_adjusted'])} |"
+            for r in sorted(off, key=lambda r: r["p_adjusted"])
+        ),
     ]
 
 
@@ -110,9 +150,10 @@ def _observables_table(rows: list[dict], drop: bool) -> list[str]:
         about = (
             "Every observable: experiment minus simulation, its bootstrap 95 % interval "
             "(both samples resampled), the noise floor (95 % of |difference| under the "
-            "permutations) and its permutation p-value, Holm-adjusted across every "
-            "observable, ring and sector of every condition (one family). Starred rows are "
-            "significant after that adjustment."
+            "permutations) and its max-T adjusted p-value (Westfall-Young, step-down, in "
+            "the family of the detection: every observable, ring and sector of every "
+            "condition and the sums across conditions). Starred rows are significant "
+            "after that adjustment."
         )
     else:
         about = (
@@ -127,15 +168,16 @@ def _observables_table(rows: list[dict], drop: bool) -> list[str]:
         about,
         "",
         "| condition | observable | experiment | simulation | difference | 95 % interval | "
-        "noise floor | z | p (Holm) |",
+        f"noise floor | z | p ({'max-T' if drop else 'Holm'}) |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
+    adjusted = "p_adjusted" if drop else "p_holm"
     for r in rows:
         star = " *" if r["beyond_noise"] else ""
         lines.append(
             f"| {r['condition']} | {r['observable']}{star} | {_fmt(r['experiment'])} | "
             f"{_fmt(r['simulation'])} | {_fmt(r['difference'])} | {_interval(r['ci95'])} | "
-            f"{_fmt(r['noise_floor'])} | {_fmt(r['z'], 2)} | {_fmt(r['p_holm'])} |"
+            f"{_fmt(r['noise_floor'])} | {_fmt(r['z'], 2)} | {_fmt(r[adjusted])} |"
         )
     return lines
 
@@ -147,7 +189,7 @@ def _regions(regions: list[dict] | None) -> list[str]:
         "",
         "Regions of the scatter (rings by the pooled drops' distance quantiles, 45-degree "
         "sectors) whose share of drops differs significantly (permutation p-values, "
-        "Holm-adjusted with the observables):",
+        "adjusted in one family with the observables):",
         "",
     ]
     notable = [r for r in regions if r["notable"]]
@@ -310,10 +352,13 @@ def _canvas(width: float, height: float) -> Figure:
     return figure
 
 
-def plot_scatter(path, scatter: dict) -> None:
-    """Final positions per condition: experiment, baseline and best effect."""
+def plot_scatter(path, scatter: dict, tests: list[dict] | None = None) -> None:
+    """Final positions per condition: experiment, baseline and best effect, the shift of
+    the mean position from the baseline's to the experiment's drawn as an arrow, and the
+    observables the where-test flags in the condition (``tests``: ``where["tests"]``)."""
     n = len(scatter)
-    figure = _canvas(4.2 * n, 4.2)
+    flagged = {t["condition"]: t.get("observables_beyond_noise", []) for t in tests or []}
+    figure = _canvas(4.2 * n, 4.6)
     for k, (condition, sets) in enumerate(scatter.items()):
         ax = figure.add_subplot(1, n, k + 1)
         for name, colour, marker in (
@@ -327,8 +372,27 @@ def plot_scatter(path, scatter: dict) -> None:
             ax.scatter(
                 p[:, 0], p[:, 1], s=10, c=colour, marker=marker, label=name.replace("_", " ")
             )
+        start = np.asarray(sets["baseline"]).reshape(-1, 2).mean(axis=0)
+        end = np.asarray(sets["experiment"]).reshape(-1, 2).mean(axis=0)
+        ax.annotate(
+            "",
+            xy=tuple(end),
+            xytext=tuple(start),
+            arrowprops=dict(arrowstyle="->", color="black", lw=1.5),
+        )
+        shift = end - start
+        ax.text(
+            0.02,
+            0.02,
+            f"mean shift {shift[0]:+.1f}, {shift[1]:+.1f} mm",
+            transform=ax.transAxes,
+            fontsize=7,
+        )
+        off = ", ".join(
+            f"{r['observable']} {r['difference']:+.3g}" for r in flagged.get(condition, [])[:3]
+        )
         ax.set_aspect("equal")
-        ax.set_title(condition)
+        ax.set_title(f"{condition}\noff: {off}" if off else condition, fontsize=9)
         ax.set_xlabel("x (mm)")
         ax.set_ylabel("y (mm)")
         if k == 0:
@@ -384,7 +448,7 @@ def write_diagnosis(run, result: dict) -> list[str]:
     run.write_text("diagnosis.md", report_markdown(result))
     files = ["diagnosis.json", "diagnosis.md"]
     if result.get("scatter"):
-        plot_scatter(run.path("fig_scatter.png"), result["scatter"])
+        plot_scatter(run.path("fig_scatter.png"), result["scatter"], result["where"]["tests"])
         files.append("fig_scatter.png")
     plot_discrepancies(run.path("fig_discrepancies.png"), result["where"]["observables"])
     files.append("fig_discrepancies.png")
