@@ -93,25 +93,26 @@ def _across_table(rows: list[dict] | None) -> list[str]:
     """The observables off in the same direction across the conditions (drops)."""
     if rows is None:
         return []
-    lines = [
-        "",
+    off = sorted((r for r in rows if r["beyond_noise"]), key=lambda r: r["p_adjusted"])
+    return _flagged(
         "Every observable across the conditions (its z-scores summed over the conditions: "
         "a shift in the same direction everywhere) with its max-T adjusted p-value (the "
         "same family as the detection); beyond the noise:",
-        "",
-    ]
-    off = [r for r in rows if r["beyond_noise"]]
-    if not off:
-        return lines + ["none."]
-    return lines + [
         "| observable | mean difference | z | p (max-T) |",
-        "|---|---|---|---|",
-        *(
+        [
             f"| {r['observable']} | {_fmt(r['mean_difference'])} | {_fmt(r['z'], 2)} "
             f"| {_fmt(r['p_adjusted'])} |"
-            for r in sorted(off, key=lambda r: r["p_adjusted"])
-        ),
-    ]
+            for r in off
+        ],
+    )
+
+
+def _flagged(about: str, header: str, rows: list[str]) -> list[str]:
+    """A paragraph, then the table of the rows it flags, or "none."."""
+    lines = ["", about, ""]
+    if not rows:
+        return lines + ["none."]
+    return lines + [header, "|" + "---|" * header.count(" | ") + "---|", *rows]
 
 
 def _tests_table(tests: list[dict], drop: bool) -> list[str]:
@@ -185,26 +186,19 @@ def _observables_table(rows: list[dict], drop: bool) -> list[str]:
 def _regions(regions: list[dict] | None) -> list[str]:
     if not regions:
         return []
-    lines = [
-        "",
+    return _flagged(
         "Regions of the scatter (rings by the pooled drops' distance quantiles, 45-degree "
         "sectors) whose share of drops differs significantly (permutation p-values, "
         "adjusted in one family with the observables):",
-        "",
-    ]
-    notable = [r for r in regions if r["notable"]]
-    if not notable:
-        return lines + ["none."]
-    return lines + [
         "| condition | region | experiment share | simulation share | z |",
-        "|---|---|---|---|---|",
-        *(
+        [
             f"| {r['condition']} | {r['region']} {r['where']} "
             f"| {percent(r['experiment_share'])} | "
             f"{percent(r['simulation_share'])} | {_fmt(r['z'], 2)} |"
-            for r in notable
-        ),
-    ]
+            for r in regions
+            if r["notable"]
+        ],
+    )
 
 
 # -- 2. which --------------------------------------------------------------------------

@@ -306,7 +306,8 @@ def relax(
         if solved is None:
             log.debug("relax: programme failed at step %d", iteration)
             return None
-        delta, predicted = solved
+        delta, modelled = solved
+        predicted = current - modelled
         trial_rot, trial_pos = rotations.copy(), positions.copy()
         moved = np.flatnonzero(np.abs(delta.reshape(n, 6)).max(axis=1) > 0)
         trial_worlds = list(worlds)
@@ -798,11 +799,8 @@ def _qp(rows, total, metric, positions, n, radius):
     x = np.asarray(solution.x)
     step, slack = x[:dim], x[dim:]
     # The merit the linearised model predicts at the step (the rows left out have no
-    # penalty at either end), for the trust region's update.
-    at_zero = 0.5 * float(total @ (metric @ total)) + sum(
-        row.penalty * _violation(row) for row in rows
-    )
+    # penalty there), for the trust region's update against the current merit.
     after = 0.5 * float((total + step) @ (metric @ (total + step))) + float(
         np.dot([row.penalty for row in rows], slack)
     )
-    return step, at_zero - after
+    return step, after
