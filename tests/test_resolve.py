@@ -88,6 +88,31 @@ def test_chips_in_a_shared_plane_at_a_shallow_angle_are_aligned(turned, aligned)
     assert separation_mm(b, 0, 1) == pytest.approx(0.0, abs=1e-9)
 
 
+def test_a_beam_crossing_a_square_at_a_shallow_angle_is_aligned_too():
+    """Alignment is asked of the geometry, not of the shape's name: a beam of box section
+    (40 x 6 x 2 mm) lying on a square at 1.7 deg is turned parallel like a square would
+    be, and the pair meshes soundly (the beam's name had kept it out: a wedge of SICN
+    0.065, mixed-shapes seed 3)."""
+    from packing.shapes import _slender
+
+    beam = _slender("beam")(ChipSpec(shape="beam", length_mm=40.0, width_mm=6.0))
+    a = Arrangement(
+        (SQUARE, beam),
+        np.array([0, 1]),
+        np.array([[0.0, 0.0, 0.99], [2.0, 6.5, 2.99]]),
+        np.array([Rotation.from_euler("z", yaw, degrees=True).as_quat() for yaw in (0.0, 1.7)]),
+        np.ones(2, int),
+        80.0,
+    )
+    r = resolve_contacts(a)
+    b = r.arrangement
+    assert r.snapped == {"chip": 1, "conveyor": 1}
+    assert yaw_deg(b, 1) - yaw_deg(b, 0) == pytest.approx(0.0, abs=1e-6)
+    mesh = conformal_mesh(b, size_mm=2.0)
+    report = check_mesh(mesh, b, np.array([[0, 1]]), min_quality=0.1)
+    assert report["valid"] and report["interfaces"]["sharing_faces"] == 1
+
+
 def corners_in_frame_of(a: Arrangement, chip: int, other: int) -> np.ndarray:
     """The corners of ``chip`` (x, y) in the frame of ``other``."""
     world = SQUARE.vertices @ a.rotations[chip].T + a.positions[chip]
