@@ -21,6 +21,12 @@ Parts:
 * ``seeds``: three diagnosis seeds on each of 5 datasets agree on verdict and top effect.
 * ``sweep``: two effects at six strengths each over their whole prior: where each
   becomes undetectable, and where it stops being identified.
+* ``ties``: for each ``effects`` case whose diagnosis ends in a tie (the true effect
+  among two or more indistinguishable), the next experiment the report names is made
+  (the release that separates the best effect from a tied one with the fewest drops, at
+  the drops it names, 50 to 200, the true effect at its true strength, a new seed) and
+  the diagnosis rerun on the four conditions: the tie is resolved when the verdict is
+  "explained" with the true effect alone. Target >= 70 %.
 * ``effects-fitted-tilt``, ``outside-fitted-tilt``: the same cases as ``effects`` and
   ``outside`` (same data), diagnosed with ``release_tilt = "fitted"``: the release tilt
   fitted jointly with every effect instead of known.
@@ -60,7 +66,9 @@ DROP_EFFECTS = (
     "restitution",
     "warp",
 )
-PLANNED = {"nulls": 100, "effects": 35, "outside": 17, "seeds": 5, "sweep": 12}
+PLANNED = {"nulls": 100, "effects": 35, "outside": 17, "seeds": 5, "sweep": 12, "ties": 35}
+# The next experiment's drops: what the report names, within these bounds.
+NEXT_DROPS = (50, 200)
 # Variants of a part: the same cases (same truth, seeds and first landings) diagnosed
 # with the release tilt fitted jointly with every effect (``release_tilt = "fitted"``)
 # instead of known, or with 100 drops per condition instead of 50 (is a shortfall the
@@ -82,16 +90,20 @@ SWEEP_POINTS = 6
 # by Fisher's method; (and the physics of 2026-11-23: rolling resistance on round chips
 # only). 4 (nulls 2): the detection and "where" one max-T over the energy statistics and
 # every observable's and region's difference (per condition and summed over them), with
-# Westfall-Young adjusted flags (issue 35).
+# Westfall-Young adjusted flags (issue 35). 5: the adequacy combination calibrated by
+# simulation, on pseudo-experiments drawn from the fitted model (issue 35); every part
+# that fits effects moves with it.
 METHOD = {
     "nulls": 2,
-    "effects": 4,
-    "outside": 4,
-    "seeds": 4,
-    "sweep": 4,
+    "effects": 5,
+    "outside": 5,
+    "seeds": 5,
+    "sweep": 5,
+    "ties": 5,
     # Fitted tilt 2: its confidence set from 97.5 % intervals, clipped to its box.
-    **{part + "-fitted-tilt": 3 for part in ("effects", "outside")},
-    **{part + "-100-drops": 2 for part in ("effects", "outside")},
+    # 4: the calibrated adequacy.
+    **{part + "-fitted-tilt": 4 for part in ("effects", "outside")},
+    **{part + "-100-drops": 3 for part in ("effects", "outside")},
 }
 STANDARD_CONDITIONS = ((200, 0), (500, 0), (1000, 30))
 # The release conditions null cases draw from: (height mm, yaw deg).
@@ -101,6 +113,8 @@ CONDITION_POOL = ((150, 0), (200, 0), (300, 15), (500, 0), (700, 30), (1000, 30)
 def case_plan(part: str, index: int) -> dict:
     """The case ``index`` of ``part``, fixed by its index alone (so that a resumed study
     makes the same cases): conditions, drops, noise, truth, the library and seeds."""
+    if part == "ties":  # a tie case is its effects case (same truth, seeds and data)
+        return {**case_plan("effects", index), "part": "ties"}
     variant, part = part, _base(part)
     overrides = VARIANTS.get(variant[len(part) :], {})
     rng = np.random.default_rng([hash_part(part), index])
@@ -188,6 +202,8 @@ def spec_text(plan: dict) -> str:
 
 
 def run_case(plan: dict, executor: Executor) -> dict:
+    if plan["part"] == "ties":
+        return run_tie_case(plan, executor)
     folder = Path(tempfile.mkdtemp(prefix="bench-diagnosis-"))
     (folder / "spec.toml").write_text(spec_text(plan))
     (folder / "data.csv").write_text("condition,drop,x_mm,y_mm\n")
@@ -204,6 +220,74 @@ def run_case(plan: dict, executor: Executor) -> dict:
         runs.append(_summary(result, plan, time.perf_counter() - t0))
     wall = time.perf_counter() - start
     return dict(plan=plan, method=METHOD[plan["part"]], runs=runs, wall_s=wall)
+
+
+def run_tie_case(plan: dict, executor: Executor) -> dict:
+    """A ``ties`` case: the effects case's diagnosis (read from the effects part's cache
+    when it has no tie, else rerun: the same plan gives the same diagnosis), then the
+    next experiment it names, made with the true effect, and the diagnosis of all four
+    conditions."""
+    effects_case = RESULTS / "effects" / f"case-{plan['index']:03d}.json"
+    start = time.perf_counter()
+    if effects_case.exists():
+        import json
+
+        cached_case = json.loads(effects_case.read_text())
+        if cached_case.get("method") == METHOD["effects"]:
+            run = cached_case["runs"][0]
+            if len(run["tie_set"]) < 2:
+                return dict(plan=plan, method=METHOD["ties"], tie=False, runs=[run], wall_s=0.0)
+    folder = Path(tempfile.mkdtemp(prefix="bench-diagnosis-"))
+    (folder / "spec.toml").write_text(spec_text(plan))
+    (folder / "data.csv").write_text("condition,drop,x_mm,y_mm\n")
+    experiment = load_experiment(folder / "spec.toml", load_scenario)
+    rows = synthesize_drops(experiment, plan["truth"], plan["seed"], plan["drops"], executor.map)
+    data = _data(rows, experiment, None)
+    seed = plan["diagnosis_seeds"][0]
+    result = diagnose_drops(experiment, data, executor.map, seed=seed)
+    before = _summary(result, plan, time.perf_counter() - start)
+    apart = ((result["which"] or {}).get("telling_apart")) or {}
+    releases = [
+        (e["release"]["drops_needed_per_condition"], other, e["release"])
+        for other, e in apart.items()
+        if e["release"]["drops_needed_per_condition"] is not None
+    ]
+    record = dict(plan=plan, method=METHOD["ties"], tie=len(before["tie_set"]) >= 2)
+    if not record["tie"] or not releases:
+        record.update(runs=[before], advice=None, wall_s=time.perf_counter() - start)
+        return record
+    needed, other, release = min(releases)
+    drops = int(np.clip(needed, *NEXT_DROPS))
+    advice = dict(release, separates=other, drops=drops)
+    # The next experiment: one condition at the named release, the true effect.
+    extra = dict(plan, conditions=[(release["height_mm"], release["yaw_deg"])])
+    (folder / "next.toml").write_text(spec_text(extra).replace('name = "h', 'name = "next-h'))
+    one = load_experiment(folder / "next.toml", load_scenario)
+    new_rows = synthesize_drops(one, plan["truth"], plan["seed"] + 500, drops, executor.map)
+    more = _data(new_rows, one, None)
+    both = dict(plan, conditions=[*plan["conditions"]])
+    text = spec_text(both) + "".join(
+        f'[[condition]]\nname = "{c.name}"\nheight_mm = {c.protocol.height_mm}\n'
+        f"yaw_deg = {c.protocol.yaw_deg}\n"
+        for c in one.conditions
+    )
+    (folder / "both.toml").write_text(text)
+    combined = load_experiment(folder / "both.toml", load_scenario)
+    t0 = time.perf_counter()
+    result = diagnose_drops(combined, {**data, **more}, executor.map, seed=seed)
+    after = _summary(result, plan, time.perf_counter() - t0)
+    truth = next(iter(plan["truth"]))
+    record.update(
+        runs=[before, after],
+        advice=advice,
+        resolved=bool(
+            after["verdict"] == "explained"
+            and after["tie_set"] in ([], [truth])
+            and after["best"] == truth
+        ),
+        wall_s=time.perf_counter() - start,
+    )
+    return record
 
 
 def _data(rows, experiment, distortion) -> dict[str, DropData]:
@@ -312,6 +396,28 @@ def report(part: str) -> None:
             tied = ", ".join(r["tie_set"])
             row = [effect, f"{strength:.3g}", f"{r['detection_p']:.3g}", r["verdict"], r["best"]]
             print("| " + " | ".join(map(str, [*row, tied])) + " |")
+    elif part == "ties":
+        ties = [c for c in cases if c["tie"]]
+        followed = [c for c in ties if c.get("advice")]
+        resolved = sum(c["resolved"] for c in followed)
+        print(
+            f"ties: {len(ties)} of {len(cases)} cases; with a named next experiment "
+            f"{len(followed)}; resolved by following it: {rate(resolved, len(followed))}; "
+            "target >= 70 %"
+        )
+        if followed:
+            print(
+                "\n| true effect | tie before | next release | drops | verdict after | tie after |"
+            )
+            print("|---|---|---|---|---|---|")
+        for c in followed:
+            before, after = c["runs"]
+            a = c["advice"]
+            print(
+                f"| {next(iter(c['plan']['truth']))} | {', '.join(before['tie_set'])} | "
+                f"{a['height_mm']:g} mm, yaw {a['yaw_deg']:g} deg (against {a['separates']}) | "
+                f"{a['drops']} | {after['verdict']} | {', '.join(after['tie_set'])} |"
+            )
     elif part == "seeds":
         agree = [len({(r["verdict"], r["best"]) for r in c["runs"]}) == 1 for c in cases]
         print(f"three seeds agree on verdict and best effect: {rate(sum(agree), len(agree))}")

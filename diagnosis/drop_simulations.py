@@ -16,7 +16,7 @@ from diagnosis.statistics import energy_distance, mean_cross, mean_within, resam
 from packing.effects import EFFECTS, contact_model
 from packing.presets import PRESETS
 
-__all__ = ["Dataset", "DropSimulations", "NOISE_POOL"]
+__all__ = ["CALIBRATION_POOL", "Dataset", "DropSimulations", "NOISE_POOL"]
 
 # The pool every setting is drawn from; pool "B" is the same setting simulated again,
 # independently, to test a fitted model on data it was not chosen with.
@@ -27,6 +27,9 @@ NOISE_POOL = "B"
 # first of pool A's (each drop has its own random stream), so the grid stays paired with
 # the fitted models.
 GRID_POOL = "G"
+# The fitted model simulated a third time: the pseudo-experiments its adequacy test is
+# calibrated on (independent of the drops it was chosen with and tested against).
+CALIBRATION_POOL = "C"
 GRID_MIN_DROPS = 60  # below that a grid point's curve is too rough to fit on
 
 
@@ -140,7 +143,7 @@ class DropSimulations:
 
     def _seed(self, condition: str, pool: str) -> int:
         # Common random numbers: every setting of a condition uses the same draws.
-        pool_offset = 2 if pool == NOISE_POOL else 1
+        pool_offset = {NOISE_POOL: 2, CALIBRATION_POOL: 3}.get(pool, 1)
         return int(self.seed) * 1000 + 10 * self.index[condition] + pool_offset
 
     def observe(self, d: DropData, condition: str) -> np.ndarray:

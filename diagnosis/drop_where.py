@@ -209,12 +209,18 @@ def block_statistics(distances: np.ndarray, masks: np.ndarray) -> np.ndarray:
     return np.vstack([blocks, blocks.sum(axis=0)])
 
 
-def energy_test(ds: Dataset, sims: DropSimulations, key: tuple, rng: np.random.Generator):
+def energy_test(
+    ds: Dataset,
+    sims: DropSimulations,
+    key: tuple,
+    rng: np.random.Generator,
+    permutations: int = PERMUTATIONS,
+):
     """The exact permutation test of the dataset against the simulation ``key``: the
     max-T of its blocks' and total energy statistics, and its p-value."""
     features = sims.features(key)
     pooled = np.vstack([ds.features, features])
-    masks = permutation_masks(ds.data.n, len(features), PERMUTATIONS, rng)
+    masks = permutation_masks(ds.data.n, len(features), permutations, rng)
     t = max_t(block_statistics(sims.metric[ds.condition].distances(pooled), masks))
     return t, exceedance_p(t[1:], t[0])
 

@@ -74,7 +74,9 @@ def effect_verdict(
         f"Gap in {gap}; {top['effect']} closes {shown} of it on held-out data at "
         f"strength {top['strength']:.3g}{' ' + top['unit'] if top['unit'] else ''}."
     )
-    remaining = _still_off(how_far.get("conditions", []), alpha)
+    remaining = _still_off(
+        how_far.get("conditions", []), alpha, how_far.get("adequacy", {}).get("p_calibrated")
+    )
     if others:
         text += f" Indistinguishable from it: {', '.join(others)}."
     if remaining:
@@ -140,7 +142,7 @@ def _size(row: dict, difference: float | None) -> str:
     return f" ({difference:+.3g}{' ' + unit if unit else ''})"
 
 
-def _still_off(conditions: list[dict], alpha: float) -> list[str]:
+def _still_off(conditions: list[dict], alpha: float, overall_p: float | None = None) -> list[str]:
     """The held-out conditions whose gap after the best effect is still beyond the noise
     floor. The adequacy tests of the held-out datasets (``p_after``: a condition may be
     held out in several folds, on disjoint drops) are combined by Fisher's method,
@@ -148,10 +150,14 @@ def _still_off(conditions: list[dict], alpha: float) -> list[str]:
     significant, and the conditions named are those whose own combination is, Holm-
     adjusted across conditions (or "the held-out conditions taken together" when the
     evidence is spread over them). Splitting the held-out drops into small tests and
-    adjusting for their number would hide a gap that every one of them sees a little of."""
+    adjusting for their number would hide a gap that every one of them sees a little of.
+    ``overall_p``: the overall combination calibrated by simulation (drops:
+    ``drop_effects.calibrated_adequacy``), which decides in place of Fisher's."""
     from diagnosis.statistics import combined_p, holm
 
-    if not conditions or combined_p([row["p_after"] for row in conditions]) >= alpha:
+    if overall_p is None:
+        overall_p = combined_p([row["p_after"] for row in conditions]) if conditions else 1.0
+    if not conditions or overall_p >= alpha:
         return []
     names = list(dict.fromkeys(row["condition"] for row in conditions))
     per_condition = [

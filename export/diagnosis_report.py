@@ -294,6 +294,18 @@ def _telling_apart(which: dict) -> list[str]:
 
 
 # -- 3. how far ------------------------------------------------------------------------
+def _calibration_text(adequacy: dict | None) -> str:
+    """The adequacy combination and its calibration by simulation (drops), or "."."""
+    if not adequacy:
+        return "."
+    return (
+        f" (calibrated by simulation: Fisher's p = {_fmt(adequacy['p_combined'])} is as "
+        f"small or smaller in a share {_fmt(adequacy['p_calibrated'])} of "
+        f"{adequacy['replicates']} pseudo-experiments drawn from the fitted model itself, "
+        "the p-value that decides)."
+    )
+
+
 def _how_far_section(how: dict, drop: bool) -> list[str]:
     if not how:
         return []
@@ -326,7 +338,8 @@ def _how_far_section(how: dict, drop: bool) -> list[str]:
             "interval (the test of section 1, on the grid's repeats)"
         )
         + ", the largest p-value (the strength it was largest at is the most consistent "
-        "one); the model is adequate when Fisher's combination of them is not significant.",
+        "one); the model is adequate when Fisher's combination of them is not significant"
+        + _calibration_text(how.get("adequacy")),
         "",
         "| fold | held-out condition | observable | experiment | before | after | z before "
         "| z after |",

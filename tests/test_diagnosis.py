@@ -202,6 +202,25 @@ def test_a_gap_every_held_out_half_sees_a_little_of_is_not_adjusted_away():
     assert _still_off(calm, 0.05) == []
 
 
+def test_the_adequacy_calibrated_by_simulation_decides_over_fishers_combination():
+    """Fisher's combination assumes uniform p-values under the model, but each adequacy
+    test is a supremum over the plausible strengths, conservative: the combination
+    calibrated on pseudo-experiments from the fitted model decides. Held-out p-values of
+    0.3 look calm to Fisher (p = 0.35) yet can be rare for a model whose own
+    pseudo-experiments give larger ones (calibrated p = 0.025): the model is inadequate,
+    taken together; and a calibrated p of 0.5 clears a small Fisher combination."""
+    from diagnosis.statistics import combined_p
+    from diagnosis.verdicts import _still_off
+
+    rows = [dict(condition=c, p_after=0.3) for c in ("low", "high")]
+    assert combined_p([0.3, 0.3]) > 0.05
+    assert _still_off(rows, 0.05) == []
+    assert _still_off(rows, 0.05, overall_p=0.025) == ["the held-out conditions taken together"]
+    small = [dict(condition=c, p_after=0.01) for c in ("low", "high")]
+    assert _still_off(small, 0.05) == ["high", "low"]
+    assert _still_off(small, 0.05, overall_p=0.5) == []
+
+
 def test_drops_needed_to_separate_two_models_falls_with_their_distance():
     """Two models' drops at a candidate release: the farther apart, the fewer drops the
     detection test needs; two samples of one model differ only by noise, which takes
@@ -512,6 +531,10 @@ def test_diagnose_finds_a_withheld_effect_and_no_gap_without_one(tmp_path):
     for name in ("diagnosis.md", "fig_scatter.png", "fig_effects.png", "manifest.json"):
         assert (out / name).stat().st_size > 0
     assert "## 3. How far" in (out / "diagnosis.md").read_text()
+    # The right model's adequacy, calibrated on pseudo-experiments drawn from it.
+    adequacy = report["how_far"]["adequacy"]
+    assert adequacy["replicates"] == 39 and adequacy["p_calibrated"] >= 0.05
+    assert "calibrated by simulation" in (out / "diagnosis.md").read_text()
 
     # The same data with the true effect taken out of the library: friction closes part of
     # the gap, but the held-out data are not consistent with it (never "explained").
