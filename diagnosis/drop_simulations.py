@@ -51,8 +51,7 @@ class DropSimulations:
     ):
         self.x = experiment
         self.names = names
-        chip = experiment.scenario.chips[0]
-        self.order = symmetry_order(chip.length_mm, chip.width_mm, chip.shape)
+        self.order = symmetry_order(experiment.scenario)
         self.simulate = simulate
         self.run_many = run_many
         self.seed = seed

@@ -43,9 +43,14 @@ def observable_names(has_yaw: bool, has_tilt: bool) -> list[str]:
     return [n for n in DROP_OBSERVABLES if n not in _NEEDS or have[_NEEDS[n]]]
 
 
-def symmetry_order(length_mm: float, width_mm: float, shape: str) -> int:
-    """How many times a chip's outline repeats in a turn (4 for squares, else 2)."""
-    return 4 if shape in ("box", "polygon") and np.isclose(length_mm, width_mm) else 2
+def symmetry_order(scenario) -> int:
+    """How many times the scenario's chip maps onto itself in a turn about its normal (its
+    geometry's :attr:`~packing.chipshape.ChipShape.plan_symmetry`: 4 for a square, 6 for
+    a hexagon, 5 for a five-pointed star, 1 for an irregular polygon). It was read from
+    the shape's name before, which gave a hexagon 4 and a star 2."""
+    from packing.deposition import draw_shapes
+
+    return draw_shapes(scenario, 1, np.random.default_rng(scenario.seed))[0].plan_symmetry
 
 
 def drop_observables(

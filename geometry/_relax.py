@@ -126,7 +126,9 @@ def relax(
         pair
         for pair in surface
         if pair[1] != GROUND
-        and all(_is_cuboid(pieces[arrangement.shape_index[k]]) for k in pair)
+        # Asked of the geometry, not of the shape's name: a beam crossing a box at 1.7 deg
+        # left a wedge no mesh could take (mixed-shapes seed 3).
+        and all(arrangement.shapes[arrangement.shape_index[k]].is_cuboid for k in pair)
         and abs(_misalignment(rotations, *pair, worlds, surface[pair])) < np.radians(_ALIGN_DEG)
     }
     # Edges of two aligned chips that run parallel a hair apart cut the shared face into a
@@ -413,17 +415,6 @@ def _stuck_groups(rows) -> set:
             off[row.group] = max(off.get(row.group, 0.0), abs(row.value))
     worst = max(off.values(), default=0.0)
     return {group for group, value in off.items() if value > max(1e-5, 0.1 * worst)}
-
-
-def _is_cuboid(pieces) -> bool:
-    """A chip that is one rectangular box along its own axes (a box chip, a beam or
-    fibre of box section): its edges run every 90 degrees in each face, as
-    :func:`_misalignment` takes them. (Asked of the geometry, not of the shape's name: a
-    beam crossing a box at 1.7 degrees left a wedge no mesh could take, mixed-shapes
-    seed 3.)"""
-    if len(pieces) != 1 or len(pieces[0].normals) != 6:
-        return False
-    return bool(np.all(np.isclose(np.abs(pieces[0].normals).max(axis=1), 1.0, atol=1e-9)))
 
 
 def _misalignment(rotations, chip, partner, worlds, faces) -> float:

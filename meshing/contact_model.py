@@ -251,9 +251,9 @@ def contact_model(
     if arrangement.n_chips == 0:
         raise InputError("contact model: the stack has no chips")
     for shape in arrangement.shapes:
-        if shape.kind != "box":
+        if not shape.is_cuboid:
             raise InputError(
-                f"mesh.kind = 'contact': box chips only so far (shape {shape.name!r}); "
+                f"mesh.kind = 'contact': box-shaped chips only so far (shape {shape.name!r}); "
                 "use mesh.kind = 'voxel'"
             )
     size = element_mm or default_element_mm(arrangement)

@@ -60,6 +60,34 @@ class ChipShape:
         """Area of the chip's outline (mm^2): volume over thickness."""
         return self.volume_mm3 / self.thickness_mm
 
+    @property
+    def is_cuboid(self) -> bool:
+        """One rectangular box along the chip's own axes (a box chip, a beam or fibre of
+        box section): what the meshers that build boxes from their extents can take,
+        asked of the geometry and not of the builder's name."""
+        if len(self.convex_pieces) != 1 or len(self.vertices) != 8:
+            return False
+        offsets = np.abs(np.asarray(self.vertices) - self.box_centre)
+        return bool(np.allclose(offsets, self.half_extents, rtol=0.0, atol=1e-9))
+
+    @property
+    def plan_symmetry(self) -> int:
+        """How many times the chip maps onto itself in a turn about its own z axis (4 for
+        a square, 2 for a rectangle or a rod, 6 for a hexagon, k for a k-pointed star, 1
+        for an irregular polygon): a landed chip's yaw is defined modulo 360 deg over it."""
+        corners = np.asarray(self.vertices, dtype=float)  # about the centre of mass
+        tolerance = 1e-6 * max(1.0, float(np.abs(corners).max()))
+        for order in range(12, 1, -1):
+            angle = 2 * np.pi / order
+            turn = np.array(
+                [[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]]
+            )
+            turned = corners @ turn.T
+            gaps = np.linalg.norm(turned[:, None, :] - corners[None, :, :], axis=2).min(axis=1)
+            if gaps.max() <= tolerance:
+                return order
+        return 1
+
 
 def _frozen(array: np.ndarray) -> np.ndarray:
     array = np.array(array, dtype=float)

@@ -74,6 +74,28 @@ def test_analytic_volumes_and_centred_frames(spec, volume):
     assert solid.volume() == pytest.approx(volume, rel=1e-9)
 
 
+@pytest.mark.parametrize(
+    ("spec", "order", "cuboid"),
+    [
+        (ChipSpec(), 4, True),
+        (ChipSpec(width_mm=10.0), 2, True),
+        (ChipSpec(shape="polygon", sides=6), 6, False),
+        (ChipSpec(shape="polygon", sides=4), 4, False),
+        (ChipSpec(shape="star", sides=5), 5, False),
+        (ChipSpec(shape="random_polygon", sides=7), 1, False),
+        (ChipSpec(shape="beam", length_mm=40.0, width_mm=6.0), 2, True),
+        (ChipSpec(shape="fibre", section="cylinder", length_mm=25.0, thickness_mm=1.0), 2, False),
+    ],
+)
+def test_what_a_shape_can_do_is_read_from_its_geometry(spec, order, cuboid):
+    """Turn symmetry about the chip's normal (a landed chip's yaw is defined modulo
+    360 deg over it) and whether it is one box along its axes, from the corners, not the
+    builder's name: a hexagon was given 4 and a star 2 by name."""
+    shape = make_shape(spec, np.random.default_rng(3))
+    assert shape.plan_symmetry == order
+    assert shape.is_cuboid is cuboid
+
+
 def test_random_polygons_are_seeded_simple_and_on_principal_axes():
     spec = ChipSpec(shape="random_polygon", sides=9, length_mm=30.0, convex=False)
     a = make_shape(spec, np.random.default_rng(7))
