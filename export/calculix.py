@@ -15,7 +15,14 @@ from core.schema import SolveSpec
 from export.mesh_files import MATERIALS
 from meshing.contact_model import ContactModel, Platen, chip_box, faces_near_box, faces_within
 
-__all__ = ["write_contact_deck", "write_volume_compaction", "COMPACTION_DOC", "SPRING_ELSETS"]
+__all__ = [
+    "write_contact_deck",
+    "write_contact_mesh",
+    "write_contact_compaction",
+    "write_volume_compaction",
+    "COMPACTION_DOC",
+    "SPRING_ELSETS",
+]
 
 SPRING_ELSETS = ("SPRINGS_X", "SPRINGS_Y", "SPRINGS_Z")
 PLATEN_MATERIAL = "*MATERIAL, NAME=PLATEN\n*ELASTIC\n210000., 0.3\n*DENSITY\n7.85e-9\n"
@@ -33,21 +40,45 @@ def _lines(f: TextIO, rows: Iterable[Iterable], per_line: int = 16) -> None:
             f.write(", ".join(str(v) for v in row[start : start + per_line]) + "\n")
 
 
-def write_contact_deck(path: Path, model: ContactModel, solve: SolveSpec, element: str) -> Path:
-    """Write the whole deck of ``model`` to ``path`` (one file CalculiX runs as is)."""
+def write_contact_mesh(path: Path, model: ContactModel, element: str) -> Path:
+    """The model's mesh part (what the mesh stage writes, whatever the press): nodes,
+    chip and platen elements, materials, orientations and sections, the rigid platens and
+    their faces. :func:`write_contact_compaction` writes the rest, from ``[solve]``."""
     with open(path, "w") as f:
-        f.write("** chipstack contact model: every chip on its own, contact pairs, platens\n")
+        f.write("** chipstack contact model: every chip on its own and two rigid platens\n")
         f.write(f"** {model.n_chips} chips, {model.n_elements} chip elements ({element}), ")
         f.write(f"{len(model.pairs)} chip pairs, {len(model.floor_chips)} chips on the conveyor\n")
         _nodes(f, model)
         _elements(f, model, element)
-        _springs(f, model, solve.spring_n_mm)
         _materials(f, model)
+        _platen_surfaces(f, model)
+    return Path(path)
+
+
+def write_contact_compaction(
+    path: Path, mesh_file: str, model: ContactModel, solve: SolveSpec
+) -> Path:
+    """The compaction deck (what the solve stage writes): the mesh part included from
+    ``mesh_file``, then the weak springs, the contact surfaces and pairs, and the
+    displacement-controlled step of ``solve``."""
+    with open(path, "w") as f:
+        f.write("** chipstack compaction of a contact model\n")
+        f.write(f"*INCLUDE, INPUT={mesh_file}\n")
+        _springs(f, model, solve.spring_n_mm)
         pairs, surfaces = contact_surfaces(model, solve)
-        _surfaces(f, model, surfaces)
+        _surfaces(f, surfaces)
         _contacts(f, pairs, solve)
         _step(f, model, solve)
     return Path(path)
+
+
+def write_contact_deck(path: Path, model: ContactModel, solve: SolveSpec, element: str) -> Path:
+    """The whole deck at ``path``, its mesh part beside it (``<stem>_model.inp``):
+    both parts at once, as the mesh and solve stages write them one after the other."""
+    path = Path(path)
+    mesh = path.with_name(f"{path.stem}_model.inp")
+    write_contact_mesh(mesh, model, element)
+    return write_contact_compaction(path, mesh.name, model, solve)
 
 
 def _nodes(f: TextIO, model: ContactModel) -> None:
@@ -146,10 +177,13 @@ def contact_surfaces(model: ContactModel, solve: SolveSpec) -> list[tuple[str, s
     return pairs, surfaces
 
 
-def _surfaces(f: TextIO, model: ContactModel, surfaces: list) -> None:
+def _surfaces(f: TextIO, surfaces: list) -> None:
     for name, faces in surfaces:
         f.write(f"*SURFACE, NAME={name}, TYPE=ELEMENT\n")
         _lines(f, ([e + 1, f"S{face}"] for e, face in faces))
+
+
+def _platen_surfaces(f: TextIO, model: ContactModel) -> None:
     first = len(model.cells) + 1
     for platen in (model.bottom, model.top):
         f.write(f"*SURFACE, NAME=S_{platen.name}, TYPE=ELEMENT\n")

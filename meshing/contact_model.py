@@ -17,9 +17,11 @@ S3 y-, S4 x+, S5 y+, S6 x-.
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -297,6 +299,69 @@ def contact_model(
             "chips_moved_apart": int((moved > 1e-9).sum()),
             "max_move_mm": float(moved.max()),
         },
+    )
+
+
+def save_contact_model(path: Path, model: ContactModel) -> Path:
+    """Write ``model`` as a NumPy archive (no pickles): what the solve stage reads to
+    write the compaction deck, so that the mesh stage does not depend on ``[solve]``."""
+    arrays = {
+        name: getattr(model, name)
+        for name in ("points", "cells", "chip", "pairs", "floor_chips", "fibres", "normals")
+    }
+    arrays["anchors"] = model.anchors
+    arrays["surface_rows"] = np.concatenate(model.surfaces) if model.surfaces else np.zeros((0, 2))
+    arrays["surface_counts"] = np.array([len(s) for s in model.surfaces])
+    for platen in (model.bottom, model.top):
+        key = platen.name.lower()
+        arrays[f"{key}_cells"] = platen.cells
+        arrays[f"{key}_numbers"] = np.array(
+            [platen.face, platen.reference_node, platen.rotation_node]
+        )
+        arrays[f"{key}_z_mm"] = np.array(platen.z_mm)
+    arrays["sizes"] = np.array([model.element_mm, model.through_thickness, model.gap_mm])
+    arrays["info"] = np.array(json.dumps(model.info, sort_keys=True))
+    with open(path, "wb") as f:
+        np.savez_compressed(f, **arrays)
+    return Path(path)
+
+
+def load_contact_model(path: Path) -> ContactModel:
+    """The model :func:`save_contact_model` wrote."""
+    with np.load(path, allow_pickle=False) as data:
+        d = {k: data[k] for k in data.files}
+    rows = d["surface_rows"].astype(int)
+    edges = np.cumsum(d["surface_counts"])[:-1]
+    platens = []
+    for name in ("BOTTOM", "TOP"):
+        face, reference, rotation = (int(v) for v in d[f"{name.lower()}_numbers"])
+        platens.append(
+            Platen(
+                name,
+                d[f"{name.lower()}_cells"],
+                face,
+                reference,
+                rotation,
+                float(d[f"{name.lower()}_z_mm"]),
+            )
+        )
+    element_mm, through, gap = d["sizes"]
+    return ContactModel(
+        points=d["points"],
+        cells=d["cells"],
+        chip=d["chip"],
+        surfaces=tuple(np.split(rows, edges)),
+        pairs=d["pairs"],
+        floor_chips=d["floor_chips"],
+        fibres=d["fibres"],
+        normals=d["normals"],
+        anchors=d["anchors"],
+        bottom=platens[0],
+        top=platens[1],
+        element_mm=float(element_mm),
+        through_thickness=int(through),
+        gap_mm=float(gap),
+        info=json.loads(str(d["info"])),
     )
 
 

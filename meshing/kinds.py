@@ -402,14 +402,18 @@ def contact_volume_mesh(model: ContactModel, arrangement: Arrangement) -> Volume
 def write_contact(
     folder: Path, model: ContactModel, chips: VolumeMesh, report: dict, inputs: StageInputs
 ) -> dict[str, Any]:
-    """The CalculiX deck, a VTU of the chips and the check report; the manifest entry."""
-    from export.calculix import press_mm, write_contact_deck
+    """The model's mesh part for CalculiX (the solve stage includes it in the compaction
+    deck it writes from ``[solve]``), the model's arrays, a VTU of the chips and the
+    check report; the manifest entry."""
+    from export.calculix import write_contact_mesh
     from export.mesh_files import write_mesh
     from meshing.conformal import MeshingError
+    from meshing.contact_model import save_contact_model
 
     spec = inputs.scenario.mesh
-    write_contact_deck(folder / "stack_contact.inp", model, inputs.scenario.solve, spec.element)
-    files = ["stack_contact.inp"]
+    write_contact_mesh(folder / "stack_contact.inp", model, spec.element)
+    save_contact_model(folder / "stack_contact_model.npz", model)
+    files = ["stack_contact.inp", "stack_contact_model.npz"]
     files += [p.name for p in write_mesh(folder, "stack_contact", chips, ["vtu"])]
     (folder / "stack_contact_checks.json").write_text(json.dumps(report, indent=2) + "\n")
     files.append("stack_contact_checks.json")
@@ -423,7 +427,6 @@ def write_contact(
         "chip_pairs": len(model.pairs),
         "floor_chips": len(model.floor_chips),
         "height_mm": round(model.height_mm, 4),
-        "press_mm": round(press_mm(model, inputs.scenario.solve), 4),
         "max_move_mm": round(model.info["max_move_mm"], 5),
         "info": model.info,
         "files": sorted(files),

@@ -82,7 +82,12 @@ class ContactPress(SolveModel):
         return scenario.mesh.kind == "contact"
 
     def prepare(self, mesh_folder, scratch, job, scenario):
-        shutil.copy(mesh_folder / "stack_contact.inp", scratch / f"{job}.inp")
+        from export.calculix import write_contact_compaction
+        from meshing.contact_model import load_contact_model
+
+        shutil.copy(mesh_folder / "stack_contact.inp", scratch / "stack_contact.inp")
+        model = load_contact_model(mesh_folder / "stack_contact_model.npz")
+        write_contact_compaction(scratch / f"{job}.inp", "stack_contact.inp", model, scenario.solve)
         return None
 
     def forces(self, prints, prepared):

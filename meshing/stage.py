@@ -43,7 +43,9 @@ class MeshStage(Stage):
     name = "mesh"
     progress_label = "meshing"
     upstream = ("packing",)
-    sections = ("geometry", "mesh", "solve")  # the contact model's deck holds the step
+    # Not [solve]: the compaction deck is the solve model's (a press changed is not a
+    # new mesh).
+    sections = ("geometry", "mesh")
     in_ensembles = False
 
     def check(self, scenario: Scenario) -> None:

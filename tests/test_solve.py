@@ -154,6 +154,51 @@ def test_solve_end_to_end_writes_results_paraview_reads(tmp_path):
     assert pressure.max() == pytest.approx(forces[-1] / AREA, rel=0.05)
 
 
+@needs_ccx
+def test_a_new_press_reuses_the_mesh_and_solves_again(tmp_path):
+    """The compaction deck is the solve model's: a changed ``[solve]`` runs the solve
+    stage again on the mesh already written (packing, geometry and mesh reused), and the
+    new press is the one solved. (The mesh stage wrote the whole deck before, so a new
+    press remeshed.)"""
+    scenario = tmp_path / "one.toml"
+    scenario.write_text(ONE_CHIP)
+    out = tmp_path / "run"
+    assert run_cli("run", str(scenario), "--to", "solve", "--out", str(out)).returncode == 0
+    mesh_before = (out / "mesh" / "stack_contact.inp").read_bytes()
+    first = list(csv.DictReader(open(out / "solve" / "force_displacement.csv")))
+    scenario.write_text(ONE_CHIP.replace("press_fraction = 0.01", "press_fraction = 0.02"))
+    result = run_cli("run", str(scenario), "--to", "solve", "--out", str(out))
+    assert result.returncode == 0, result.stderr
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["stages_reused"] == ["packing", "geometry", "mesh"]
+    assert (out / "mesh" / "stack_contact.inp").read_bytes() == mesh_before
+    assert "*STEP" not in mesh_before.decode()  # the mesh part holds no step
+    second = list(csv.DictReader(open(out / "solve" / "force_displacement.csv")))
+    assert float(second[-1]["press_mm"]) == pytest.approx(2 * float(first[-1]["press_mm"]))
+    assert "*INCLUDE, INPUT=stack_contact.inp" in (out / "solve" / "compaction.inp").read_text()
+
+
+def test_a_contact_model_round_trips_through_its_archive(tmp_path):
+    from meshing.contact_model import load_contact_model, save_contact_model
+
+    model = contact_model(flat_stack([1.0, 3.0]), element_mm=2.0, through_thickness=2)
+    back = load_contact_model(save_contact_model(tmp_path / "model.npz", model))
+    for name in ("points", "cells", "chip", "pairs", "floor_chips", "fibres", "normals"):
+        assert np.array_equal(getattr(back, name), getattr(model, name)), name
+    assert len(back.surfaces) == len(model.surfaces)
+    assert all(np.array_equal(a, b) for a, b in zip(back.surfaces, model.surfaces, strict=True))
+    for a, b in ((back.bottom, model.bottom), (back.top, model.top)):
+        assert np.array_equal(a.cells, b.cells)
+        assert (a.name, a.face, a.reference_node, a.rotation_node, a.z_mm) == (
+            b.name,
+            b.face,
+            b.reference_node,
+            b.rotation_node,
+            b.z_mm,
+        )
+    assert (back.height_mm, back.gap_mm, back.info) == (model.height_mm, model.gap_mm, model.info)
+
+
 def test_solve_refuses_a_model_it_cannot_run(tmp_path):
     scenario = tmp_path / "one.toml"
     scenario.write_text(ONE_CHIP.replace('kind = "contact"', 'kind = "voxel"'))
