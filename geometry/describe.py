@@ -119,7 +119,7 @@ class Descriptor:
     figures: Callable[[Any, dict[str, Any], Path], list[str]] = _no_figures
 
 
-DESCRIPTORS: Registry[Descriptor] = Registry("descriptor")
+DESCRIPTORS: Registry[Descriptor] = Registry("descriptor", "chipstack.descriptors")
 
 
 def _register(name: str, doc: str, **outputs: Callable):

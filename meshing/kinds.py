@@ -92,7 +92,7 @@ class MeshKind:
         ]
 
 
-MESH_KINDS: Registry[MeshKind] = Registry("mesh kind")
+MESH_KINDS: Registry[MeshKind] = Registry("mesh kind", "chipstack.mesh_kinds")
 
 
 def mesh_kinds(name: str, key: str = "mesh.kind") -> list[MeshKind]:

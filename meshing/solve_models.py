@@ -56,7 +56,7 @@ class SolveModel:
         return {}
 
 
-SOLVE_MODELS: Registry[SolveModel] = Registry("solve model")
+SOLVE_MODELS: Registry[SolveModel] = Registry("solve model", "chipstack.solve_models")
 
 
 def solve_model(scenario: Scenario) -> SolveModel:

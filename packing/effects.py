@@ -125,7 +125,7 @@ class FlightState:
     masses_g: np.ndarray
 
 
-EFFECTS: Registry[Effect] = Registry("effect")
+EFFECTS: Registry[Effect] = Registry("effect", "chipstack.effects")
 
 
 def _register(cls: type[Effect]) -> type[Effect]:

@@ -62,7 +62,7 @@ class PhysicsPreset:
         return self.density_g_mm3 * volume_mm3
 
 
-PRESETS: Registry = Registry("physics preset")
+PRESETS: Registry = Registry("physics preset", "chipstack.presets")
 
 PRESETS.register(
     "default",

@@ -286,7 +286,7 @@ def _file_extent(spec: ChipSpec) -> tuple[float, float]:
     return across, shape.circumradius_mm
 
 
-SHAPES: Registry[ShapeKind] = Registry("shape")
+SHAPES: Registry[ShapeKind] = Registry("shape", "chipstack.shapes")
 SHAPES.register("box", ShapeKind(box_shape, _box_check, _rectangle_extent))
 SHAPES.register("polygon", ShapeKind(polygon_shape, _plate_check, _round_extent))
 SHAPES.register("star", ShapeKind(star_shape, _plate_check, _round_extent))

@@ -64,6 +64,25 @@ def mesh_formats_markdown() -> str:
     return _table(("format", "what is written"), rows)
 
 
+def mesh_kinds_markdown() -> str:
+    from meshing.kinds import MESH_KINDS
+
+    rows = []
+    for name in MESH_KINDS.in_order():
+        kind = MESH_KINDS.get(name)
+        solved = ", ".join(kind.solve_models) or "-"
+        crops = "takes mesh.crop" if kind.crops else "whole stack"
+        rows.append((name, f"{kind.doc} ({crops}; solve models: {solved})"))
+    return _table(("mesh kind", "what it is"), rows)
+
+
+def solve_models_markdown() -> str:
+    from meshing.solve_models import SOLVE_MODELS
+
+    rows = [(n, _first_line(type(SOLVE_MODELS.get(n)).__doc__)) for n in SOLVE_MODELS.in_order()]
+    return _table(("solve model", "what it presses"), rows)
+
+
 def effects_markdown() -> str:
     rows = []
     for name in EFFECTS.in_order():
@@ -84,6 +103,8 @@ GENERATED: dict[str, Callable[[], str]] = {
     "shapes": shapes_markdown,
     "descriptors": descriptors_markdown,
     "mesh_formats": mesh_formats_markdown,
+    "mesh_kinds": mesh_kinds_markdown,
+    "solve_models": solve_models_markdown,
     "effects": effects_markdown,
     "presets": presets_markdown,
 }

@@ -1,0 +1,116 @@
+"""Plugins: a package outside the project (``tests/plugins``: its module and its
+``.dist-info`` with the entry points, on the path of the runs below as an installed
+package would be) adds a chip shape, a descriptor, a mesh kind and an effect without
+touching a file of the project; each works end to end, and its docs rows are generated."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import meshio
+import numpy as np
+
+PLUGINS = Path(__file__).resolve().parent / "plugins"
+
+TRIANGLES = """
+name = "triangles"
+seed = 3
+[chip]
+shape = "triangle"
+length_mm = 20.0
+thickness_mm = 2.0
+[deposition]
+chips = 12
+batch_size = 12
+target_size_mm = 80.0
+release_height_mm = [60.0, 120.0]
+[mesh]
+kind = "coarse_voxel"
+voxel_mm = 1.0
+"""
+
+WIND = """
+kind = "drop"
+name = "wind"
+scenario = "single-chip-drop"
+observations = "data.csv"
+[measurement]
+position_sd_mm = 0.0
+angle_sd_deg = 0.0
+[[condition]]
+name = "high"
+height_mm = 1000
+"""
+
+
+def run(args: list[str], cwd: Path, plugin: bool = True) -> subprocess.CompletedProcess:
+    env = dict(os.environ)
+    if plugin:
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (str(PLUGINS), env.get("PYTHONPATH")) if p)
+    return subprocess.run(
+        [sys.executable, *args], capture_output=True, text=True, cwd=cwd, env=env, timeout=600
+    )
+
+
+def test_a_plugin_shape_descriptor_and_mesh_kind_run_through_their_stages(tmp_path):
+    (tmp_path / "tri.toml").write_text(TRIANGLES)
+    result = run(["-m", "pipeline", "run", "tri.toml", "--to", "mesh", "--out", "run"], tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert "coarse_voxel mesh:" in result.stdout
+    description = json.loads((tmp_path / "run" / "geometry" / "descriptors.json").read_text())
+    heights = description["descriptors"]["centre_height"]
+    # Triangles 2 mm thick lying on the conveyor and on each other: centres from 1 mm up.
+    assert 0.99 < heights["mean_mm"] <= heights["max_mm"] < 10.0
+    mesh = meshio.read(tmp_path / "run" / "mesh" / "stack_coarse_voxel.vtu")
+    chips = np.unique(mesh.cell_data["chip"][0])
+    assert set(chips[chips >= 0]) == set(range(12))
+    checks = json.loads((tmp_path / "run" / "mesh" / "stack_coarse_voxel_checks.json").read_text())
+    assert checks["valid"]
+    # Every chip an equilateral triangle 20 mm a side: its meshed volume near 173.2 mm3 x 2.
+    assert checks["chip_volume_error_max"] < 0.05
+
+
+def test_without_the_plugin_its_names_are_refused_in_one_line(tmp_path):
+    (tmp_path / "tri.toml").write_text(TRIANGLES)
+    result = run(
+        ["-m", "pipeline", "run", "tri.toml", "--to", "mesh", "--out", "run"], tmp_path, False
+    )
+    assert result.returncode == 2
+    (line,) = result.stderr.strip().splitlines()
+    assert "unknown shape 'triangle'; valid names:" in line
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_plugin_effect_acts_on_simulated_drops(tmp_path):
+    (tmp_path / "spec.toml").write_text(WIND)
+    common = ["-m", "pipeline", "synth", "spec.toml", "--drops", "12", "--seed", "1"]
+    windy = run([*common, "--effect", "crosswind=1000", "-o", "a.csv", "--workers", "1"], tmp_path)
+    assert windy.returncode == 0, windy.stderr
+    still = run([*common, "-o", "b.csv", "--workers", "1"], tmp_path)
+    assert still.returncode == 0, still.stderr
+
+    def mean_x(name):
+        return np.mean([float(r["x_mm"]) for r in csv.DictReader(open(tmp_path / name))])
+
+    # A push of 1 m/s^2 along +x over a 1 m fall (0.45 s): at least 0.1 m downwind.
+    assert mean_x("a.csv") - mean_x("b.csv") > 100.0
+
+
+def test_plugin_rows_are_generated_in_the_docs_tables(tmp_path):
+    code = (
+        "from pipeline.reference import GENERATED\n"
+        "for name in ('shapes', 'descriptors', 'mesh_kinds', 'effects'):\n"
+        "    print(GENERATED[name]())\n"
+    )
+    with_plugin = run(["-c", code], tmp_path)
+    assert with_plugin.returncode == 0, with_plugin.stderr
+    rows = ("| `triangle` | An equilateral triangle", "| `centre_height` |", "| `coarse_voxel` |")
+    for row in (*rows, "| `crosswind` |"):
+        assert row in with_plugin.stdout, row
+    without = run(["-c", code], tmp_path, plugin=False)
+    assert "triangle" not in without.stdout and "crosswind" not in without.stdout
