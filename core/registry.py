@@ -23,6 +23,7 @@ class Registry(Generic[T]):
         self.entry_points = entry_points  # the group plugins declare their items in
         self._items: dict[str, T] = {}
         self._plugins_loaded = entry_points is None
+        self._plugin_error: RuntimeError | None = None
 
     def register(self, name: str, item: T) -> T:
         if name in self._items:
@@ -31,20 +32,29 @@ class Registry(Generic[T]):
         return item
 
     def _load_plugins(self) -> None:
-        """Register what the installed packages declare in the entry-point group (once)."""
+        """Register what the installed packages declare in the entry-point group (once;
+        a plugin that failed fails every later call the same way, not as an unknown
+        name)."""
         if self._plugins_loaded:
+            if self._plugin_error is not None:
+                raise self._plugin_error
             return
+        # Set first: a plugin module that imports this registry's module while it loads
+        # must not start loading again.
         self._plugins_loaded = True
         from importlib import metadata
 
         for entry in sorted(metadata.entry_points(group=self.entry_points), key=lambda e: e.name):
+            where = f"{self.kind} plugin {entry.name!r} ({entry.value})"
             try:
                 item = entry.load()
             except Exception as exc:  # a broken plugin names itself, not a traceback deep in it
-                raise RuntimeError(
-                    f"{self.kind} plugin {entry.name!r} ({entry.value}) failed to load: {exc}"
-                ) from exc
-            self.register(entry.name, item)
+                self._plugin_error = RuntimeError(f"{where} failed to load: {exc}")
+                raise self._plugin_error from exc
+            if entry.name in self._items:
+                self._plugin_error = RuntimeError(f"{where}: the name is already a {self.kind}")
+                raise self._plugin_error
+            self._items[entry.name] = item
 
     def get(self, name: str, key: str | None = None) -> T:
         """The item called ``name``; ``key`` names the config key in the error message."""

@@ -60,6 +60,7 @@ STRENGTH_RESOLUTION = 1e-3
 # permutations each (the observed tests 999): their p-values only feed the combination.
 ADEQUACY_REPLICATES = 39
 REPLICATE_PERMUTATIONS = 199
+CALIBRATION_POOL_FACTOR = 6  # a calibration pool holds this many times what its tests take
 
 
 @dataclass
@@ -673,24 +674,46 @@ def calibrated_adequacy(
 ) -> dict:
     """The adequacy tests of the held-out datasets, combined by Fisher's method, and that
     combination calibrated by simulation: the same tests (the same plausible settings,
-    the same drop counts) on ``ADEQUACY_REPLICATES`` pseudo-experiments drawn from the
-    fitted model itself (a third, independent simulation of it), so that the
-    combination's null is the model's own and not the uniform one Fisher's method
-    assumes. The supremum over the plausible strengths makes each test conservative
-    (right models passed at Fisher p 0.26 to 1.0 in the calibration study, imitators at
-    0.20 to 0.69); the calibrated p-value is the share of pseudo-experiments whose
-    combination is as small as the data's, or smaller. ``tests``: (held-out dataset,
-    fitted setting, plausible settings) per held-out dataset."""
+    the same drop counts) on pseudo-experiments drawn from the fitted model itself (a
+    third, independent simulation of it), so that the combination's null is the model's
+    own and not the uniform one Fisher's method assumes. The supremum over the plausible
+    strengths makes each test conservative (right models passed at Fisher p 0.26 to 1.0
+    in the calibration study, imitators at 0.20 to 0.69); the calibrated p-value is the
+    share of pseudo-experiments whose combination is as small as the data's, or smaller.
+    ``tests``: (held-out dataset, fitted setting, plausible settings) per held-out
+    dataset.
+
+    Each fitted setting's calibration pool holds at least ``CALIBRATION_POOL_FACTOR``
+    times the drops its tests take, and the datasets one pseudo-experiment takes from a
+    pool are disjoint (two folds fitted to the same strength judge disjoint halves), so
+    the pseudo-experiments are not one sample seen again. With ``alpha`` below what the
+    replicates can resolve (1 / (replicates + 1)), Fisher's combination decides alone
+    (``p_calibrated`` None)."""
     observed = combined_p(p_after)
-    sims.ensure([key[:4] + (CALIBRATION_POOL,) for _, key, _ in tests])
+    replicates = ADEQUACY_REPLICATES
+    if 1.0 / (replicates + 1) >= sims.x.settings.alpha:
+        return dict(p_combined=observed, p_calibrated=None, replicates=0)
+    pools: dict[tuple, list[int]] = {}  # calibration setting -> the tests drawing from it
+    for k, (_, key, _) in enumerate(tests):
+        pools.setdefault(key[:4] + (CALIBRATION_POOL,), []).append(k)
+    for pool, members in pools.items():
+        needed = sum(tests[k][0].data.n for k in members)
+        sims.pool_sizes[pool] = max(sims.n, CALIBRATION_POOL_FACTOR * needed)
+    sims.ensure(list(pools))
     combined = []
-    for _ in range(ADEQUACY_REPLICATES):
-        ps = []
-        for ds, key, others in tests:
-            pool = sims.drops[key[:4] + (CALIBRATION_POOL,)]
-            take = np.sort(rng.choice(pool.n, size=min(ds.data.n, pool.n), replace=False))
-            replicate = Dataset.observe(ds.condition, pool.take(take), sims, rng)
-            ps.append(adequacy_test(replicate, sims, key, others, rng, REPLICATE_PERMUTATIONS)["p"])
+    for _ in range(replicates):
+        ps = [0.0] * len(tests)
+        for pool, members in pools.items():
+            drops = sims.drops[pool]
+            order = rng.permutation(drops.n)
+            start = 0
+            for k in members:
+                ds, key, others = tests[k]
+                take = np.sort(order[start : start + ds.data.n])
+                start += ds.data.n
+                replicate = Dataset.observe(ds.condition, drops.take(take), sims, rng)
+                test = adequacy_test(replicate, sims, key, others, rng, REPLICATE_PERMUTATIONS)
+                ps[k] = test["p"]
         combined.append(combined_p(ps))
     combined = np.array(combined)
     return dict(

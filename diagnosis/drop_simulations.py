@@ -67,6 +67,7 @@ class DropSimulations:
         # condition -> (K,) sd of each observable's difference when there is no gap
         self.observable_sd: dict[str, np.ndarray] = {}
         self.n = experiment.settings.sim_drops
+        self.pool_sizes: dict[tuple, int] = {}  # settings simulated with other than n drops
         self.grid_n = min(self.n, max(GRID_MIN_DROPS, self.n // 2))
         preset = PRESETS.get(experiment.scenario.physics.preset, key="physics.preset")
         self.contact = contact_model(preset, experiment.scenario.physics)
@@ -130,10 +131,11 @@ class DropSimulations:
             self.observables[key] = self.observe(result, key[0])
 
     def _call(self, condition: str, tilt: float, effect: str | None, strength: float, pool: str):
+        key = (condition, tilt, effect, strength, pool)
         return dict(
             scenario=self.x.scenario,
             protocol=replace(self.x.condition(condition).protocol, tilt_deg=tilt),
-            n=self.grid_n if pool == GRID_POOL else self.n,
+            n=self.pool_sizes.get(key, self.grid_n if pool == GRID_POOL else self.n),
             strengths={effect: strength} if effect else {},
             seed=self._seed(condition, pool),
             position_sd_mm=self.x.position_sd_mm,

@@ -83,8 +83,8 @@ def effect_verdict(
         text += (
             f" A significant gap remains after it in {', '.join(remaining)} (the held-out "
             "data against simulations of it at every strength it plausibly has, combined "
-            "by Fisher's method): an effect outside the library, or more than one, is at "
-            "work."
+            "by Fisher's method and calibrated on pseudo-experiments drawn from it): an "
+            "effect outside the library, or more than one, is at work."
         )
         kind = "partly explained"
     else:

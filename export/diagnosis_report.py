@@ -296,7 +296,7 @@ def _telling_apart(which: dict) -> list[str]:
 # -- 3. how far ------------------------------------------------------------------------
 def _calibration_text(adequacy: dict | None) -> str:
     """The adequacy combination and its calibration by simulation (drops), or "."."""
-    if not adequacy:
+    if not adequacy or adequacy.get("p_calibrated") is None:
         return "."
     return (
         f" (calibrated by simulation: Fisher's p = {_fmt(adequacy['p_combined'])} is as "

@@ -130,6 +130,11 @@ def _write_results(result: Compaction, folder: Path, figures: bool) -> list[str]
     for suffix in (".inp", ".dat", ".log"):
         shutil.copy(result.scratch / f"{JOB}{suffix}", folder / f"{JOB}{suffix}")
         files.append(f"{JOB}{suffix}")
+    # What the deck includes (the mesh's part), so that the solve folder runs as is.
+    for include in sorted(result.scratch.glob("*.inp")):
+        if include.stem != JOB:
+            shutil.copy(include, folder / include.name)
+            files.append(include.name)
     written = frd_to_vtu(result.scratch / f"{JOB}.frd")
     vtus = sorted(p for p in written if p.suffix == ".vtu")
     if vtus:  # the final state; one file per increment would be hundreds of MB

@@ -76,8 +76,12 @@ class ChipShape:
         a square, 2 for a rectangle or a rod, 6 for a hexagon, k for a k-pointed star, 1
         for an irregular polygon): a landed chip's yaw is defined modulo 360 deg over it."""
         corners = np.asarray(self.vertices, dtype=float)  # about the centre of mass
-        tolerance = 1e-6 * max(1.0, float(np.abs(corners).max()))
-        for order in range(12, 1, -1):
+        # Loose enough for file chips whose corners were written rounded.
+        tolerance = 1e-4 * max(1.0, float(np.abs(corners).max()))
+        # A turn that maps the corners onto themselves permutes them in cycles of its
+        # order (no corner lies on the axis): only divisors of their number can be.
+        orders = [k for k in range(len(corners), 1, -1) if len(corners) % k == 0]
+        for order in orders:
             angle = 2 * np.pi / order
             turn = np.array(
                 [[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]]

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import meshio
 import numpy as np
+import pytest
 
 PLUGINS = Path(__file__).resolve().parent / "plugins"
 
@@ -114,3 +115,24 @@ def test_plugin_rows_are_generated_in_the_docs_tables(tmp_path):
         assert row in with_plugin.stdout, row
     without = run(["-c", code], tmp_path, plugin=False)
     assert "triangle" not in without.stdout and "crosswind" not in without.stdout
+
+
+def test_a_broken_plugin_names_itself_every_time(tmp_path, monkeypatch):
+    """A plugin that cannot be imported, or that takes a built-in's name, is one error
+    naming it, on every call, not an unknown name on the second."""
+    from core.registry import Registry
+
+    info = tmp_path / "broken-0.1.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: broken\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text("[chipstack.test_broken]\nwidget = no_such_module:X\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    registry = Registry("widget", "chipstack.test_broken")
+    for _ in range(2):
+        with pytest.raises(RuntimeError, match="widget plugin 'widget' .* failed to load"):
+            registry.get("widget")
+    (info / "entry_points.txt").write_text("[chipstack.test_clash]\nbuilt = json:dumps\n")
+    clashing = Registry("widget", "chipstack.test_clash")
+    clashing.register("built", object())
+    with pytest.raises(RuntimeError, match="the name is already a widget"):
+        clashing.names()

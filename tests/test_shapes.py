@@ -83,6 +83,8 @@ def test_analytic_volumes_and_centred_frames(spec, volume):
         (ChipSpec(shape="polygon", sides=4), 4, False),
         (ChipSpec(shape="star", sides=5), 5, False),
         (ChipSpec(shape="random_polygon", sides=7), 1, False),
+        (ChipSpec(shape="polygon", sides=16), 16, False),
+        (ChipSpec(shape="star", sides=13), 13, False),
         (ChipSpec(shape="beam", length_mm=40.0, width_mm=6.0), 2, True),
         (ChipSpec(shape="fibre", section="cylinder", length_mm=25.0, thickness_mm=1.0), 2, False),
     ],
