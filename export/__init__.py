@@ -17,7 +17,7 @@ __all__ = [
     "write_stack_vtp",
 ]
 
-# Imported on first use: checking a scenario's mesh formats (export.mesh_files) imports
+# Imported on first use: checking a scenario's mesh formats (meshing.files) imports
 # this package at every run, and these writers bring scipy and the packing world (~0.6 s).
 lazy_package(
     __name__,

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import csv
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from packing.stack import BatchResult, Stack
+if TYPE_CHECKING:
+    from packing.stack import BatchResult, Stack
 
 
 def fmt(value: float, digits: int = 6) -> str:

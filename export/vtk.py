@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from packing.shapes import ChipShape
+if TYPE_CHECKING:
+    from packing.shapes import ChipShape
 
 
 def stack_polydata(

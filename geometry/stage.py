@@ -95,7 +95,7 @@ class GeometryStage(Stage):
         return summary
 
     def write_repeats(self, summary: dict[str, Any], path) -> None:
-        from export.run_figures import ensemble_figures  # matplotlib only when drawing
+        from geometry.run_figures import ensemble_figures  # matplotlib only when drawing
 
         path("ensemble.json").write_text(json.dumps(summary, indent=2) + "\n")
         ensemble_figures(path("figures/x").parent, summary)
@@ -108,12 +108,12 @@ def write_geometry(
     folder: Path, description: Description, history, scenario: Scenario, figures: bool
 ) -> dict[str, Any]:
     """Write a computed description's files into ``folder``; returns the manifest entry."""
-    from export.descriptors import write_description
+    from geometry.files import write_description
 
     extra = {"scenario": scenario.name, "seed": scenario.seed, "chips": history[-1].n_chips}
     files = write_description(folder, description, history[-1], extra)
     if figures:
-        from export.run_figures import single_run_figures  # matplotlib only when drawing
+        from geometry.run_figures import single_run_figures  # matplotlib only when drawing
 
         files += single_run_figures(folder / "figures", description, history[-1])
     return {

@@ -110,7 +110,7 @@ def write_volume_mesh(
     folder: Path, kind: str, built: Built, report: dict, inputs: StageInputs
 ) -> dict[str, Any]:
     """A volume mesh's files, picture and check report; returns its manifest entry."""
-    from export.mesh_files import write_mesh
+    from meshing.files import write_mesh
 
     stem = f"stack_{kind}"
     spec = inputs.scenario.mesh
@@ -121,7 +121,7 @@ def write_volume_mesh(
         shutil.move(built.native[name], folder / f"{stem}.{name}")
         files.append(f"{stem}.{name}")
     if inputs.options.figures:
-        from export.run_figures import mesh_figure  # pyvista only when drawing
+        from meshing.files import mesh_figure  # pyvista only when drawing
 
         files += mesh_figure(folder / f"{stem}.png", built.mesh)
     (folder / f"{stem}_checks.json").write_text(json.dumps(report, indent=2) + "\n")
@@ -405,10 +405,10 @@ def write_contact(
     """The model's mesh part for CalculiX (the solve stage includes it in the compaction
     deck it writes from ``[solve]``), the model's arrays, a VTU of the chips and the
     check report; the manifest entry."""
-    from export.calculix import write_contact_mesh
-    from export.mesh_files import write_mesh
+    from meshing.calculix_deck import write_contact_mesh
     from meshing.conformal import MeshingError
     from meshing.contact_model import save_contact_model
+    from meshing.files import write_mesh
 
     spec = inputs.scenario.mesh
     write_contact_mesh(folder / "stack_contact.inp", model, spec.element)

@@ -10,7 +10,7 @@ import numpy as np
 from core.errors import InputError
 from meshing.boundaries import PeriodicPairs
 
-# The arrangement (scipy) only when attributes are computed: export.mesh_files imports this
+# The arrangement (scipy) only when attributes are computed: meshing.files imports this
 # module to check a scenario's mesh formats at every run.
 if TYPE_CHECKING:
     from geometry.arrangement import Arrangement

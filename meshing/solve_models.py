@@ -82,7 +82,7 @@ class ContactPress(SolveModel):
         return scenario.mesh.kind == "contact"
 
     def prepare(self, mesh_folder, scratch, job, scenario):
-        from export.calculix import write_contact_compaction
+        from meshing.calculix_deck import write_contact_compaction
         from meshing.contact_model import load_contact_model
 
         shutil.copy(mesh_folder / "stack_contact.inp", scratch / "stack_contact.inp")
@@ -124,7 +124,7 @@ class VolumePress(SolveModel):
             )
 
     def prepare(self, mesh_folder, scratch, job, scenario):
-        from export.calculix import write_volume_compaction
+        from meshing.calculix_deck import write_volume_compaction
 
         stem = self.stem(scenario)
         shutil.copy(mesh_folder / f"{stem}.inp", scratch / f"{stem}.inp")

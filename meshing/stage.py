@@ -149,7 +149,7 @@ class MeshFiles:
 
 def check_formats(formats: tuple[str, ...], key: str) -> None:
     """Refuse an empty list or an unknown mesh format, listing the valid ones."""
-    from export.mesh_files import MESH_FORMATS  # numpy: when a scenario is checked
+    from meshing.files import MESH_FORMATS  # numpy: when a scenario is checked
 
     valid = ", ".join(MESH_FORMATS.names())
     if not formats:

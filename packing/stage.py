@@ -355,14 +355,14 @@ def mat_summary(scenario: Scenario, mat: MatRecord) -> tuple[dict[str, Any], dic
     the mat's steady part (:func:`packing.conveyor.steady_range_mm`), across the belt."""
     import numpy as np
 
-    from geometry.mat import (
+    from packing.conveyor import LEFT_DOMAIN, ON_BELT, SPILLED
+    from packing.mat import (
         areal_weight_map,
         coefficient_of_variation,
         orientation_distribution,
         surface_samples,
         thickness_map,
     )
-    from packing.conveyor import LEFT_DOMAIN, ON_BELT, SPILLED
 
     c = scenario.conveyor
     low, high = mat.steady_mm
@@ -471,7 +471,7 @@ def _panel_weights(mat: MatRecord, on, steady: tuple[float, float], panel_mm: fl
     fewer than two)."""
     import numpy as np
 
-    from geometry.mat import coefficient_of_variation
+    from packing.mat import coefficient_of_variation
 
     low, high = steady
     count = int((high - low) // panel_mm)

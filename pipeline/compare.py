@@ -121,8 +121,8 @@ def compare_runs(
     ensembles = (load_ensemble(run_a), load_ensemble(run_b))
     # Imported once the inputs are checked: scipy.stats and matplotlib take ~1.5 s, too
     # long to wait for a one-line error about a missing directory.
-    from export.run_figures import comparison_figures
     from geometry.ensemble import compare_ensembles
+    from geometry.run_figures import comparison_figures
 
     labels = (Path(run_a).name or str(run_a), Path(run_b).name or str(run_b))
     if labels[0] == labels[1]:

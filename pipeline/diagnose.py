@@ -60,8 +60,8 @@ def diagnose(
     # The statistics, the simulations and the report are imported only once the inputs
     # are known to be good (seconds of scipy and matplotlib that a typo need not pay for).
     from diagnosis.drops import diagnose_drops
+    from diagnosis.report import write_diagnosis
     from diagnosis.stacks import diagnose_stacks
-    from export.diagnosis_report import write_diagnosis
 
     start = time.perf_counter()
     with run_dir as run:  # locked from here: a second diagnosis into it is refused

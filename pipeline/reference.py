@@ -11,8 +11,8 @@ from pathlib import Path
 
 from core.schema import key_table_markdown
 from core.stages import load_stages
-from export.mesh_files import MESH_FORMATS
 from geometry.describe import DESCRIPTORS
+from meshing.files import MESH_FORMATS
 from packing.effects import EFFECTS
 from packing.presets import PRESETS
 from packing.shapes import SHAPES

@@ -100,6 +100,37 @@ def test_core_imports_no_stage():
             assert not outside, f"{name} imports {outside}"
 
 
+# The layers, lowest first: a module imports its own layer and those below, never one
+# above (the data and the generic writers under the stages, each stage under the ones
+# that read its results, the command line on top).
+LAYERS = ("core", "export", "packing", "geometry", "meshing", "diagnosis", "pipeline")
+
+
+def _upward(graph: dict[str, set[str]]) -> list[str]:
+    rank = {layer: k for k, layer in enumerate(LAYERS)}
+    return sorted(
+        f"{a} -> {b}"
+        for a, targets in graph.items()
+        for b in targets
+        if rank[b.split(".")[0]] > rank[a.split(".")[0]]
+    )
+
+
+def test_no_import_runs_up_the_layers():
+    """A stage's writers live in the stage (the meshes' files and the CalculiX deck in
+    meshing/, the descriptors' files and figures in geometry/, the diagnosis report in
+    diagnosis/); export/ holds what every stage may use (tables, VTK, figures) and imports
+    no stage at run time; packing reads no geometry (the mat's descriptors are packing's)."""
+    assert _upward(_graph()) == []
+
+
+def test_the_layer_check_finds_an_upward_import():
+    assert _upward({"export.vtk": {"packing.shapes"}, "packing.shapes": set()}) == [
+        "export.vtk -> packing.shapes"
+    ]
+    assert _upward({"meshing.kinds": {"export.figures"}, "export.figures": set()}) == []
+
+
 def test_pybullet_only_in_one_module():
     users = [
         p.relative_to(ROOT).as_posix()

@@ -15,11 +15,11 @@ from scipy.spatial.transform import Rotation
 
 from core.errors import InputError
 from core.schema import ChipSpec
-from export.mesh_files import FACET_TAGS, MESH_FORMATS, facets, write_mesh
 from geometry.arrangement import Arrangement
 from geometry.contacts import find_contacts
 from meshing import PORE, GmshSession, MeshingError, check_mesh, conformal_mesh, voxel_mesh
 from meshing.checks import element_faces, exact_chip_volumes
+from meshing.files import FACET_TAGS, MESH_FORMATS, facets, write_mesh
 from packing.shapes import box_shape
 
 SQUARE = box_shape(ChipSpec())
@@ -482,7 +482,7 @@ def test_periodic_sides_give_the_elastic_answers(tmp_path):
     """Periodic sides with no jump confine the slab laterally: the force is C33 x strain x
     area (uniaxial strain); with the jumps free, or with free sides and no ties, it is
     E3 x strain x area (uniaxial stress). Both are exact for a homogeneous box."""
-    from export.mesh_files import MATERIALS
+    from meshing.files import MATERIALS
 
     c = MATERIALS["CHIP"]
     compliance = np.array(

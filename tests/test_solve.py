@@ -15,9 +15,9 @@ import pyvista
 from conftest import SMALL_SCENARIO, run_cli
 
 from core.schema import ChipSpec, SolveSpec
-from export.calculix import write_contact_deck
 from geometry.arrangement import Arrangement
 from meshing.calculix import read_node_prints, run_ccx
+from meshing.calculix_deck import write_contact_deck
 from meshing.contact_model import chip_block, clear_overlaps, contact_model, separation
 from packing.shapes import make_shape
 
@@ -249,7 +249,7 @@ def test_solve_a_cropped_periodic_volume_of_a_physics_stack(tmp_path):
     # The mean stress of a confined mix lies between the stiffest and the softest confined
     # modulus of its parts x the strain (Voigt and Reuss): the pore space's PA6 and the
     # largest eigenvalue of the chip's stiffness (Mandel form, any orientation).
-    from export.mesh_files import MATERIALS
+    from meshing.files import MATERIALS
 
     c, pa6 = MATERIALS["CHIP"], MATERIALS["PORE"]
     compliance = np.array(

@@ -12,8 +12,8 @@ from typing import TextIO
 import numpy as np
 
 from core.schema import SolveSpec
-from export.mesh_files import MATERIALS
 from meshing.contact_model import ContactModel, Platen, chip_box, faces_near_box, faces_within
+from meshing.files import MATERIALS
 
 __all__ = [
     "write_contact_deck",

@@ -7,6 +7,7 @@ manager decides where the path is.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from pathlib import Path
 
@@ -38,6 +39,8 @@ MATERIALS = {
 }
 
 MESH_FORMATS: Registry[Callable[[Path, VolumeMesh], list[Path]]] = Registry("mesh format")
+
+log = logging.getLogger(__name__)
 
 
 def _format(name: str):
@@ -260,3 +263,22 @@ def write_mesh(folder: Path, stem: str, mesh: VolumeMesh, formats: list[str]) ->
     for name in formats:
         written += MESH_FORMATS.get(name, key="--formats")(Path(folder) / f"{stem}.{name}", mesh)
     return written
+
+
+def mesh_figure(path: Path, mesh) -> list[str]:
+    """The mesh's outer surface coloured by chip (pores hidden), rendered off screen."""
+    import pyvista
+
+    from export import figures
+
+    grid = pyvista.from_meshio(to_meshio(mesh))
+    grid = grid.extract_cells(np.flatnonzero(np.asarray(mesh.chip) >= 0))
+    surface = grid.extract_surface(algorithm="dataset_surface")
+    surface.cell_data["chip_id"] = np.asarray(surface.cell_data["chip"])
+    try:
+        # Element edges show the mesh; on a million elements they only darken the picture.
+        figures.render_stack(path, surface, show_edges=surface.n_cells < 100_000)
+    except RuntimeError as exc:
+        log.warning("mesh picture not rendered: %s", exc)
+        return []
+    return [path.name]

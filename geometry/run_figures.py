@@ -13,7 +13,7 @@ from geometry.describe import DESCRIPTORS
 
 log = logging.getLogger(__name__)
 
-__all__ = ["single_run_figures", "ensemble_figures", "comparison_figures", "mesh_figure"]
+__all__ = ["single_run_figures", "ensemble_figures", "comparison_figures"]
 
 
 def single_run_figures(folder: Path, description, arrangement) -> list[str]:
@@ -89,23 +89,3 @@ def comparison_figures(
     full = ensembles[0]["descriptors"]["layers"]["scalars"]["full_layer"]["mean"]
     figures.plot_layer_comparison(folder / "layer_filling.png", np.array(longest), series, full)
     return ["figures/layer_filling.png"]
-
-
-def mesh_figure(path: Path, mesh) -> list[str]:
-    """The mesh's outer surface coloured by chip (pores hidden), rendered off screen."""
-    import pyvista
-
-    from export import figures
-    from export.mesh_files import to_meshio
-
-    grid = pyvista.from_meshio(to_meshio(mesh))
-    grid = grid.extract_cells(np.flatnonzero(np.asarray(mesh.chip) >= 0))
-    surface = grid.extract_surface(algorithm="dataset_surface")
-    surface.cell_data["chip_id"] = np.asarray(surface.cell_data["chip"])
-    try:
-        # Element edges show the mesh; on a million elements they only darken the picture.
-        figures.render_stack(path, surface, show_edges=surface.n_cells < 100_000)
-    except RuntimeError as exc:
-        log.warning("mesh picture not rendered: %s", exc)
-        return []
-    return [path.name]
