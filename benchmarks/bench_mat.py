@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from geometry.arrangement import arrangements_from_stack
+from core.arrangement import arrangements_from_stack
 from geometry.contacts import find_contacts
 from geometry.rays import ray_maps
 from packing import deposit

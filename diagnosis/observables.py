@@ -45,7 +45,7 @@ def observable_names(has_yaw: bool, has_tilt: bool) -> list[str]:
 
 def symmetry_order(scenario) -> int:
     """How many times the scenario's chip maps onto itself in a turn about its normal (its
-    geometry's :attr:`~packing.chipshape.ChipShape.plan_symmetry`: 4 for a square, 6 for
+    geometry's :attr:`~core.chipshape.ChipShape.plan_symmetry`: 4 for a square, 6 for
     a hexagon, 5 for a five-pointed star, 1 for an irregular polygon). It was read from
     the shape's name before, which gave a hexagon 4 and a star 2."""
     from packing.shapes import make_shape

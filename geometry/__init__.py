@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 from core.lazy import lazy_package
 
 if TYPE_CHECKING:
-    from geometry.arrangement import Arrangement, arrangements_from_stack
+    from core.arrangement import Arrangement, arrangements_from_stack
     from geometry.describe import DESCRIPTORS, Description, describe
 
 __all__ = ["Arrangement", "DESCRIPTORS", "Description", "arrangements_from_stack", "describe"]
@@ -19,8 +19,8 @@ __all__ = ["Arrangement", "DESCRIPTORS", "Description", "arrangements_from_stack
 lazy_package(
     __name__,
     {
-        "Arrangement": "geometry.arrangement",
-        "arrangements_from_stack": "geometry.arrangement",
+        "Arrangement": "core.arrangement",
+        "arrangements_from_stack": "core.arrangement",
         "DESCRIPTORS": "geometry.describe",
         "Description": "geometry.describe",
         "describe": "geometry.describe",

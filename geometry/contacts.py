@@ -22,8 +22,8 @@ import manifold3d as m3
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
+from core.arrangement import Arrangement
 from core.errors import InputError
-from geometry.arrangement import Arrangement
 from geometry.solids import chip_solid
 
 __all__ = [

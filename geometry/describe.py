@@ -17,12 +17,12 @@ from typing import Any
 
 import numpy as np
 
+from core.arrangement import Arrangement
 from core.errors import InputError
 from core.registry import Registry
 from core.schema import GeometrySpec
 from export.tables import fmt
 from export.vtk import write_voxel_image
-from geometry.arrangement import Arrangement
 from geometry.contacts import GROUND, KINDS, PLACES, ContactTable, contact_counts, find_contacts
 from geometry.layers import LayerFilling, layer_filling, slab_fractions
 from geometry.orientation import (

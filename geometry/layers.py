@@ -18,8 +18,8 @@ from dataclasses import dataclass
 import manifold3d as m3
 import numpy as np
 
+from core.arrangement import Arrangement
 from core.errors import InputError
-from geometry.arrangement import Arrangement
 from geometry.solids import target_prism
 
 __all__ = ["LayerFilling", "layer_counts", "full_layer_count", "slab_fractions"]

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from geometry.arrangement import Arrangement
+from core.arrangement import Arrangement
 
 __all__ = ["tilt_deg", "in_plane_direction_deg", "fibre_tensor", "fibre_directions_world"]
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import manifold3d as m3
 import numpy as np
 
-from geometry.arrangement import Arrangement
+from core.arrangement import Arrangement
 from geometry.contacts import candidate_pairs
 from geometry.solids import chip_solid, shape_pieces
 

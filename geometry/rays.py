@@ -15,8 +15,8 @@ from functools import cached_property
 
 import numpy as np
 
+from core.arrangement import Arrangement
 from core.errors import InputError
-from geometry.arrangement import Arrangement
 from geometry.solids import shape_pieces
 
 __all__ = ["PixelGrid", "pixel_grid", "column_intervals", "RayMaps", "ray_maps"]

@@ -29,7 +29,7 @@ clear the chip from every chip placed before it (sequential least squares, scipy
 SLSQP). A further surface contact whose partner's face lies exactly in the same plane is
 snapped with it; one that does not is cleared like any other pair and counted.
 
-The result is a new :class:`~geometry.arrangement.Arrangement` beside the settled one,
+The result is a new :class:`~core.arrangement.Arrangement` beside the settled one,
 never in its place, with a report of the motions.
 """
 
@@ -44,6 +44,7 @@ import numpy as np
 from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
 
+from core.arrangement import Arrangement
 from core.errors import ChipstackError, InputError
 from geometry._rigid import (
     _CORNER_REACH_MM,
@@ -62,7 +63,6 @@ from geometry._rigid import (
     _separation,
     _World,
 )
-from geometry.arrangement import Arrangement
 from geometry.contacts import GROUND, ContactTable, candidate_pairs, find_contacts
 
 __all__ = ["Resolution", "UnresolvedError", "resolve_contacts", "separation_mm"]

@@ -39,7 +39,7 @@ class GeometryStage(Stage):
         }
 
     def compute(self, inputs: StageInputs) -> Description:
-        from geometry.arrangement import stack_history
+        from core.arrangement import stack_history
         from geometry.describe import describe
 
         history = stack_history(inputs.result("packing"))
@@ -52,7 +52,7 @@ class GeometryStage(Stage):
         return description
 
     def write(self, result: Description, folder: Path, inputs: StageInputs) -> StageOutput:
-        from geometry.arrangement import stack_history
+        from core.arrangement import stack_history
 
         history = stack_history(inputs.result("packing"))
         summary = write_geometry(folder, result, history, inputs.scenario, inputs.options.figures)

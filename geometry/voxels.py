@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.arrangement import Arrangement
 from core.errors import InputError
-from geometry.arrangement import Arrangement
 from geometry.rays import column_intervals
 
 __all__ = ["VoxelImage", "voxelize", "voxel_solid_profile"]

@@ -22,7 +22,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from geometry.arrangement import Arrangement
+from core.arrangement import Arrangement
 from geometry.contacts import candidate_pairs
 from geometry.solids import chip_solids, union_solid
 from meshing.boundaries import ELEMENT_FACES

@@ -25,11 +25,11 @@ import time
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from core.arrangement import Arrangement
 from core.errors import ChipstackError, InputError
-from geometry.arrangement import Arrangement
+from core.overlap import penetrating_pairs
 from meshing.boundaries import side_node_sets
 from meshing.mesh import PORE, VolumeMesh, element_attributes
-from packing.overlap import penetrating_pairs
 
 __all__ = ["GmshSession", "MeshingError", "conformal_mesh", "overlapping_pairs"]
 

@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from core.arrangement import Arrangement
 from core.errors import InputError
-from geometry.arrangement import Arrangement
 from geometry.contacts import candidate_pairs, find_contacts
 from meshing.mesh import chip_attributes
 

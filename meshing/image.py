@@ -39,8 +39,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.arrangement import Arrangement
 from core.errors import InputError
-from geometry.arrangement import Arrangement
 from geometry.voxels import voxelize
 from meshing.boundaries import side_node_sets
 from meshing.checks import face_neighbours

@@ -26,9 +26,9 @@ if TYPE_CHECKING:
 
     import numpy as np
 
+    from core.arrangement import Arrangement
     from core.schema import Scenario
     from core.stages import StageInputs
-    from geometry.arrangement import Arrangement
     from meshing.contact_model import ContactModel
     from meshing.mesh import VolumeMesh
 

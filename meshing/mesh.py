@@ -13,7 +13,7 @@ from meshing.boundaries import PeriodicPairs
 # The arrangement (scipy) only when attributes are computed: meshing.files imports this
 # module to check a scenario's mesh formats at every run.
 if TYPE_CHECKING:
-    from geometry.arrangement import Arrangement
+    from core.arrangement import Arrangement
 
 __all__ = [
     "VolumeMesh",

@@ -19,7 +19,7 @@ from meshing.kinds import MESH_KINDS, Built, crop_region, mesh_kinds
 if TYPE_CHECKING:
     import numpy as np
 
-    from geometry.arrangement import Arrangement
+    from core.arrangement import Arrangement
 
 __all__ = ["MeshStage", "STAGE", "check_formats"]
 
@@ -75,7 +75,7 @@ class MeshStage(Stage):
         return {"figures": options.figures}
 
     def compute(self, inputs: StageInputs) -> MeshedStack:
-        from geometry.arrangement import stack_history
+        from core.arrangement import stack_history
 
         arrangement = stack_history(inputs.result("packing"))[-1]
         scenario = inputs.scenario

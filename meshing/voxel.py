@@ -17,8 +17,8 @@ import time
 
 import numpy as np
 
+from core.arrangement import Arrangement
 from core.errors import InputError
-from geometry.arrangement import Arrangement
 from geometry.voxels import voxelize
 from meshing.boundaries import PeriodicPairs, side_node_sets
 from meshing.mesh import VolumeMesh, element_attributes

@@ -9,9 +9,9 @@ from core.schema import Scenario, scenario_from_dict, scenario_to_dict
 from packing.presets import PRESETS, PhysicsPreset
 
 if TYPE_CHECKING:
+    from core.stack import BatchResult, Stack
     from packing.deposition import deposit
     from packing.shapes import SHAPES, ChipShape, make_shape
-    from packing.stack import BatchResult, Stack
     from packing.world import GROUND, MM_PER_UNIT, ChipWorld, ContactRecord
 
 __all__ = [
@@ -44,8 +44,8 @@ lazy_package(
         "SHAPES": "packing.shapes",
         "ChipShape": "packing.shapes",
         "make_shape": "packing.shapes",
-        "BatchResult": "packing.stack",
-        "Stack": "packing.stack",
+        "BatchResult": "core.stack",
+        "Stack": "core.stack",
         "GROUND": "packing.world",
         "MM_PER_UNIT": "packing.world",
         "ChipWorld": "packing.world",

@@ -20,8 +20,8 @@ from typing import Any
 import numpy as np
 
 from core.errors import InputError
+from core.stack import BatchResult, Stack
 from packing.shapes import ChipShape, shape_from_record, shape_record
-from packing.stack import BatchResult, Stack
 from packing.world import ContactRecord
 
 __all__ = [

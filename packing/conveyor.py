@@ -36,8 +36,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.chipshape import ChipShape
 from core.errors import InputError
 from core.schema import Scenario
+from core.stack import Stack
 from packing.deposition import (
     CHECK_INTERVAL_S,
     _batch_result,
@@ -48,8 +50,6 @@ from packing.deposition import (
     wake_near_movers,
 )
 from packing.presets import PRESETS
-from packing.shapes import ChipShape
-from packing.stack import Stack
 from packing.world import GRAVITY_MM_S2, ChipWorld
 
 __all__ = ["MatRecord", "ConveyorResult", "pour_mat", "steady_range_mm", "ON_BELT", "SPILLED"]

@@ -28,13 +28,13 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from core.errors import InputError, SimulationError
+from core.overlap import box_penetration_depth, floor_penetration_mm
 from core.schema import Scenario
+from core.stack import BatchResult, Stack
 from packing.checkpoint import DepositionState, round_trip
 from packing.effects import EFFECTS, Effect, FlightState, check_effects, setup_effects, shaped
-from packing.overlap import box_penetration_depth, floor_penetration_mm
 from packing.presets import PRESETS
 from packing.shapes import ChipShape, make_shape, varies_per_chip
-from packing.stack import BatchResult, Stack
 from packing.world import GRAVITY_MM_S2, ChipWorld
 
 __all__ = [

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from core.chipshape import ChipShape
 from core.errors import SimulationError
 from core.schema import Scenario
 from packing.deposition import (
@@ -28,7 +29,6 @@ from packing.deposition import (
 )
 from packing.effects import EFFECTS, setup_effects, shaped
 from packing.presets import PRESETS
-from packing.shapes import ChipShape
 from packing.world import ChipWorld
 
 __all__ = ["DropProtocol", "DropResult", "DropSample", "drop_chips", "simulate_drops"]

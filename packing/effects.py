@@ -25,9 +25,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import ConvexHull
 
+from core.chipshape import ChipShape
 from core.errors import InputError
 from core.registry import Registry
-from packing.shapes import ChipShape
 
 __all__ = [
     "EFFECTS",

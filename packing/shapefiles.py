@@ -24,10 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
+from core.chipshape import ChipShape, _fibres, _frozen
 from core.errors import InputError, brief, printable
 from core.files import check_geometry_file
 from core.schema import LENGTH_UNITS_MM, ChipSpec
-from packing.chipshape import ChipShape, _fibres, _frozen
 from packing.polygons import convex_partition, counter_clockwise
 
 __all__ = ["shape_from_file", "FILE_SUFFIXES", "MAX_DECOMPOSITION_ERROR"]

@@ -23,10 +23,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.chipshape import DEFAULT_FIBRES_DEG, ChipShape, _fibres, _frozen
 from core.errors import InputError, printable
 from core.registry import Registry
 from core.schema import MAX_LENGTH_MM, ChipSpec
-from packing.chipshape import DEFAULT_FIBRES_DEG, ChipShape, _fibres, _frozen
 from packing.polygons import (
     check_simple,
     convex_partition,

@@ -20,9 +20,9 @@ from packing.presets import PRESETS
 # The simulation, its records and writers are imported where used: every command-line
 # start registers this stage, and they bring numpy, scipy, trimesh and pybullet (~1 s).
 if TYPE_CHECKING:
+    from core.stack import BatchResult, Stack
     from packing.conveyor import ConveyorResult, MatRecord
     from packing.drop import DropResult
-    from packing.stack import BatchResult, Stack
 
 __all__ = ["PackingStage", "STAGE", "top_mm"]
 
@@ -323,7 +323,7 @@ def container_summary(stack: Stack, scenario: Scenario) -> dict[str, Any]:
 
 def top_mm(stack: Stack, result: BatchResult) -> float:
     """Height of the highest point of any chip after ``result``'s batch (mm)."""
-    from packing.overlap import vertex_heights_mm
+    from core.overlap import vertex_heights_mm
 
     n = len(result.positions)
     top = 0.0

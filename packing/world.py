@@ -31,9 +31,9 @@ import logging
 
 import numpy as np
 
+from core.chipshape import ChipShape
 from core.schema import PhysicsSpec
 from packing.bullet import pybullet
-from packing.chipshape import ChipShape
 from packing.presets import PhysicsPreset
 from packing.world_bodies import ChipBodies, CollisionShapes
 from packing.world_contacts import GROUND, ContactQueries, ContactRecord

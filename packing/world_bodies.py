@@ -10,9 +10,9 @@ import tempfile
 import numpy as np
 from scipy.spatial import ConvexHull
 
+from core.chipshape import ChipShape
 from core.errors import SimulationError
 from packing.bullet import pybullet
-from packing.chipshape import ChipShape
 from packing.world_engine import MM_PER_UNIT, EngineSession
 
 __all__ = ["CollisionShapes", "ChipBodies", "RETIRED"]

@@ -3,10 +3,9 @@ the engine in millimetres."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
+from core.stack import ContactRecord
 from packing.bullet import pybullet
 from packing.world_bodies import RETIRED, ChipBodies
 from packing.world_engine import MM_PER_UNIT, EngineSession
@@ -14,26 +13,6 @@ from packing.world_engine import MM_PER_UNIT, EngineSession
 __all__ = ["GROUND", "ContactRecord", "ContactQueries"]
 
 GROUND = -1  # chip index used for the floor in contact records
-
-
-@dataclass(frozen=True)
-class ContactRecord:
-    """Closest-point contacts between chips (and the ground, index ``GROUND``).
-
-    Arrays of length m: chip_a, chip_b (chip indices; chip_b is GROUND for the floor),
-    point_a, point_b (m, 3) mm on each surface, normal (m, 3) unit vector on b pointing
-    towards a, distance (m,) mm (negative: interpenetration).
-    """
-
-    chip_a: np.ndarray
-    chip_b: np.ndarray
-    point_a: np.ndarray
-    point_b: np.ndarray
-    normal: np.ndarray
-    distance: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.chip_a)
 
 
 class ContactQueries:

@@ -8,11 +8,11 @@ from pathlib import Path
 
 import numpy as np
 
+from core.arrangement import Arrangement
 from core.errors import InputError
 from core.files import read_json, read_text
 from core.schema import MAX_LENGTH_MM, Scenario, printable
 from export.tables import POSE_COLUMNS
-from geometry.arrangement import Arrangement
 from packing.shapes import make_shape, shape_from_record, varies_per_chip
 from pipeline.scenario_files import load_scenario
 

@@ -58,10 +58,10 @@ def _drop_task(scenario) -> dict:
 
 
 def _mat_task(scenario) -> dict:
-    from geometry.arrangement import arrangements_from_stack
+    from core.arrangement import arrangements_from_stack
+    from core.overlap import vertex_heights_mm
     from geometry.contacts import find_contacts
     from packing import deposit
-    from packing.overlap import vertex_heights_mm
     from packing.shapes import shape_record
 
     stack = deposit(scenario)

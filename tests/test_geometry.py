@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from core.arrangement import Arrangement
 from core.errors import InputError
 from core.schema import ChipSpec, GeometrySpec
-from geometry.arrangement import Arrangement
 from geometry.contacts import GROUND, KINDS, PLACES, classify_patch, find_contacts
 from geometry.describe import DESCRIPTORS, describe
 from geometry.layers import full_layer_count, layer_counts, layer_filling, slab_fractions

@@ -13,9 +13,9 @@ import pytest
 import pyvista
 from scipy.spatial.transform import Rotation
 
+from core.arrangement import Arrangement
 from core.errors import InputError
 from core.schema import ChipSpec
-from geometry.arrangement import Arrangement
 from geometry.contacts import find_contacts
 from meshing import PORE, GmshSession, MeshingError, check_mesh, conformal_mesh, voxel_mesh
 from meshing.checks import element_faces, exact_chip_volumes

@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
+from core.overlap import floor_penetration_mm, penetrating_pairs
 from core.schema import ChipSpec, PhysicsSpec
 from packing import PRESETS, ChipWorld, deposit, make_shape, scenario_from_dict
-from packing.overlap import floor_penetration_mm, penetrating_pairs
 from packing.world import GROUND
 
 G = 9810.0  # mm/s^2

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from core.arrangement import Arrangement
 from core.errors import InputError
 from core.schema import ChipSpec
-from geometry.arrangement import Arrangement
 from geometry.resolve import UnresolvedError, resolve_contacts, separation_mm
 from meshing import check_mesh, conformal_mesh
 from packing.shapes import box_shape

@@ -14,8 +14,8 @@ import pytest
 import pyvista
 from conftest import SMALL_SCENARIO, run_cli
 
+from core.arrangement import Arrangement
 from core.schema import ChipSpec, SolveSpec
-from geometry.arrangement import Arrangement
 from meshing.calculix import read_node_prints, run_ccx
 from meshing.calculix_deck import write_contact_deck
 from meshing.contact_model import chip_block, clear_overlaps, contact_model, separation

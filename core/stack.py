@@ -6,10 +6,29 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from packing.shapes import ChipShape
-from packing.world import ContactRecord
+from core.chipshape import ChipShape
 
 __all__ = ["BatchResult", "Stack"]
+
+
+@dataclass(frozen=True)
+class ContactRecord:
+    """Closest-point contacts between chips (and the ground, index ``GROUND``).
+
+    Arrays of length m: chip_a, chip_b (chip indices; chip_b is GROUND for the floor),
+    point_a, point_b (m, 3) mm on each surface, normal (m, 3) unit vector on b pointing
+    towards a, distance (m,) mm (negative: interpenetration).
+    """
+
+    chip_a: np.ndarray
+    chip_b: np.ndarray
+    point_a: np.ndarray
+    point_b: np.ndarray
+    normal: np.ndarray
+    distance: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.chip_a)
 
 
 @dataclass(frozen=True)
