@@ -32,7 +32,16 @@ from core.overlap import box_penetration_depth, floor_penetration_mm
 from core.schema import Scenario
 from core.stack import BatchResult, Stack
 from packing.checkpoint import DepositionState, round_trip
-from packing.effects import EFFECTS, Effect, FlightState, check_effects, setup_effects, shaped
+from packing.effects import (
+    EFFECTS,
+    Effect,
+    FlightState,
+    check_effects,
+    release_spin,
+    setup_effects,
+    shaped,
+    spins_at_release,
+)
 from packing.presets import PRESETS
 from packing.shapes import ChipShape, make_shape, varies_per_chip
 from packing.world import GRAVITY_MM_S2, ChipWorld
@@ -820,21 +829,12 @@ def _release_batch(
     # Release effects (a spin as the chip leaves its holder), as in a drop. Their draws
     # come from a stream of their own (the scenario's seed and the batch), so that a
     # stack with the effect at strength 0 is the stack without it.
-    releasing = [
-        (EFFECTS.get(name), value)
-        for name, value in strengths.items()
-        if type(EFFECTS.get(name)).release is not Effect.release
-    ]
-    if releasing:
+    if spins_at_release(strengths):
         draws = np.random.default_rng([scenario.seed, batch, _RELEASE_STREAM]).normal(
             size=(count, 3)
         )
-        spin = np.zeros((count, 3))
-        for effect, value in releasing:
-            extra = effect.release(draws, value)
-            if extra is not None:
-                spin += extra
-        for chip, omega in zip(new, spin, strict=True):
+        spin = release_spin(strengths, draws)
+        for chip, omega in zip(new, np.zeros((count, 3)) if spin is None else spin, strict=True):
             if omega.any():
                 world.set_velocity(chip, np.zeros(3), omega)
     work.batch_of += [batch] * count

@@ -27,7 +27,7 @@ from packing.deposition import (
     draw_shapes,
     settle,
 )
-from packing.effects import EFFECTS, setup_effects, shaped
+from packing.effects import release_spin, setup_effects, shaped
 from packing.presets import PRESETS
 from packing.world import ChipWorld
 
@@ -171,11 +171,8 @@ def simulate_drops(
     shape = shaped(shape, strengths)
     setup = setup_effects(preset, scenario.physics, strengths)
     physics, per_step = setup.physics, list(setup.per_step)
-    spin = np.zeros((n, 3))
-    for name, value in strengths.items():
-        extra = EFFECTS.get(name).release(spin_draws, value)
-        if extra is not None:
-            spin += extra
+    spin = release_spin(strengths, spin_draws)
+    spin = np.zeros((n, 3)) if spin is None else spin
     tilt = np.radians(protocol.tilt_deg) * fractions
     yaw = np.radians(protocol.yaw_deg)
     rotations = Rotation.from_euler("xyz", np.column_stack([tilt, np.full(n, yaw)])).as_quat()

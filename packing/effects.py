@@ -36,7 +36,9 @@ __all__ = [
     "EffectSetup",
     "check_effects",
     "contact_model",
+    "release_spin",
     "setup_effects",
+    "spins_at_release",
     "shaped",
 ]
 
@@ -537,6 +539,23 @@ def setup_effects(preset, physics, strengths: Mapping[str, float]) -> EffectSetu
             if EFFECTS.get(name).acts_per_step() and value > 0
         ),
     )
+
+
+def release_spin(strengths: Mapping[str, float], draws: np.ndarray) -> np.ndarray | None:
+    """Every effect's release hook summed (drops and depositions alike): extra angular
+    velocity (n, 3) rad/s from standard normal ``draws`` (n, 3), or None when no effect
+    of ``strengths`` spins a chip as it leaves its holder."""
+    spin = None
+    for name, value in strengths.items():
+        extra = EFFECTS.get(name).release(draws, value)
+        if extra is not None:
+            spin = np.zeros(np.shape(draws)) + extra if spin is None else spin + extra
+    return spin
+
+
+def spins_at_release(strengths: Mapping[str, float]) -> bool:
+    """Whether any effect of ``strengths`` has a release hook (its draws are needed)."""
+    return any(type(EFFECTS.get(name)).release is not Effect.release for name in strengths)
 
 
 def contact_model(preset, physics) -> ContactModel:
