@@ -467,6 +467,14 @@ def report(part: str) -> None:
             f"{rate(sum(detected), len(detected))}; true effect ranked first in {first} "
             f"of {len(runs)}"
         )
+        explained = [
+            (r, t) for r, t in zip(runs, truth, strict=True) if r["verdict"] == "explained"
+        ]
+        right = sum(r["best"] == t or t in r["tie_set"] for r, t in explained)
+        print(
+            "precision: when 'explained', the true effect first or tied: "
+            f"{rate(right, len(explained))}; target >= 95 %"
+        )
         sizes = [len(r["tie_set"]) for r in runs if r["tie_set"]]
         if sizes:
             print(f"tie-set size: mean {statistics.mean(sizes):.2f}, largest {max(sizes)}")
