@@ -217,16 +217,22 @@ def spec_text(plan: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def run_case(plan: dict, executor: Executor) -> dict:
-    if plan["part"] == "ties":
-        return run_tie_case(plan, executor)
+def _blind_data(plan: dict, executor: Executor):
+    """The case's spec (in a folder of its own) and its synthetic drops: (folder,
+    experiment, data by condition)."""
     folder = Path(tempfile.mkdtemp(prefix="bench-diagnosis-"))
     (folder / "spec.toml").write_text(spec_text(plan))
     (folder / "data.csv").write_text("condition,drop,x_mm,y_mm\n")
     experiment = load_experiment(folder / "spec.toml", load_scenario)
-    start = time.perf_counter()
     rows = synthesize_drops(experiment, plan["truth"], plan["seed"], plan["drops"], executor.map)
-    data = _data(rows, experiment, plan["distortion"])
+    return folder, experiment, _data(rows, experiment, plan["distortion"])
+
+
+def run_case(plan: dict, executor: Executor) -> dict:
+    if plan["part"] == "ties":
+        return run_tie_case(plan, executor)
+    start = time.perf_counter()
+    _, experiment, data = _blind_data(plan, executor)
     runs = []
     for seed in plan["diagnosis_seeds"]:
         t0 = time.perf_counter()
@@ -272,12 +278,7 @@ def run_tie_case(plan: dict, executor: Executor) -> dict:
             run = cached_case["runs"][0]
             if not _tied(run, plan):
                 return dict(plan=plan, method=METHOD["ties"], tie=False, runs=[run], wall_s=0.0)
-    folder = Path(tempfile.mkdtemp(prefix="bench-diagnosis-"))
-    (folder / "spec.toml").write_text(spec_text(plan))
-    (folder / "data.csv").write_text("condition,drop,x_mm,y_mm\n")
-    experiment = load_experiment(folder / "spec.toml", load_scenario)
-    rows = synthesize_drops(experiment, plan["truth"], plan["seed"], plan["drops"], executor.map)
-    data = _data(rows, experiment, None)
+    folder, experiment, data = _blind_data(plan, executor)
     seed = plan["diagnosis_seeds"][0]
     result = diagnose_drops(experiment, data, executor.map, seed=seed)
     before = _summary(result, plan, time.perf_counter() - start)

@@ -16,7 +16,6 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from importlib import metadata
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -165,17 +164,14 @@ class Stage:
         return {self.name: dict(summary)}
 
 
-STAGES: Registry[Stage] = Registry("stage")
+# The stages are entry points like any plugin (the project's own in its pyproject.toml).
+STAGES: Registry[Stage] = Registry("stage", ENTRY_POINT_GROUP)
 _loaded: list[Stage] = []
 
 
 def load_stages() -> list[Stage]:
     """Every registered stage, upstream before downstream (loads the entry points once)."""
     if not _loaded:
-        for entry in sorted(metadata.entry_points(group=ENTRY_POINT_GROUP), key=lambda e: e.name):
-            stage = entry.load()
-            if entry.name not in STAGES:
-                STAGES.register(entry.name, stage)
         _loaded.extend(_ordered([STAGES.get(n) for n in STAGES.names()]))
         if not _loaded:
             raise RuntimeError(f"no stages registered in the {ENTRY_POINT_GROUP!r} entry points")

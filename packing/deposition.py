@@ -833,8 +833,7 @@ def _release_batch(
         draws = np.random.default_rng([scenario.seed, batch, _RELEASE_STREAM]).normal(
             size=(count, 3)
         )
-        spin = release_spin(strengths, draws)
-        for chip, omega in zip(new, np.zeros((count, 3)) if spin is None else spin, strict=True):
+        for chip, omega in zip(new, release_spin(strengths, draws), strict=True):
             if omega.any():
                 world.set_velocity(chip, np.zeros(3), omega)
     work.batch_of += [batch] * count

@@ -172,7 +172,6 @@ def simulate_drops(
     setup = setup_effects(preset, scenario.physics, strengths)
     physics, per_step = setup.physics, list(setup.per_step)
     spin = release_spin(strengths, spin_draws)
-    spin = np.zeros((n, 3)) if spin is None else spin
     tilt = np.radians(protocol.tilt_deg) * fractions
     yaw = np.radians(protocol.yaw_deg)
     rotations = Rotation.from_euler("xyz", np.column_stack([tilt, np.full(n, yaw)])).as_quat()

@@ -541,15 +541,15 @@ def setup_effects(preset, physics, strengths: Mapping[str, float]) -> EffectSetu
     )
 
 
-def release_spin(strengths: Mapping[str, float], draws: np.ndarray) -> np.ndarray | None:
+def release_spin(strengths: Mapping[str, float], draws: np.ndarray) -> np.ndarray:
     """Every effect's release hook summed (drops and depositions alike): extra angular
-    velocity (n, 3) rad/s from standard normal ``draws`` (n, 3), or None when no effect
-    of ``strengths`` spins a chip as it leaves its holder."""
-    spin = None
+    velocity (n, 3) rad/s from standard normal ``draws`` (n, 3); zeros when no effect of
+    ``strengths`` spins a chip as it leaves its holder."""
+    spin = np.zeros(np.shape(draws))
     for name, value in strengths.items():
         extra = EFFECTS.get(name).release(draws, value)
         if extra is not None:
-            spin = np.zeros(np.shape(draws)) + extra if spin is None else spin + extra
+            spin += extra
     return spin
 
 
