@@ -99,6 +99,8 @@ class Stage:
     name: the stage's name (``--to NAME``, its folder in the run directory).
     upstream: stages whose results this one reads (their results come first).
     sections: the scenario tables (or top-level keys) its cache key depends on.
+    owned_sections: the scenario tables it declares (:class:`core.schema.Section`
+        classes in its own package); the scenario is assembled from what stages own.
     kinds: the scenario kinds it applies to (a drop scenario has only the packing stage).
     checkpointed: whether it saves partial state to resume from (the packing's batches).
     in_ensembles: whether ``--repeats`` may run it (meshes are made of single runs).
@@ -108,6 +110,7 @@ class Stage:
     name: ClassVar[str] = ""
     upstream: ClassVar[tuple[str, ...]] = ()
     sections: ClassVar[tuple[str, ...]] = ()
+    owned_sections: ClassVar[tuple[type, ...]] = ()
     # A conveyor's packing leaves the panel cut from its mat: a stack like any other.
     kinds: ClassVar[tuple[str, ...]] = ("stack", "conveyor")
     checkpointed: ClassVar[bool] = False

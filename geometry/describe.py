@@ -8,6 +8,7 @@ each with its unit and a one-line definition.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -20,7 +21,6 @@ import numpy as np
 from core.arrangement import Arrangement
 from core.errors import InputError
 from core.registry import Registry
-from core.schema import GeometrySpec
 from export.tables import fmt
 from export.vtk import write_voxel_image
 from geometry.contacts import GROUND, KINDS, PLACES, ContactTable, contact_counts, find_contacts
@@ -33,6 +33,7 @@ from geometry.orientation import (
 )
 from geometry.overlaps import Overlaps, find_overlaps
 from geometry.rays import RayMaps, ray_maps
+from geometry.sections import GeometrySpec
 from geometry.solids import chip_solids, target_prism, union_solid
 from geometry.voxels import VoxelImage, voxel_solid_profile, voxelize
 
@@ -614,7 +615,9 @@ class Description:
     def to_json(self) -> dict[str, Any]:
         return {
             "schema": SCHEMA,
-            "parameters": {k: getattr(self.spec, k) for k in self.spec.__dataclass_fields__},
+            "parameters": {
+                f.name: getattr(self.spec, f.name) for f in dataclasses.fields(self.spec)
+            },
             "descriptors": self.sections,
         }  # timings go to the run's manifest: a result file holds only results
 

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, Any
 
 from core.schema import Scenario
 from core.stages import Stage, StageInputs, StageOptions, StageOutput
+from geometry.sections import GeometrySpec
 
 # The descriptors and their writers are imported where used: every command-line start
 # registers this stage, and they bring numpy, scipy and manifold3d (~1 s).
@@ -25,6 +26,7 @@ class GeometryStage(Stage):
     progress_label = "describing"
     upstream = ("packing",)
     sections = ("geometry",)
+    owned_sections = (GeometrySpec,)
     repeat_statistics = True
 
     def check_options(self, options: StageOptions) -> None:

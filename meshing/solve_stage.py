@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 from core.schema import Scenario
 from core.stages import Stage, StageInputs, StageOutput
+from meshing.sections import SolveSpec
 from meshing.solve_models import solve_model
 
 # The solver's driver, readers and writers are imported where used: every command-line
@@ -50,6 +51,7 @@ class SolveStage(Stage):
     progress_unit = "%"
     upstream = ("mesh",)
     sections = ("solve",)
+    owned_sections = (SolveSpec,)
     in_ensembles = False
 
     def check_run(self, scenario: Scenario) -> None:

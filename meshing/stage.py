@@ -13,6 +13,7 @@ from core.errors import InputError, printable
 from core.schema import Scenario
 from core.stages import Stage, StageInputs, StageOptions, StageOutput
 from meshing.kinds import MESH_KINDS, Built, crop_region, mesh_kinds
+from meshing.sections import MeshSpec
 
 # The meshers, checks and writers are imported where used: every command-line start
 # registers this stage, and they bring numpy, scipy, manifold3d and gmsh (~1 s).
@@ -46,6 +47,7 @@ class MeshStage(Stage):
     # Not [solve]: the compaction deck is the solve model's (a press changed is not a
     # new mesh).
     sections = ("geometry", "mesh")
+    owned_sections = (MeshSpec,)
     in_ensembles = False
 
     def check(self, scenario: Scenario) -> None:

@@ -519,7 +519,7 @@ class EffectSetup:
     that act at every step."""
 
     contact: ContactModel
-    physics: object  # core.schema.PhysicsSpec
+    physics: object  # packing.sections.PhysicsSpec
     per_step: tuple[tuple[Effect, float], ...]
 
 

@@ -16,6 +16,7 @@ from core.provenance import code_versions
 from core.schema import Scenario
 from core.stages import Stage, StageInputs, StageOutput
 from packing.presets import PRESETS
+from packing.sections import SECTIONS
 
 # The simulation, its records and writers are imported where used: every command-line
 # start registers this stage, and they bring numpy, scipy, trimesh and pybullet (~1 s).
@@ -51,6 +52,7 @@ class PackingStage(Stage):
         "container",
         "conveyor",
     )
+    owned_sections = SECTIONS
     kinds = ("stack", "drop", "container", "conveyor")
     checkpointed = True
 

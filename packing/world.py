@@ -32,9 +32,9 @@ import logging
 import numpy as np
 
 from core.chipshape import ChipShape
-from core.schema import PhysicsSpec
 from packing.bullet import pybullet
 from packing.presets import PhysicsPreset
+from packing.sections import PhysicsSpec
 from packing.world_bodies import ChipBodies, CollisionShapes
 from packing.world_contacts import GROUND, ContactQueries, ContactRecord
 from packing.world_engine import GRAVITY_MM_S2, MM_PER_UNIT, EngineSession

@@ -193,6 +193,99 @@ def test_every_scenario_table_is_in_some_stage_key():
     assert set(scenario_to_dict(Scenario())) - {"name"} <= declared
 
 
+def test_each_stage_owns_its_scenario_tables():
+    """Every table but the chip is declared in the package of the stage that owns it, and
+    the scenario is assembled from what the stages own (the core declares none)."""
+    import inspect
+
+    import core.schema
+    from core.schema import Section, sections
+
+    owners, tables = {}, {}
+    for stage in load_stages():
+        package = type(stage).__module__.split(".")[0]
+        for cls in stage.owned_sections:
+            assert cls.__module__.split(".")[0] == package, (cls, stage.name)
+            owners[cls.table] = stage.name
+            tables[cls.table] = cls
+    assert [cls.table for cls in sections()] == [
+        *(t for t, cls in tables.items() if not cls.kinds),
+        *(t for t, cls in tables.items() if cls.kinds),
+    ]
+    declared_in_core = [
+        name
+        for name, obj in vars(core.schema).items()
+        if inspect.isclass(obj) and issubclass(obj, Section) and obj is not Section
+    ]
+    assert declared_in_core == []
+    assert {"deposition", "geometry", "mesh", "solve"} <= set(owners)
+    assert owners["mesh"] == "mesh" and owners["solve"] == "solve"
+
+
+def test_tables_are_assembled_in_pipeline_order_and_a_clash_is_refused():
+    from dataclasses import dataclass
+    from typing import ClassVar
+
+    from core.schema import Section, assemble, key
+
+    @dataclass(frozen=True)
+    class Upstream(Section):
+        table: ClassVar[str] = "upstream"
+        size: float = key(1.0, "mm", "a size")
+
+    @dataclass(frozen=True)
+    class OneKind(Section):
+        table: ClassVar[str] = "one_kind"
+        kinds: ClassVar[tuple[str, ...]] = ("drop",)
+        count: int = key(1, "", "a count")
+
+    @dataclass(frozen=True)
+    class Downstream(Section):
+        table: ClassVar[str] = "downstream"
+        flag: bool = key(False, "", "a flag")
+
+    class Fake:
+        def __init__(self, name, owned):
+            self.name, self.owned_sections = name, owned
+
+    first, second = Fake("first", (Upstream, OneKind)), Fake("second", (Downstream,))
+    # Tables of every kind first, then those of one kind, each in pipeline order.
+    assert assemble([first, second]) == [Upstream, Downstream, OneKind]
+    with pytest.raises(RuntimeError, match=r"\[upstream\] of stage 'second' is already"):
+        assemble([first, Fake("second", (Upstream,))])
+
+    @dataclass(frozen=True)
+    class Seed(Section):
+        table: ClassVar[str] = "seed"
+
+    with pytest.raises(RuntimeError, match="already declared by the top level"):
+        assemble([Fake("first", (Seed,))])
+    with pytest.raises(RuntimeError, match="not a named Section"):
+        assemble([Fake("first", (dict,))])
+
+
+def test_a_scenario_reads_replaces_and_pickles_its_tables():
+    import dataclasses
+    import pickle
+
+    from core.schema import Scenario, scenario_from_dict
+    from meshing.sections import MeshSpec
+
+    scenario = scenario_from_dict({"mesh": {"kind": "conformal"}, "seed": 4})
+    assert isinstance(scenario.mesh, MeshSpec) and scenario.mesh.kind == "conformal"
+    assert scenario.deposition == Scenario().deposition  # the other tables' defaults
+    changed = dataclasses.replace(scenario, mesh=MeshSpec(kind="voxel"), seed=5)
+    assert (changed.mesh.kind, changed.seed, scenario.mesh.kind) == ("voxel", 5, "conformal")
+    assert pickle.loads(pickle.dumps(scenario)) == scenario
+    assert hash(pickle.loads(pickle.dumps(scenario))) == hash(scenario)
+    with pytest.raises(TypeError, match="unknown table 'meshes'"):
+        dataclasses.replace(scenario, meshes=MeshSpec())
+    with pytest.raises(TypeError, match=r"\[mesh\] must be a MeshSpec"):
+        Scenario(mesh=scenario.deposition)
+    with pytest.raises(AttributeError, match="no attribute 'meshes'"):
+        scenario.meshes  # noqa: B018
+
+
 def test_unknown_stage_lists_the_registered_ones(tmp_path):
     result = run_cli("run", "--to", "press", "--out", str(tmp_path / "x"))
     assert result.returncode == 2

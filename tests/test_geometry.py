@@ -10,13 +10,14 @@ from scipy.spatial.transform import Rotation
 
 from core.arrangement import Arrangement
 from core.errors import InputError
-from core.schema import ChipSpec, GeometrySpec
+from core.schema import ChipSpec
 from geometry.contacts import GROUND, KINDS, PLACES, classify_patch, find_contacts
 from geometry.describe import DESCRIPTORS, describe
 from geometry.layers import full_layer_count, layer_counts, layer_filling, slab_fractions
 from geometry.orientation import fibre_directions_world, fibre_tensor, tilt_deg
 from geometry.overlaps import find_overlaps
 from geometry.rays import ray_maps
+from geometry.sections import GeometrySpec
 from geometry.solids import chip_solids, union_solid
 from geometry.voxels import voxel_solid_profile, voxelize
 from packing.shapes import box_shape

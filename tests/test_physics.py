@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from core.overlap import floor_penetration_mm, penetrating_pairs
-from core.schema import ChipSpec, PhysicsSpec
+from core.schema import ChipSpec
 from packing import PRESETS, ChipWorld, deposit, make_shape, scenario_from_dict
+from packing.sections import PhysicsSpec
 from packing.world import GROUND
 
 G = 9810.0  # mm/s^2

@@ -111,8 +111,9 @@ def test_describe_refuses_a_run_another_process_holds(tmp_path, small_scenario):
 def _world_with_chip(z_mm: float, x_mm: float = 0.0):
     import numpy as np
 
-    from core.schema import ChipSpec, PhysicsSpec
+    from core.schema import ChipSpec
     from packing.presets import PRESETS
+    from packing.sections import PhysicsSpec
     from packing.shapes import make_shape
     from packing.world import ChipWorld
 

@@ -15,10 +15,11 @@ import pyvista
 from conftest import SMALL_SCENARIO, run_cli
 
 from core.arrangement import Arrangement
-from core.schema import ChipSpec, SolveSpec
+from core.schema import ChipSpec
 from meshing.calculix import read_node_prints, run_ccx
 from meshing.calculix_deck import write_contact_deck
 from meshing.contact_model import chip_block, clear_overlaps, contact_model, separation
+from meshing.sections import SolveSpec
 from packing.shapes import make_shape
 
 needs_ccx = pytest.mark.skipif(
