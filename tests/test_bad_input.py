@@ -322,6 +322,10 @@ BAD_SPECS = {
         'kind = "drop"\nobservations = "data.csv"\n' + CONDITION.replace("200", "-5"),
         "condition[0].height_mm: -5 is outside",
     ),
+    "release below the chip's half length": (
+        'kind = "drop"\nobservations = "data.csv"\n' + CONDITION.replace("200", "8"),
+        "condition[0].height_mm: 8 mm does not clear the chip's half length (10 mm)",
+    ),
     "unknown key": (
         'kind = "drop"\nobservations = "data.csv"\ncolour = 1\n' + CONDITION,
         "spec.colour: unknown key",
