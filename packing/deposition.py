@@ -33,12 +33,11 @@ from core.schema import Scenario
 from core.stack import BatchResult, Stack
 from packing.checkpoint import DepositionState, round_trip
 from packing.effects import (
-    EFFECTS,
-    Effect,
-    FlightState,
+    apply_effect_loads,
     check_effects,
     release_spin,
     setup_effects,
+    shake_settled,
     shaped,
     spins_at_release,
 )
@@ -868,14 +867,13 @@ def _settle_batch(
     :func:`settle`, steps summed over every settling."""
     loads = _per_step_loads(world, setup)
     settled, steps, wakes, start_time = settle(world, new, scenario, loads, work.warnings)
-    for name, value in strengths.items():
-        effect = EFFECTS.get(name)
-        for _ in range(getattr(effect, "taps", 1)):
-            everyone = list(range(world.n_chips))
-            if not effect.after_batch(world, everyone, value, work.rng):
-                break
-            settled, more, _, _ = settle(world, everyone, scenario, loads, work.warnings)
-            steps += more
+
+    def settle_all(everyone: list[int]) -> int:
+        nonlocal settled
+        settled, more, _, _ = settle(world, everyone, scenario, loads, work.warnings)
+        return more
+
+    steps += shake_settled(world, strengths, work.rng, settle_all)
     if not settled:
         message = (
             f"batch {batch} did not settle within {scenario.settling.max_time_s:g} s of "
@@ -896,37 +894,6 @@ def _per_step_loads(world: ChipWorld, setup) -> Callable[[list[int]], None] | No
         apply_effect_loads(world, awake, per_step)
 
     return loads
-
-
-def apply_effect_loads(
-    world: ChipWorld, chips: list[int], per_step: list[tuple[Effect, float]]
-) -> tuple[np.ndarray, np.ndarray] | None:
-    """Apply, for the next step, every per-step effect's loads on the moving ``chips``:
-    pulls between touching chips, and loads on flying chips. Returns the chips'
-    positions (k, 3) mm and velocities (k, 3) mm/s when they were read (an effect with
-    flight loads), else None."""
-    for effect, value in per_step:
-        effect.contact_loads(world, chips, value)
-    flying = [(e, v) for e, v in per_step if type(e).loads is not Effect.loads]
-    if not flying or not chips:
-        return None
-    pos, quat, vel, ang = world.kinematics(chips)
-    state = FlightState(
-        pos,
-        quat,
-        vel,
-        ang,
-        tuple(world.shape(c) for c in chips),
-        np.array([world.mass_g(c) for c in chips]),
-    )
-    forces, torques = np.zeros((len(chips), 3)), np.zeros((len(chips), 3))
-    for effect, value in flying:
-        loads = effect.loads(state, value)
-        if loads is not None:
-            forces += loads[0]
-            torques += loads[1]
-    world.apply_loads(chips, forces, torques, pos)
-    return pos, vel
 
 
 def shape_table(shapes_of: list[ChipShape]) -> tuple[tuple[ChipShape, ...], np.ndarray]:

@@ -23,11 +23,10 @@ from core.schema import Scenario
 from packing.deposition import (
     CHECK_INTERVAL_S,
     _RestTracker,
-    apply_effect_loads,
     draw_shapes,
     settle,
 )
-from packing.effects import release_spin, setup_effects, shaped
+from packing.effects import apply_effect_loads, release_spin, setup_effects, shaped
 from packing.presets import PRESETS
 from packing.world import ChipWorld
 

@@ -3,7 +3,9 @@
 An effect has one strength parameter with a unit, a prior range (the values the diagnosis
 searches), the strength at which it is absent (``neutral``), the scenario kinds it acts on
 and a physical justification (the README's "Candidate effects" table is built from them).
-It acts through hooks that the drop and deposition code call:
+It acts through hooks, run for drops and depositions alike by the runner functions
+here (:func:`release_spin`, :func:`apply_effect_loads` every step, :func:`shake_settled`
+after a batch):
 
 * :meth:`Effect.shape` changes the chip (warp, rounded edges);
 * :meth:`Effect.contact` changes the contact model (friction, restitution, floor);
@@ -32,12 +34,14 @@ from core.registry import Registry
 __all__ = [
     "EFFECTS",
     "ContactModel",
+    "apply_effect_loads",
     "Effect",
     "EffectSetup",
     "check_effects",
     "contact_model",
     "release_spin",
     "setup_effects",
+    "shake_settled",
     "spins_at_release",
     "shaped",
 ]
@@ -556,6 +560,53 @@ def release_spin(strengths: Mapping[str, float], draws: np.ndarray) -> np.ndarra
 def spins_at_release(strengths: Mapping[str, float]) -> bool:
     """Whether any effect of ``strengths`` has a release hook (its draws are needed)."""
     return any(type(EFFECTS.get(name)).release is not Effect.release for name in strengths)
+
+
+def apply_effect_loads(
+    world, chips: list[int], per_step: list[tuple[Effect, float]]
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Apply, for the next step, every per-step effect's loads on the moving ``chips``:
+    pulls between touching chips, and loads on flying chips. Returns the chips'
+    positions (k, 3) mm and velocities (k, 3) mm/s when they were read (an effect with
+    flight loads), else None."""
+    for effect, value in per_step:
+        effect.contact_loads(world, chips, value)
+    flying = [(e, v) for e, v in per_step if type(e).loads is not Effect.loads]
+    if not flying or not chips:
+        return None
+    pos, quat, vel, ang = world.kinematics(chips)
+    state = FlightState(
+        pos,
+        quat,
+        vel,
+        ang,
+        tuple(world.shape(c) for c in chips),
+        np.array([world.mass_g(c) for c in chips]),
+    )
+    forces, torques = np.zeros((len(chips), 3)), np.zeros((len(chips), 3))
+    for effect, value in flying:
+        loads = effect.loads(state, value)
+        if loads is not None:
+            forces += loads[0]
+            torques += loads[1]
+    world.apply_loads(chips, forces, torques, pos)
+    return pos, vel
+
+
+def shake_settled(world, strengths: Mapping[str, float], rng, settle_all) -> int:
+    """Every after-batch hook (vibration taps) on a settled pile: each effect acts up to
+    its ``taps`` times on every chip, and ``settle_all(chips)`` settles the pile again
+    after each act that set chips moving (it returns the steps taken). Returns the steps
+    summed."""
+    steps = 0
+    for name, value in strengths.items():
+        effect = EFFECTS.get(name)
+        for _ in range(getattr(effect, "taps", 1)):
+            everyone = list(range(world.n_chips))
+            if not effect.after_batch(world, everyone, value, rng):
+                break
+            steps += settle_all(everyone)
+    return steps
 
 
 def contact_model(preset, physics) -> ContactModel:
