@@ -43,9 +43,9 @@ def stages_markdown() -> str:
     for stage in load_stages():
         upstream = ", ".join(stage.upstream) or "-"
         doc = _first_line(type(stage).__doc__)
-        rows.append(
-            (stage.name, f"{doc} (after: {upstream}; reads `[{'], ['.join(stage.sections)}]`)")
-        )
+        owns = ", ".join(f"`[{cls.table}]`" for cls in stage.owned_sections) or "-"
+        reads = ", ".join(f"`[{name}]`" for name in stage.sections)
+        rows.append((stage.name, f"{doc} (after: {upstream}; declares {owns}; reads {reads})"))
     return _table(("stage", "what it does"), rows)
 
 
