@@ -247,8 +247,7 @@ class Scenario:
         "",
         "`stack`: batch deposition on a square target; `drop`: single-chip drops; "
         "`container`: filling a cylinder; `conveyor`: a mat poured onto a moving belt",
-        one_of("stack", "drop", "container", "conveyor"),
-    )
+    )  # checked against the scenario-kind registry by the packing stage
     seed: int = key(0, "", "seed of every random draw (the CLI's --seed overrides it)")
     chip: ChipSpec = field(default_factory=ChipSpec)
     mix: tuple[ChipSpec, ...] = key(

@@ -14,6 +14,7 @@ from core.stages import load_stages
 from geometry.describe import DESCRIPTORS
 from meshing.files import MESH_FORMATS
 from packing.effects import EFFECTS
+from packing.kinds import SCENARIO_KINDS
 from packing.presets import PRESETS
 from packing.shapes import SHAPES
 
@@ -92,6 +93,25 @@ def effects_markdown() -> str:
     return _table(("effect", "its strength"), rows)
 
 
+def scenario_kinds_markdown() -> str:
+    """The registered scenario kinds, their own tables and whether later stages run."""
+    from core.schema import sections
+
+    rows = []
+    for name in SCENARIO_KINDS.in_order():
+        kind = SCENARIO_KINDS.get(name)
+        own = ", ".join(f"`[{c.table}]`" for c in sections() if name in c.kinds) or "-"
+        later = [s.name for s in load_stages()[1:] if name in s.kinds]
+        rows.append(
+            (
+                name,
+                f"{_first_line(type(kind).__doc__)} (own table: {own}; later stages: "
+                f"{', '.join(later) or 'none'})",
+            )
+        )
+    return _table(("kind", "what it is"), rows)
+
+
 def presets_markdown() -> str:
     rows = [(n, PRESETS.get(n).description) for n in PRESETS.in_order()]
     return _table(("preset", "what it is"), rows)
@@ -99,6 +119,7 @@ def presets_markdown() -> str:
 
 GENERATED: dict[str, Callable[[], str]] = {
     "scenario_keys": key_table_markdown,
+    "scenario_kinds": scenario_kinds_markdown,
     "stages": stages_markdown,
     "shapes": shapes_markdown,
     "descriptors": descriptors_markdown,

@@ -91,7 +91,7 @@ def _mat_task(scenario) -> dict:
 
 def _container_task(scenario) -> dict:
     from packing import deposit
-    from packing.stage import container_summary
+    from packing.files import container_summary
 
     return container_summary(deposit(scenario), scenario)
 

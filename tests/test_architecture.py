@@ -286,6 +286,23 @@ def test_a_scenario_reads_replaces_and_pickles_its_tables():
         scenario.meshes  # noqa: B018
 
 
+def test_the_packing_stage_asks_the_scenario_kind_and_never_tests_its_name():
+    """Each scenario kind is an object of the registry; the stage delegates to it, and
+    a run's summary finds the kind that wrote it."""
+    from packing.kinds import SCENARIO_KINDS, kind_of_summary
+
+    source = (ROOT / "packing" / "stage.py").read_text()
+    assert not re.search(r"kind (==|!=|in) ", source)
+    assert SCENARIO_KINDS.names() == ["container", "conveyor", "drop", "stack"]
+    manifest = {"tool": "chipstack", "kind": "run", "packing": {}, "geometry": {}}
+    assert kind_of_summary(manifest).name == "stack"
+    assert kind_of_summary({**manifest, "container": {}}).name == "container"
+    assert kind_of_summary({**manifest, "conveyor": {}}).name == "conveyor"
+    assert kind_of_summary({"tool": "chipstack", "drop": {}}).name == "drop"
+    assert kind_of_summary({"tool": "chipstack"}) is None
+    assert not SCENARIO_KINDS.get("drop").makes_stack
+
+
 def test_unknown_stage_lists_the_registered_ones(tmp_path):
     result = run_cli("run", "--to", "press", "--out", str(tmp_path / "x"))
     assert result.returncode == 2

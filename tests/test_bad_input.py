@@ -104,6 +104,10 @@ BAD_SCENARIOS = {
         "mesh.periodic: needs a crop",
     ),
     "crop of the conformal mesh": ('[mesh]\nkind = "conformal"\ncrop = "target"\n', "mesh.crop"),
+    "unknown scenario kind": (
+        'kind = "pour"\n',
+        "kind: unknown scenario kind 'pour'; valid names: container, conveyor, drop, stack",
+    ),
 }
 
 

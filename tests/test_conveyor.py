@@ -21,7 +21,7 @@ from core.errors import InputError
 from core.schema import scenario_from_dict, scenario_to_dict
 from packing import deposit
 from packing.conveyor import ON_BELT, SPILLED, pour_mat
-from packing.stage import mat_summary
+from packing.files import mat_summary
 from pipeline.scenario_files import dumps_toml, load_scenario
 
 

@@ -1,0 +1,307 @@
+"""Scenario kinds, each one object registered by name: what the packing stage checks,
+runs, writes, reads back and reports for a ``stack``, ``container``, ``conveyor`` or
+``drop`` scenario.
+
+The packing stage asks the scenario's kind (``SCENARIO_KINDS.get(scenario.kind)``) and
+never tests its name; a package adds a kind through the ``chipstack.scenario_kinds``
+entry-point group. A kind's own table (``[drop]``, ``[container]``, ``[conveyor]``) is a
+:class:`~core.schema.Section` of :mod:`packing.sections` with that kind in its ``kinds``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import zipfile
+from collections.abc import Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple
+
+from core.errors import InputError, brief
+from core.registry import Registry
+from core.schema import Scenario
+from core.stages import StageInputs, StageOptions, StageOutput
+from packing.files import (
+    container_summary,
+    packing_summary,
+    write_drop_files,
+    write_mat_files,
+    write_stack_files,
+)
+
+# The simulation is imported where used: every command-line start registers the stage.
+if TYPE_CHECKING:
+    from core.stack import BatchResult, Stack
+    from packing.conveyor import ConveyorResult
+
+__all__ = ["SCENARIO_KINDS", "ScenarioKind", "ChipExtent", "kind_of_summary"]
+
+log = logging.getLogger(__name__)
+
+STEADY_DRIFT = 0.1  # a steady part whose thickness drifts more than this is flagged
+
+
+class ChipExtent(NamedTuple):
+    """One chip spec's size, grown by its size spread: its key (``chip``, ``mix[i]``),
+    how far it reaches across (mm) and its circumradius (mm)."""
+
+    key: str
+    across_mm: float
+    radius_mm: float
+
+
+class ScenarioKind:
+    """Base of a scenario kind. Subclasses set the class attributes and override what
+    differs.
+
+    name: the value of the scenario's ``kind``.
+    makes_stack: its packing leaves a :class:`~core.stack.Stack` (``stack.npz``).
+    summary_keys: the top-level manifest entries its packing writes (the command line's
+    summary of a run is told apart by them).
+    """
+
+    name: ClassVar[str] = ""
+    makes_stack: ClassVar[bool] = True
+    summary_keys: ClassVar[frozenset[str]] = frozenset({"packing"})
+
+    def check(self, scenario: Scenario, chips: list[ChipExtent]) -> None:
+        """Refuse chips or release settings this kind cannot take (``InputError``)."""
+
+    def key_extra(self, scenario: Scenario, options: StageOptions) -> dict[str, Any]:
+        """What else the packing's result depends on for this kind."""
+        return {}
+
+    def compute(self, inputs: StageInputs, stage_name: str) -> Any:
+        raise NotImplementedError
+
+    def write(self, result: Any, folder: Path, inputs: StageInputs) -> StageOutput:
+        raise NotImplementedError
+
+    def handoff(self, result: Any) -> Any:
+        """What later stages read of a computed result (as :meth:`load` gives it back)."""
+        return result
+
+    def load(self, folder: Path, scenario: Scenario) -> Stack | None:
+        """The stack back from a written folder (None for a kind that makes none)."""
+        if not self.makes_stack:
+            return None
+        import numpy as np
+
+        from packing.checkpoint import stack_from_arrays
+
+        path = folder / "stack.npz"
+        try:
+            with np.load(path, allow_pickle=False) as arrays:
+                return stack_from_arrays(dict(arrays), str(path))
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+            raise InputError(f"{path}: unreadable stack record ({brief(str(exc))})") from None
+
+    def report(self, summary: Mapping[str, Any], folder: Path) -> list[str]:
+        """Lines for the command line's summary of a finished packing."""
+        return []
+
+
+SCENARIO_KINDS: Registry[ScenarioKind] = Registry("scenario kind", "chipstack.scenario_kinds")
+
+
+def _register(cls: type[ScenarioKind]) -> type[ScenarioKind]:
+    SCENARIO_KINDS.register(cls.name, cls())
+    return cls
+
+
+def kind_of_summary(summary: Mapping[str, Any]) -> ScenarioKind | None:
+    """The kind whose packing wrote ``summary`` (a run's manifest): the one with the most
+    of its entries present."""
+    fitting = [
+        SCENARIO_KINDS.get(name)
+        for name in SCENARIO_KINDS.in_order()
+        if SCENARIO_KINDS.get(name).summary_keys <= set(summary)
+    ]
+    return max(fitting, key=lambda kind: len(kind.summary_keys), default=None)
+
+
+def _release_clears_the_floor(scenario: Scenario, chips: list[ChipExtent]) -> None:
+    largest_radius = max((radius for _, _, radius in chips), default=0.0)
+    if scenario.deposition.release_height_mm[0] <= largest_radius:
+        raise InputError(
+            "deposition.release_height_mm: the lowest release height must clear the chip's "
+            f"circumradius ({largest_radius:.1f} mm) so no release pose touches the floor"
+        )
+
+
+@_register
+class StackKind(ScenarioKind):
+    """Batch deposition on a square target: ``deposition.chips`` chips released
+    ``deposition.batch_size`` at a time, each batch settled before the next."""
+
+    name = "stack"
+
+    def check(self, scenario: Scenario, chips: list[ChipExtent]) -> None:
+        d = scenario.deposition
+        for key, across, _ in chips:
+            if across > d.target_size_mm:
+                raise InputError(
+                    f"{key}.length_mm: the chip ({across:.1f} mm across) is larger than "
+                    f"the target (deposition.target_size_mm = {d.target_size_mm:g} mm)"
+                )
+        _release_clears_the_floor(scenario, chips)
+
+    def compute(self, inputs: StageInputs, stage_name: str) -> Stack:
+        from packing.checkpoint import state_from_arrays, state_to_arrays
+        from packing.deposition import deposit
+
+        scenario = inputs.scenario
+        n_batches = -(-scenario.deposition.chips // scenario.deposition.batch_size)
+        report = inputs.options.progress
+
+        def progress(batch: int, result: BatchResult | None) -> None:
+            if report is not None:
+                detail = {}
+                if result is not None:  # containers report only their last batch
+                    detail = {"chips": len(result.positions), "sim_s": f"{result.sim_time_s:.2f}"}
+                report(stage_name, batch, n_batches, detail)
+
+        checkpoint = inputs.checkpoint
+        resume = checkpoint.resume(state_from_arrays) if checkpoint is not None else None
+        if resume is not None:
+            progress(resume.batches_done, resume.results[-1] if resume.results else None)
+        on_batch = None
+        if checkpoint is not None:
+
+            def on_batch(state) -> None:
+                checkpoint.save(state_to_arrays(state), state.batches_done)
+
+        return deposit(scenario, progress=progress, resume=resume, on_batch=on_batch)
+
+    def write(self, result: Stack, folder: Path, inputs: StageInputs) -> StageOutput:
+        write_stack_files(folder, result)
+        return StageOutput({"packing": packing_summary(result)}, list(result.warnings))
+
+    def report(self, summary: Mapping[str, Any], folder: Path) -> list[str]:
+        packing = summary["packing"]
+        last = packing["batches"][-1]
+        return [
+            f"{packing['chips']} chips in {len(packing['batches'])} batches, "
+            f"top {last['top_mm']:.1f} mm, {packing['outside_target']} outside the target, "
+            f"max interpenetration {last['max_chip_penetration_mm']:.3f} mm"
+        ]
+
+
+@_register
+class DropKind(ScenarioKind):
+    """Single-chip drops (paper 4.2): ``drop.drops`` releases of one chip, each onto an
+    empty target; the final poses, their statistics and Fig. 15."""
+
+    name = "drop"
+    makes_stack = False
+    summary_keys = frozenset({"drop"})
+
+    def check(self, scenario: Scenario, chips: list[ChipExtent]) -> None:
+        largest_radius = max((radius for _, _, radius in chips), default=0.0)
+        if scenario.drop.height_mm <= largest_radius:
+            raise InputError(
+                f"drop.height_mm: must clear the chip's circumradius ({largest_radius:.1f} mm)"
+            )
+
+    def key_extra(self, scenario: Scenario, options: StageOptions) -> dict[str, Any]:
+        return {"figures": options.figures}  # the drop stage draws Fig. 15
+
+    def compute(self, inputs: StageInputs, stage_name: str):
+        from packing.drop import drop_chips
+
+        return drop_chips(inputs.scenario)
+
+    def write(self, result, folder: Path, inputs: StageInputs) -> StageOutput:
+        statistics = write_drop_files(folder, inputs.scenario, result, inputs.options.figures)
+        return StageOutput({"drop": statistics}, list(result.warnings))
+
+    def report(self, summary: Mapping[str, Any], folder: Path) -> list[str]:
+        return [f"{summary['drop']['settled']} settled drops written to {folder.parent}"]
+
+
+@_register
+class ContainerKind(StackKind):
+    """Filling a cylinder (paper 5): batches poured until the container is full (a
+    settled chip's centre of mass inside the wall's footprint at or above the rim)."""
+
+    name = "container"
+    summary_keys = frozenset({"packing", "container"})
+
+    def check(self, scenario: Scenario, chips: list[ChipExtent]) -> None:
+        wide = 2 * scenario.container.radius_mm
+        for key, across, _ in chips:
+            if across > wide:
+                raise InputError(
+                    f"{key}.length_mm: the chip ({across:.1f} mm) is longer than the "
+                    f"container is wide (2 x container.radius_mm = {wide:g} mm)"
+                )
+
+    def write(self, result: Stack, folder: Path, inputs: StageInputs) -> StageOutput:
+        output = super().write(result, folder, inputs)
+        output.summary["container"] = container_summary(result, inputs.scenario)
+        return output
+
+
+@_register
+class ConveyorKind(StackKind):
+    """A mat poured continuously onto a moving belt; later stages take the square panel
+    cut from the middle of its steady part."""
+
+    name = "conveyor"
+    summary_keys = frozenset({"packing", "conveyor"})
+
+    def check(self, scenario: Scenario, chips: list[ChipExtent]) -> None:
+        from packing.conveyor import check_conveyor
+
+        largest_radius = max((radius for _, _, radius in chips), default=0.0)
+        check_conveyor(scenario, 2 * largest_radius)
+        _release_clears_the_floor(scenario, chips)
+
+    def compute(self, inputs: StageInputs, stage_name: str) -> ConveyorResult:
+        from packing.conveyor import pour_mat, pour_timing
+
+        report = inputs.options.progress
+
+        def progress(done: int, pours: int) -> None:
+            if report is not None:
+                report(stage_name, done, pours, {})
+
+        if report is not None:
+            report(stage_name, 0, pour_timing(inputs.scenario)[0], {})
+        return pour_mat(inputs.scenario, progress)
+
+    def write(self, result: ConveyorResult, folder: Path, inputs: StageInputs) -> StageOutput:
+        scenario = inputs.scenario
+        write_stack_files(folder, result.panel)
+        summary = write_mat_files(folder, scenario, result.mat, inputs.options.figures)
+        warnings = list(result.warnings)
+        drift = (summary["thickness"] or {}).get("drift", 0.0)
+        if math.isfinite(drift) and abs(drift) > STEADY_DRIFT:
+            message = (
+                f"the mat's steady part is not steady: its thickness changed by "
+                f"{100 * drift:+.0f} % from its first third to its last; raise "
+                "conveyor.run_in_mm (and deposition.chips)"
+            )
+            log.warning(message)
+            warnings.append(message)
+        return StageOutput(
+            {"packing": packing_summary(result.panel), "conveyor": summary}, warnings
+        )
+
+    def handoff(self, result: ConveyorResult) -> Stack:
+        return result.panel  # later stages take the panel cut from the mat, as load() does
+
+    def report(self, summary: Mapping[str, Any], folder: Path) -> list[str]:
+        packing, mat = summary["packing"], summary["conveyor"]
+        last = packing["batches"][-1]
+        weight = mat.get("areal_weight") or {}
+        return [
+            f"{mat['chips']['released']} chips poured onto the belt "
+            f"({mat['chips']['on_belt']} on it, {mat['chips']['spilled']} spilled) in "
+            f"{mat['time']['wall_s']:.1f} s; mat {mat['mat_length_mm']:.0f} mm long, "
+            f"areal weight {weight.get('mean_g_m2', float('nan')):.0f} g/m^2 "
+            f"(CV {weight.get('cv', float('nan')):.3f} over "
+            f"{weight.get('cell_mm', float('nan')):g} mm cells)",
+            f"panel {mat['panel_mm']:g} mm square: {packing['chips']} chips, top "
+            f"{last['top_mm']:.1f} mm",
+        ]
