@@ -14,7 +14,7 @@ Parts:
 * ``effects`` (this and the parts below on 3 conditions x 50 drops: 200 mm, 500 mm,
   1000 mm turned 30 deg): 5 cases per drop effect, strength drawn from the upper half of its prior:
   verdict "explained" with the true effect first or in a tie set of at most 2 in
-  >= 90 %; mean tie-set size; confusion; coverage of the 95 % strength intervals.
+  >= 85 % (issue 35); mean tie-set size; confusion; coverage of the 95 % strength intervals.
 * ``outside``: for each drop effect, two datasets made with it and diagnosed with it
   taken out of the library, two two-effect mixtures and three measurement distortions
   (positions scaled by 1.25, offset 3 mm and 10 mm along x, as a camera would): never
@@ -455,7 +455,7 @@ def report(part: str) -> None:
         ]
         print(
             "explained, true effect in a tie set of <= 2: "
-            f"{rate(sum(good), len(good))}; target >= 90 %"
+            f"{rate(sum(good), len(good))}; target >= 85 %"
         )
         # The data's limit apart from the method's: a gap the detection does not see
         # cannot be attributed by any method.

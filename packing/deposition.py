@@ -43,6 +43,7 @@ from packing.effects import (
 )
 from packing.presets import PRESETS
 from packing.shapes import ChipShape, make_shape, varies_per_chip
+from packing.sites import SITES
 from packing.world import GRAVITY_MM_S2, ChipWorld
 
 __all__ = [
@@ -50,7 +51,6 @@ __all__ = [
     "release_poses",
     "draw_shapes",
     "settle",
-    "reaches_rim",
     "shape_table",
     "wake_near_movers",
 ]
@@ -59,16 +59,9 @@ log = logging.getLogger(__name__)
 
 WAKE_MARGIN_MM = 0.5
 CHECK_INTERVAL_S = 0.005  # how often speeds are read (simulated time)
-SPILL_MARGIN_MM = 5.0  # beyond the wall's outer face: spilled out of a container
 ENERGY_BLOWUP_FACTOR = 10.0  # kinetic energy over what the moving chips brought
 FELL_THROUGH_MM = 5.0  # a chip centre this far below the floor has tunnelled through it
 _MAX_PLACEMENT_TRIES = 2000
-# A container is filled a few rods at a time, in hundreds of pours: rebuilding the world
-# from the saved state before every pour would cost time in proportion to the rods
-# already in (a fill's cost growing as its square), so one world serves this many pours
-# and the state a resumed run starts from is saved after them. A stack's batches are few
-# and large: each gets its own world, as before.
-POURS_PER_WORLD = 25
 
 
 def _random_rotations(scenario: Scenario, n: int, rng: np.random.Generator) -> Rotation:
@@ -167,7 +160,7 @@ def release_poses(
     for i, shape in enumerate(shapes):
         pose = _free_pose(scenario, shape, rng, boxes, zone_x_mm)
         if pose is None:
-            raise _no_room(scenario, n)
+            raise SITES.get(scenario.kind).no_room(scenario, n)
         position, rotation, box = pose
         positions[i], quaternions[i] = position, rotation.as_quat()[0]
         boxes.add(*box)
@@ -241,54 +234,11 @@ def _free_pose(
     return None
 
 
-def _no_room(scenario: Scenario, n: int) -> InputError:
-    d = scenario.deposition
-    if scenario.kind == "conveyor":
-        c = scenario.conveyor
-        return InputError(
-            f"deposition.batch_size: cannot release {n} chips without overlap over the pour "
-            f"zone ({c.zone_length_mm:g} x {c.zone_width_mm:g} mm, "
-            f"{d.release_height_mm[0]:g}-{d.release_height_mm[1]:g} mm high); lower "
-            "batch_size or widen the zone or the release heights"
-        )
-    return InputError(
-        f"deposition: cannot release {n} chips without overlap ("
-        + (
-            "over the container; lower deposition.batch_size or widen container.release_gap_mm)"
-            if scenario.kind == "container"
-            else f"in a {d.release_side_mm:g} mm square between "
-            f"{d.release_height_mm[0]:g} and {d.release_height_mm[1]:g} mm; "
-            "widen release_height_mm or lower batch_size)"
-        )
-    )
-
-
 def _release_point(
     scenario: Scenario, shape: ChipShape, rng: np.random.Generator, zone_x_mm: float = 0.0
 ):
-    d = scenario.deposition
     clearance = shape.circumradius_mm + 0.1  # no release pose may touch the floor
-    if scenario.kind == "conveyor":
-        c = scenario.conveyor
-        half_width = c.zone_width_mm / 2
-        if c.side_guides:  # a chip released into a guide is shot out across the belt
-            half_width = min(half_width, c.belt_width_mm / 2 - clearance)
-        return np.array(
-            [
-                zone_x_mm + rng.uniform(-c.zone_length_mm / 2, c.zone_length_mm / 2),
-                rng.uniform(-half_width, half_width),
-                max(rng.uniform(*d.release_height_mm), clearance),
-            ]
-        )
-    if scenario.kind == "container":
-        c = scenario.container
-        radius = c.release_radius * c.radius_mm * np.sqrt(rng.uniform())
-        angle = rng.uniform(0, 2 * np.pi)
-        height = c.height_mm + clearance + rng.uniform(*c.release_gap_mm)
-        return np.array([radius * np.cos(angle), radius * np.sin(angle), height])
-    half = d.release_side_mm / 2
-    height = max(rng.uniform(*d.release_height_mm), clearance)
-    return np.array([*rng.uniform(-half, half, 2), height])
+    return SITES.get(scenario.kind).release_point(scenario, clearance, rng, zone_x_mm)
 
 
 class _RestTracker:
@@ -423,6 +373,7 @@ def settle(
     moving at the cap are frozen where they are.
     """
     s = scenario.settling
+    site = SITES.get(scenario.kind)
     check_steps = max(1, round(CHECK_INTERVAL_S / scenario.physics.time_step_s))
     check_interval_s = check_steps * scenario.physics.time_step_s
     hold_checks = max(1, int(np.ceil(s.hold_time_s / check_interval_s)))
@@ -445,8 +396,7 @@ def settle(
         wakes += wake_near_movers(
             world, tracker, tracker.update(s.wake_speed_mm_s), buried, s, check_interval_s
         )
-        if scenario.kind == "container":
-            _freeze_spilled(world, tracker, scenario.container)
+        site.after_check(world, tracker, scenario)
     still_moving = tracker.moving()
     if still_moving and s.freeze:
         for chip in sorted(tracker.awake):
@@ -543,31 +493,8 @@ def _domain_mm(scenario: Scenario) -> float:
     """Twenty times the scenario's own size: a chip beyond has left the experiment."""
     d = scenario.deposition
     size = max(d.target_size_mm, max(d.release_height_mm), scenario.drop.height_mm)
-    if scenario.kind == "container":
-        size = max(size, scenario.container.height_mm, scenario.container.radius_mm)
+    size = max(size, SITES.get(scenario.kind).extent_mm(scenario))
     return 20.0 * size
-
-
-def reaches_rim(positions: np.ndarray, radius_mm: float, height_mm: float) -> bool:
-    """Whether a container is full: a chip's centre of mass lies inside the wall's
-    footprint at or above the rim."""
-    positions = np.asarray(positions, dtype=float).reshape(-1, 3)
-    inside = np.hypot(positions[:, 0], positions[:, 1]) <= radius_mm
-    return bool((positions[inside, 2] >= height_mm).any())
-
-
-def _freeze_spilled(world: ChipWorld, tracker: _RestTracker, container) -> None:
-    """Chips that fell outside the container wall, below its rim, cannot get back in and
-    take no further part: freeze them where they are (on a bare floor a spilled rod would
-    roll on for many seconds)."""
-    # Where the tracker read them this check (chips it has just woken were at rest).
-    chips = [c for c in sorted(tracker.awake) if c in tracker.positions]
-    if not chips:
-        return
-    positions = np.array([tracker.positions[c] for c in chips])
-    outside = np.hypot(positions[:, 0], positions[:, 1]) > container.radius_mm + SPILL_MARGIN_MM
-    for chip in np.asarray(chips)[outside & (positions[:, 2] < container.height_mm)]:
-        tracker.remove(int(chip))
 
 
 def deposit(
@@ -590,7 +517,7 @@ def deposit(
     ``effects`` switches unmodelled effects on (``{name: strength}``, see
     :mod:`packing.effects`); the diagnosis uses them.
 
-    Every batch of a stack (every ``POURS_PER_WORLD`` pours of a container) runs in a new
+    Every batch of a stack (every ``pours_per_world`` pours of a container) runs in a new
     physics world built from the state the previous one left (:mod:`packing.checkpoint`);
     ``on_batch(state)`` is called with that state after each world, so a caller can save
     it, and ``resume`` continues from a saved one. A resumed deposition ends bit for bit
@@ -609,7 +536,7 @@ def deposit(
             f"deposition state: {state.batches_done} batches and {len(state.chip_batch)} "
             f"chips done, more than the scenario's {n_batches} batches of {d.chips} chips"
         )
-    pours = POURS_PER_WORLD if scenario.kind == "container" else 1
+    pours = SITES.get(scenario.kind).pours_per_world
     if not scenario.settling.freeze:
         # A dynamic pile rebuilt from saved poses loses the solver's contact history and
         # sags (median 1.1 mm in 50 ms for rods 10 x 2 mm, measured): one world, start
@@ -628,13 +555,10 @@ def deposit(
 
 def _stack_of(scenario: Scenario, state: DepositionState) -> Stack:
     """The stack a finished deposition leaves, with a warning if a container is not full."""
-    container = scenario.kind == "container"
+    site = SITES.get(scenario.kind)
     warnings = list(state.warnings)
-    if container and not state.full:
-        message = (
-            f"the container is not full after {len(state.chip_batch)} chips "
-            "(deposition.chips); raise deposition.chips"
-        )
+    message = site.unfinished(scenario, state.full, len(state.chip_batch))
+    if message is not None:
         log.warning(message)
         warnings.append(message)
     shapes, shape_index = shape_table([state.pool[i] for i in state.chip_shape])
@@ -643,9 +567,7 @@ def _stack_of(scenario: Scenario, state: DepositionState) -> Stack:
         shape_index=shape_index,
         batch=np.asarray(state.chip_batch),
         batches=state.results,
-        target_size_mm=(
-            2 * scenario.container.radius_mm if container else scenario.deposition.target_size_mm
-        ),
+        target_size_mm=site.footprint_mm(scenario),
         warnings=tuple(warnings),
     )
 
@@ -738,7 +660,7 @@ def _deposit_batches(
     """Release and settle the next ``pours`` batches (fewer once the last batch or, for a
     container, the rim is reached) in one world rebuilt from ``state``; returns the state
     after them."""
-    container = scenario.kind == "container"
+    site = SITES.get(scenario.kind)
     work = _WorkingState.unpack(state)
     results = state.results
     batch, full = state.batches_done, False
@@ -757,11 +679,9 @@ def _deposit_batches(
                 world, scenario, setup, strengths, work, new, batch
             )
             poses = world.poses()
-            full = container and reaches_rim(
-                poses[0], scenario.container.radius_mm, scenario.container.height_mm
-            )
+            full = site.is_full(scenario, poses[0])
             result = None
-            if not container or batch == n_batches or full:
+            if site.records_every_batch or batch == n_batches or full:
                 wall = time.perf_counter() - wall_start
                 result = _batch_result(
                     world, scenario, work.shapes_of, batch, start_time, steps, wakes, settled, wall
@@ -785,9 +705,7 @@ def _rebuild_world(
 ) -> None:
     """The world as the previous batch left it: the container wall, the pile (frozen) and,
     once known, the compliant floor."""
-    if scenario.kind == "container":
-        c = scenario.container
-        world.add_container_wall(c.radius_mm, c.height_mm, c.wall_segments)
+    SITES.get(scenario.kind).build(world, scenario)
     for shape, p, q in zip(work.shapes_of, state.positions, state.quaternions, strict=True):
         chip = world.add_chip(shape, p, q)
         if scenario.settling.freeze:
@@ -949,10 +867,7 @@ def _batch_result(
         ),
         default=0.0,
     )
-    if scenario.kind == "container":
-        outside = np.hypot(positions[:, 0], positions[:, 1]) > scenario.container.radius_mm
-    else:
-        outside = (np.abs(positions[:, :2]) > scenario.deposition.target_size_mm / 2).any(axis=1)
+    outside = SITES.get(scenario.kind).outside(scenario, positions)
     return BatchResult(
         batch=batch,
         positions=positions,

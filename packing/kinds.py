@@ -5,7 +5,9 @@ runs, writes, reads back and reports for a ``stack``, ``container``, ``conveyor`
 The packing stage asks the scenario's kind (``SCENARIO_KINDS.get(scenario.kind)``) and
 never tests its name; a package adds a kind through the ``chipstack.scenario_kinds``
 entry-point group. A kind's own table (``[drop]``, ``[container]``, ``[conveyor]``) is a
-:class:`~core.schema.Section` of :mod:`packing.sections` with that kind in its ``kinds``.
+:class:`~core.schema.Section` of :mod:`packing.sections` with that kind in its ``kinds``;
+where its chips are released and what holds them is its deposition site
+(:mod:`packing.sites`).
 """
 
 from __future__ import annotations

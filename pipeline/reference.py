@@ -17,6 +17,7 @@ from packing.effects import EFFECTS
 from packing.kinds import SCENARIO_KINDS
 from packing.presets import PRESETS
 from packing.shapes import SHAPES
+from packing.sites import SITES
 
 __all__ = ["GENERATED", "refresh", "stale_blocks"]
 
@@ -94,7 +95,8 @@ def effects_markdown() -> str:
 
 
 def scenario_kinds_markdown() -> str:
-    """The registered scenario kinds, their own tables and whether later stages run."""
+    """The registered scenario kinds, their own tables, deposition sites and which later
+    stages run."""
     from core.schema import sections
 
     rows = []
@@ -102,11 +104,12 @@ def scenario_kinds_markdown() -> str:
         kind = SCENARIO_KINDS.get(name)
         own = ", ".join(f"`[{c.table}]`" for c in sections() if name in c.kinds) or "-"
         later = [s.name for s in load_stages()[1:] if name in s.kinds]
+        site = _first_line(type(SITES.get(name)).__doc__) if name in SITES else "-"
         rows.append(
             (
                 name,
-                f"{_first_line(type(kind).__doc__)} (own table: {own}; later stages: "
-                f"{', '.join(later) or 'none'})",
+                f"{_first_line(type(kind).__doc__)} (own table: {own}; deposition site: "
+                f"{site.rstrip('.')}; later stages: {', '.join(later) or 'none'})",
             )
         )
     return _table(("kind", "what it is"), rows)

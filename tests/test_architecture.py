@@ -291,8 +291,9 @@ def test_the_packing_stage_asks_the_scenario_kind_and_never_tests_its_name():
     a run's summary finds the kind that wrote it."""
     from packing.kinds import SCENARIO_KINDS, kind_of_summary
 
-    source = (ROOT / "packing" / "stage.py").read_text()
-    assert not re.search(r"kind (==|!=|in) ", source)
+    for module in ("stage", "deposition", "drop", "conveyor"):
+        source = (ROOT / "packing" / f"{module}.py").read_text()
+        assert not re.search(r"kind (==|!=|in) ", source), module
     assert SCENARIO_KINDS.names() == ["container", "conveyor", "drop", "stack"]
     manifest = {"tool": "chipstack", "kind": "run", "packing": {}, "geometry": {}}
     assert kind_of_summary(manifest).name == "stack"
