@@ -85,7 +85,7 @@ else:
     from meshing import MeshingError, check_mesh, conformal_mesh
     before = find_contacts(arrangement)
     try:
-        resolution = resolve_contacts(arrangement, contacts=before)
+        resolution = resolve_contacts(arrangement, contacts=before, touching_lines=pore == "none")
     except UnresolvedError as exc:
         result.update(error=str(exc), seconds=time.perf_counter() - start)
         resolution = None

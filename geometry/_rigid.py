@@ -9,10 +9,11 @@ from typing import NamedTuple
 
 import numpy as np
 
-from geometry.contacts import KINDS, ContactTable
+from geometry.contacts import GROUND, KINDS, ContactTable
 from geometry.solids import shape_pieces
 
 _SURFACE = KINDS.index("surface")
+_LINE = KINDS.index("line")
 _MAX_MOVE_MM = 1.0  # the largest motion asked of a chip (a tenth of its thickness is typical)
 _MAX_TURN_RAD = np.radians(6.0)
 _TURN_WEIGHT = 10.0  # turns cost this many times their inertia: a turn sweeps corners far
@@ -109,9 +110,12 @@ def _separation(a: _World, b: _World) -> float:
     )
 
 
-def _rules(contacts: ContactTable, gap_mm: float, contact_gap_mm: float):
+def _rules(
+    contacts: ContactTable, gap_mm: float, contact_gap_mm: float, touching_lines: bool = False
+):
     """rule(chip, partner) -> :class:`Rule` for a pair (partner GROUND: the conveyor),
-    from its class in the settled stack."""
+    from its class in the settled stack. ``touching_lines``: a line contact between two
+    chips is kept touching (its edge laid parallel on its partner) instead of cleared."""
     kinds = {
         (int(min(a, b)), int(max(a, b))): int(k)
         for a, b, k in zip(contacts.chip_a, contacts.chip_b, contacts.kind, strict=True)
@@ -129,6 +133,8 @@ def _rules(contacts: ContactTable, gap_mm: float, contact_gap_mm: float):
         kind = kinds.get((min(chip, partner), max(chip, partner)))
         if kind is None:
             return apart
+        if touching_lines and kind == _LINE and GROUND not in (chip, partner):
+            return Rule(0.0, upper, True, touching=True)
         return Rule(gap_mm, upper, kind != KINDS.index("point"))
 
     return rule
@@ -143,6 +149,7 @@ class Rule(NamedTuple):
     lower: float
     upper: float = np.inf
     parallel: bool = False
+    touching: bool = False  # a line contact kept touching: its edge laid on the partner
 
 
 def _axes(na, ea, nb, eb):

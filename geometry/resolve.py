@@ -48,6 +48,7 @@ from core.arrangement import Arrangement
 from core.errors import ChipstackError, InputError
 from geometry._rigid import (
     _CORNER_REACH_MM,
+    _LINE,
     _MAX_MOVE_MM,
     _MAX_TURN_RAD,
     _REACH_MM,
@@ -167,10 +168,15 @@ def resolve_contacts(
     contacts: ContactTable | None = None,
     contact_gap_mm: float = 0.05,
     contact_extent_mm: float = 5.0,
+    touching_lines: bool = False,
 ) -> Resolution:
     """The mesh-ready arrangement (see the module docstring).
 
     gap_mm: the clearance (mm) left between chips that are not in surface contact.
+    touching_lines: keep every line contact between two chips touching (its edge laid
+        parallel on its partner, within 0.2 um) instead of clearing it by the gap, so
+        that it stays a line contact: for a mesh of the chips alone, with no pore space
+        to mesh between them.
     snap_angle_deg: facing faces of a surface contact further apart than this (degrees)
         are not snapped. contacts: the settled stack's contact table (computed with
         ``contact_gap_mm`` and ``contact_extent_mm`` when not given).
@@ -180,9 +186,17 @@ def resolve_contacts(
     check_settings(gap_mm, snap_angle_deg, arrangement.thinnest_mm)
     if contacts is None:
         contacts = find_contacts(arrangement, contact_gap_mm, contact_extent_mm)
-    resolved = _resolve_globally(arrangement, contacts, gap_mm, snap_angle_deg, contact_gap_mm)
+    resolved = _resolve_globally(
+        arrangement, contacts, gap_mm, snap_angle_deg, contact_gap_mm, touching_lines
+    )
+    lines = int(np.sum((contacts.kind == _LINE) & (contacts.chip_b != GROUND)))
+    kept_touching = {"line_contacts_kept_touching": lines if touching_lines else 0}
     if resolved is not None:
-        return dataclasses.replace(resolved, seconds=time.perf_counter() - start)
+        return dataclasses.replace(
+            resolved,
+            seconds=time.perf_counter() - start,
+            info={**resolved.info, **kept_touching},
+        )
     log.info("contact resolution: the global route did not clear every pair; bottom-up route")
     n = arrangement.n_chips
     pieces = [_pieces(s) for s in arrangement.shapes]
@@ -211,7 +225,7 @@ def resolve_contacts(
     cleared = 0
     clusters = 0
     cos_snap = np.cos(np.radians(snap_angle_deg))
-    rule = _rules(contacts, gap_mm, contact_gap_mm)
+    rule = _rules(contacts, gap_mm, contact_gap_mm, touching_lines)
     for chip in order:
         chip = int(chip)
         body = pieces[arrangement.shape_index[chip]]
@@ -396,16 +410,19 @@ def resolve_contacts(
             "coplanar_touching": sum(len(t) for t in touching.values()) // 2 - snapped["chip"],
             "clusters_solved": clusters,
             "route": "bottom-up",
+            **kept_touching,
         },
     )
 
 
-def _resolve_globally(arrangement, contacts, gap_mm, snap_angle_deg, contact_gap_mm):
+def _resolve_globally(
+    arrangement, contacts, gap_mm, snap_angle_deg, contact_gap_mm, touching_lines=False
+):
     """The global route (:mod:`geometry._relax`) finished by an exact snap of every kept
     surface contact, bottom-up; None when it leaves any pair short of its rule."""
     from geometry._relax import relax
 
-    out = relax(arrangement, contacts, gap_mm, snap_angle_deg, contact_gap_mm)
+    out = relax(arrangement, contacts, gap_mm, snap_angle_deg, contact_gap_mm, touching_lines)
     if out is None or out[-1] < -_SLACK_MM / 2:
         return None
     rotations, positions, start_rot, start_pos, surface, let_go, _ = out
@@ -413,7 +430,7 @@ def _resolve_globally(arrangement, contacts, gap_mm, snap_angle_deg, contact_gap
     pieces = [_pieces(s) for s in arrangement.shapes]
     rank = arrangement.bottom_up_rank()
     order = arrangement.bottom_up_order()
-    rule = _rules(contacts, gap_mm, contact_gap_mm)
+    rule = _rules(contacts, gap_mm, contact_gap_mm, touching_lines)
     cos_snap = np.cos(np.radians(snap_angle_deg))
     kept = [pair for pair in surface if pair not in let_go]
     partners: dict[int, list[int]] = {k: [] for k in range(n)}

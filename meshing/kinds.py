@@ -211,13 +211,16 @@ class ConformalKind(MeshKind):
         if "msh" in spec.formats:  # written by gmsh itself, physical groups and all
             native["msh"] = scratch / f"stack_{self.name}.msh"
         # The mesh-ready arrangement: the settled one is left as it is (descriptors and
-        # the voxel mesh keep the physics' poses).
+        # the voxel mesh keep the physics' poses). Without the pore space nothing is
+        # meshed between chips, so line contacts stay touching (their class kept); with
+        # it they are cleared by the gap, which no pore element could fill.
         resolution = resolve_contacts(
             arrangement,
             spec.gap_mm,
             spec.snap_angle_deg,
             contact_gap_mm=g.contact_gap_mm,
             contact_extent_mm=g.contact_extent_mm,
+            touching_lines=spec.pore_space == "none",
         )
         mesh = conformal_mesh(
             resolution.arrangement,

@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation
 from core.arrangement import Arrangement
 from core.errors import InputError
 from core.schema import ChipSpec
+from geometry.contacts import KINDS, find_contacts
 from geometry.resolve import UnresolvedError, resolve_contacts, separation_mm
 from meshing import check_mesh, conformal_mesh
 from packing.shapes import box_shape
@@ -153,6 +154,19 @@ def test_chips_that_nearly_touch_edge_on_are_cleared_by_the_gap():
     assert 0.03 <= gap <= 0.045  # cleared, still within the contact gap: still a contact
     assert r.cleared >= 1 and r.max_translation_mm < 0.06
     assert r.snapped == {"chip": 0, "conveyor": 2}
+
+
+def test_a_line_contact_is_kept_touching_for_a_mesh_of_the_chips_alone():
+    """The same two chips, resolved for a mesh without pore space: laid against each
+    other (within the 0.2 um slack) instead of cleared, so they stay a line contact."""
+    a = arrange([((-9.99, 0.0, 1.0), 0.0), ((9.99, 0.0, 1.0), 0.0)])
+    r = resolve_contacts(a, gap_mm=0.03, touching_lines=True)
+    assert 0.0 <= separation_mm(r.arrangement, 0, 1) <= 1e-3
+    assert r.max_translation_mm < 0.02
+    assert r.summary()["line_contacts_kept_touching"] == 1
+    table = find_contacts(r.arrangement)
+    pair = (table.chip_a == 0) & (table.chip_b == 1)
+    assert [KINDS[k] for k in table.kind[pair]] == ["line"]
 
 
 def test_an_overlap_no_small_motion_clears_is_named():
