@@ -206,7 +206,7 @@ def sections() -> tuple[type[Section], ...]:
     the tables of every kind, then those of one kind, each in pipeline order (upstream
     stage first, a stage's own tables in its order)."""
     if not _sections:
-        _sections.extend(assemble(load_stages()))
+        _sections[:] = assemble(load_stages())  # one assignment: a second thread redoes it
     return tuple(_sections)
 
 
@@ -220,7 +220,7 @@ def assemble(stages: list) -> list[type[Section]]:
         for cls in stage.owned_sections:
             if not (isinstance(cls, type) and issubclass(cls, Section) and cls.table):
                 raise RuntimeError(f"stage {stage.name!r} owns {cls!r}, not a named Section")
-            if cls.table in owners or cls.table in top_level:
+            if cls.table in owners or cls.table in top_level or hasattr(Scenario, cls.table):
                 first = owners.get(cls.table, "the top level")
                 raise RuntimeError(
                     f"scenario table [{cls.table}] of stage {stage.name!r} is already "
@@ -247,7 +247,7 @@ class Scenario:
         "",
         "`stack`: batch deposition on a square target; `drop`: single-chip drops; "
         "`container`: filling a cylinder; `conveyor`: a mat poured onto a moving belt",
-    )  # checked against the scenario-kind registry by the packing stage
+    )  # checked against the kinds the registered stages run (_check_kind)
     seed: int = key(0, "", "seed of every random draw (the CLI's --seed overrides it)")
     chip: ChipSpec = field(default_factory=ChipSpec)
     mix: tuple[ChipSpec, ...] = key(
@@ -397,9 +397,19 @@ def _build_scenario(data: Mapping[str, Any]) -> Scenario:
             )
         elif name in data:
             values[name] = _value(name, f, data[name])
+            if name == "kind":
+                _check_kind(values[name])
     for name, cls in tables.items():
         values[name] = _build(cls, data.get(name, {}), name)
     return Scenario(**values)
+
+
+def _check_kind(kind: str) -> None:
+    """The kinds the registered stages run (a stage's ``kinds``; the packing stage's come
+    from the scenario-kind registry)."""
+    known = list(dict.fromkeys(k for stage in load_stages() for k in stage.kinds))
+    if kind not in known:
+        raise InputError(f"kind: must be one of {', '.join(map(repr, known))} (got {brief(kind)})")
 
 
 def scenario_from_dict(data: Mapping[str, Any], base_dir: str | None = None) -> Scenario:
@@ -412,9 +422,9 @@ def scenario_from_dict(data: Mapping[str, Any], base_dir: str | None = None) -> 
         raise InputError("mix: give either [chip] or [[mix]] tables, not both")
     scenario = _build_scenario(data)
     scenario = _resolve_files(scenario, base_dir)
-    _check_top_level(scenario)
     for table in scenario.tables:
         table.check()
+    _check_top_level(scenario)
     for stage in load_stages():
         stage.check(scenario)
     return scenario

@@ -141,9 +141,10 @@ class Stage:
         """Write ``result`` into ``folder`` (built hidden, renamed into place when done)."""
         raise NotImplementedError
 
-    def handoff(self, result: Any) -> Any:
-        """What downstream stages read of a result :meth:`compute` returned (by default
-        all of it; :meth:`load` gives the same from the written folder)."""
+    def handoff(self, result: Any, scenario: Scenario) -> Any:
+        """What downstream stages read of a result :meth:`compute` returned for
+        ``scenario`` (by default all of it; :meth:`load` gives the same from the written
+        folder)."""
         return result
 
     def load(self, folder: Path, scenario: Scenario) -> Any:

@@ -22,7 +22,7 @@ from core.files import number, read_text
 from core.schema import MAX_LENGTH_MM, Scenario, printable, scenario_from_dict, scenario_to_dict
 from packing.drop import DropProtocol
 from packing.effects import EFFECTS
-from packing.shapes import make_shape
+from packing.shapes import SHAPES
 
 __all__ = [
     "Condition",
@@ -347,12 +347,12 @@ def _drop_condition(entry, key: str, scenario: Scenario) -> Condition:
         raise InputError(f"{key}.name: expected a name without commas, got {name!r}")
     default = scenario.drop
     height = _number(entry.get("height_mm", default.height_mm), f"{key}.height_mm", 1e-3, 1e5)
-    # The chip's own extent (a file chip's length_mm is not its size).
-    half_length = float(make_shape(scenario.chips[0]).half_extents[:2].max())
-    if height <= half_length:
+    # The chip's own extent from its shape (a file chip's length_mm is not its size).
+    half_extent = SHAPES.get(scenario.chips[0].shape).extent(scenario.chips[0])[0] / 2
+    if height <= half_extent:
         raise InputError(
-            f"{key}.height_mm: {height:g} mm does not clear the chip's half length "
-            f"({half_length:g} mm)"
+            f"{key}.height_mm: {height:g} mm does not clear half the chip's largest extent "
+            f"({half_extent:.1f} mm)"
         )
     yaw = _number(entry.get("yaw_deg", default.yaw_deg), f"{key}.yaw_deg", -360, 360)
     tilt = _number(entry.get("tilt_deg", default.tilt_deg), f"{key}.tilt_deg", 0, 90)

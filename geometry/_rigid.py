@@ -134,7 +134,7 @@ def _rules(
         if kind is None:
             return apart
         if touching_lines and kind == _LINE and GROUND not in (chip, partner):
-            return Rule(0.0, upper, True, touching=True)
+            return Rule(0.0, within, True, touching=True)  # touching leaves room for it
         return Rule(gap_mm, upper, kind != KINDS.index("point"))
 
     return rule

@@ -189,14 +189,9 @@ def resolve_contacts(
     resolved = _resolve_globally(
         arrangement, contacts, gap_mm, snap_angle_deg, contact_gap_mm, touching_lines
     )
-    lines = int(np.sum((contacts.kind == _LINE) & (contacts.chip_b != GROUND)))
-    kept_touching = {"line_contacts_kept_touching": lines if touching_lines else 0}
     if resolved is not None:
-        return dataclasses.replace(
-            resolved,
-            seconds=time.perf_counter() - start,
-            info={**resolved.info, **kept_touching},
-        )
+        info = {**resolved.info, **_lines_touching(resolved.arrangement, contacts)}
+        return dataclasses.replace(resolved, seconds=time.perf_counter() - start, info=info)
     log.info("contact resolution: the global route did not clear every pair; bottom-up route")
     n = arrangement.n_chips
     pieces = [_pieces(s) for s in arrangement.shapes]
@@ -410,9 +405,21 @@ def resolve_contacts(
             "coplanar_touching": sum(len(t) for t in touching.values()) // 2 - snapped["chip"],
             "clusters_solved": clusters,
             "route": "bottom-up",
-            **kept_touching,
+            **_lines_touching(resolved, contacts),
         },
     )
+
+
+def _lines_touching(resolved: Arrangement, contacts: ContactTable) -> dict[str, int]:
+    """How many of the settled stack's line contacts between chips end touching (within
+    a micrometre), measured on the resolved arrangement."""
+    pairs = [
+        (int(a), int(b))
+        for a, b, k in zip(contacts.chip_a, contacts.chip_b, contacts.kind, strict=True)
+        if k == _LINE and b != GROUND
+    ]
+    touching = sum(1 for a, b in pairs if separation_mm(resolved, a, b) <= 1e-3)
+    return {"line_contacts": len(pairs), "line_contacts_touching": touching}
 
 
 def _resolve_globally(

@@ -4,8 +4,8 @@ An effect has one strength parameter with a unit, a prior range (the values the 
 searches), the strength at which it is absent (``neutral``), the scenario kinds it acts on
 and a physical justification (the README's "Candidate effects" table is built from them).
 It acts through hooks, run for drops and depositions alike by the runner functions
-here (:func:`release_spin`, :func:`apply_effect_loads` every step, :func:`shake_settled`
-after a batch):
+here (:func:`release_spin`, :func:`apply_effect_loads` every step; and for depositions
+:func:`shake_settled` after a batch):
 
 * :meth:`Effect.shape` changes the chip (warp, rounded edges);
 * :meth:`Effect.contact` changes the contact model (friction, restitution, floor);

@@ -30,6 +30,7 @@ from packing.files import (
     write_mat_files,
     write_stack_files,
 )
+from packing.sections import ContainerSpec, ConveyorSpec, DropSpec
 
 # The simulation is imported where used: every command-line start registers the stage.
 if TYPE_CHECKING:
@@ -60,14 +61,20 @@ class ScenarioKind:
     makes_stack: its packing leaves a :class:`~core.stack.Stack` (``stack.npz``).
     summary_keys: the top-level manifest entries its packing writes (the command line's
     summary of a run is told apart by them).
+    sections: its own scenario tables (:class:`~core.schema.Section` classes with this
+    kind in their ``kinds``), which the packing stage declares for it.
     """
 
     name: ClassVar[str] = ""
     makes_stack: ClassVar[bool] = True
     summary_keys: ClassVar[frozenset[str]] = frozenset({"packing"})
+    sections: ClassVar[tuple[type, ...]] = ()  # its own scenario tables (Section classes)
+
+    def check_chip(self, scenario: Scenario, chip: ChipExtent) -> None:
+        """Refuse a chip this kind cannot take (``InputError``), each as it is checked."""
 
     def check(self, scenario: Scenario, chips: list[ChipExtent]) -> None:
-        """Refuse chips or release settings this kind cannot take (``InputError``)."""
+        """Refuse release settings this kind cannot take for its ``chips``."""
 
     def key_extra(self, scenario: Scenario, options: StageOptions) -> dict[str, Any]:
         """What else the packing's result depends on for this kind."""
@@ -138,14 +145,15 @@ class StackKind(ScenarioKind):
 
     name = "stack"
 
-    def check(self, scenario: Scenario, chips: list[ChipExtent]) -> None:
+    def check_chip(self, scenario: Scenario, chip: ChipExtent) -> None:
         d = scenario.deposition
-        for key, across, _ in chips:
-            if across > d.target_size_mm:
-                raise InputError(
-                    f"{key}.length_mm: the chip ({across:.1f} mm across) is larger than "
-                    f"the target (deposition.target_size_mm = {d.target_size_mm:g} mm)"
-                )
+        if chip.across_mm > d.target_size_mm:
+            raise InputError(
+                f"{chip.key}.length_mm: the chip ({chip.across_mm:.1f} mm across) is larger "
+                f"than the target (deposition.target_size_mm = {d.target_size_mm:g} mm)"
+            )
+
+    def check(self, scenario: Scenario, chips: list[ChipExtent]) -> None:
         _release_clears_the_floor(scenario, chips)
 
     def compute(self, inputs: StageInputs, stage_name: str) -> Stack:
@@ -197,6 +205,7 @@ class DropKind(ScenarioKind):
     name = "drop"
     makes_stack = False
     summary_keys = frozenset({"drop"})
+    sections = (DropSpec,)
 
     def check(self, scenario: Scenario, chips: list[ChipExtent]) -> None:
         largest_radius = max((radius for _, _, radius in chips), default=0.0)
@@ -228,15 +237,18 @@ class ContainerKind(StackKind):
 
     name = "container"
     summary_keys = frozenset({"packing", "container"})
+    sections = (ContainerSpec,)
+
+    def check_chip(self, scenario: Scenario, chip: ChipExtent) -> None:
+        wide = 2 * scenario.container.radius_mm
+        if chip.across_mm > wide:
+            raise InputError(
+                f"{chip.key}.length_mm: the chip ({chip.across_mm:.1f} mm) is longer than the "
+                f"container is wide (2 x container.radius_mm = {wide:g} mm)"
+            )
 
     def check(self, scenario: Scenario, chips: list[ChipExtent]) -> None:
-        wide = 2 * scenario.container.radius_mm
-        for key, across, _ in chips:
-            if across > wide:
-                raise InputError(
-                    f"{key}.length_mm: the chip ({across:.1f} mm) is longer than the "
-                    f"container is wide (2 x container.radius_mm = {wide:g} mm)"
-                )
+        pass  # released above the rim: no floor to clear
 
     def write(self, result: Stack, folder: Path, inputs: StageInputs) -> StageOutput:
         output = super().write(result, folder, inputs)
@@ -251,6 +263,10 @@ class ConveyorKind(StackKind):
 
     name = "conveyor"
     summary_keys = frozenset({"packing", "conveyor"})
+    sections = (ConveyorSpec,)
+
+    def check_chip(self, scenario: Scenario, chip: ChipExtent) -> None:
+        pass  # the panel is cut from the mat: check_conveyor weighs it against the chips
 
     def check(self, scenario: Scenario, chips: list[ChipExtent]) -> None:
         from packing.conveyor import check_conveyor

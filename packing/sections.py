@@ -1,5 +1,6 @@
 """The packing stage's scenario tables: deposition, physics, settling and output, and the
-tables of the kinds it alone runs (drop, container, conveyor).
+tables of the kinds it alone runs (drop, container, conveyor; each listed by its kind in
+:mod:`packing.kinds`).
 
 Each is a frozen :class:`~core.schema.Section` declared with :func:`~core.schema.key`
 (type, unit, default, one-line description and check), so that the validator, the key
@@ -300,12 +301,6 @@ class ConveyorSpec(Section):
     )
 
 
-SECTIONS = (
-    DepositionSpec,
-    PhysicsSpec,
-    SettlingSpec,
-    OutputSpec,
-    DropSpec,
-    ContainerSpec,
-    ConveyorSpec,
-)
+# The tables of every kind; a kind's own table is declared by its scenario kind
+# (packing.kinds: drop, container, conveyor).
+SECTIONS = (DepositionSpec, PhysicsSpec, SettlingSpec, OutputSpec)

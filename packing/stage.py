@@ -29,22 +29,22 @@ class PackingStage(Stage):
     name = "packing"
     progress_label = "depositing"
     progress_unit = "batch"
-    sections = (
-        "kind",
-        "seed",
-        "chip",
-        "mix",
-        "deposition",
-        "physics",
-        "settling",
-        "output",
-        "drop",
-        "container",
-        "conveyor",
-    )
-    owned_sections = SECTIONS
-    kinds = ("stack", "drop", "container", "conveyor")
     checkpointed = True
+
+    # What the stage runs, declares and reads follows the scenario-kind registry, so that
+    # a kind from a plugin runs, and its own table is validated and in the cache key.
+    @property
+    def kinds(self) -> tuple[str, ...]:
+        return tuple(SCENARIO_KINDS.in_order())
+
+    @property
+    def owned_sections(self) -> tuple[type, ...]:
+        own = [t for name in self.kinds for t in SCENARIO_KINDS.get(name).sections]
+        return (*SECTIONS, *dict.fromkeys(t for t in own if t not in SECTIONS))
+
+    @property
+    def sections(self) -> tuple[str, ...]:
+        return ("kind", "seed", "chip", "mix", *(t.table for t in self.owned_sections))
 
     def check(self, scenario: Scenario) -> None:
         check_packing(scenario)
@@ -70,8 +70,8 @@ class PackingStage(Stage):
     def write(self, result: Any, folder: Path, inputs: StageInputs) -> StageOutput:
         return SCENARIO_KINDS.get(inputs.scenario.kind).write(result, folder, inputs)
 
-    def handoff(self, result: Any) -> Any:
-        return self._kind_of(result).handoff(result)
+    def handoff(self, result: Any, scenario: Scenario) -> Any:
+        return SCENARIO_KINDS.get(scenario.kind).handoff(result)
 
     def load(self, folder: Path, scenario: Scenario) -> Stack | None:
         return SCENARIO_KINDS.get(scenario.kind).load(folder, scenario)
@@ -82,13 +82,6 @@ class PackingStage(Stage):
     def report(self, summary: Mapping[str, Any], folder: Path) -> list[str]:
         kind = kind_of_summary(summary)
         return kind.report(summary, folder) if kind is not None else []
-
-    @staticmethod
-    def _kind_of(result: Any):
-        # handoff() gets no scenario: the result says which kind made it.
-        from packing.conveyor import ConveyorResult
-
-        return SCENARIO_KINDS.get("conveyor" if isinstance(result, ConveyorResult) else "stack")
 
 
 STAGE = PackingStage()
@@ -108,4 +101,5 @@ def check_packing(scenario: Scenario) -> None:
         across, radius = check_chip(spec, key)
         grow = 1 + spec.size_spread if spec.size_distribution == "uniform" else 1.0
         chips.append(ChipExtent(key, across * grow, radius * grow))
+        kind.check_chip(scenario, chips[-1])
     kind.check(scenario, chips)

@@ -229,7 +229,7 @@ def compute_run(
             break
         start = time.perf_counter()
         results[stage.name] = stage.compute(StageInputs(scenario, options, handed.__getitem__))
-        handed[stage.name] = stage.handoff(results[stage.name])
+        handed[stage.name] = stage.handoff(results[stage.name], scenario)
         times[stage.name] = round(time.perf_counter() - start, 3)
     return RepeatResult(scenario, results, times, started, to, options.descriptors)
 
@@ -257,7 +257,7 @@ def write_run(
     by_name = {stage.name: stage for stage in load_stages()}
 
     def handed(name: str) -> Any:
-        return by_name[name].handoff(results[name])
+        return by_name[name].handoff(results[name], scenario)
 
     for stage in stages:
         inputs = StageInputs(scenario, options, handed)

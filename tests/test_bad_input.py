@@ -106,7 +106,7 @@ BAD_SCENARIOS = {
     "crop of the conformal mesh": ('[mesh]\nkind = "conformal"\ncrop = "target"\n', "mesh.crop"),
     "unknown scenario kind": (
         'kind = "pour"\n',
-        "kind: unknown scenario kind 'pour'; valid names: container, conveyor, drop, stack",
+        "kind: must be one of 'stack', 'drop', 'container', 'conveyor' (got 'pour')",
     ),
 }
 
@@ -328,7 +328,7 @@ BAD_SPECS = {
     ),
     "release below the chip's half length": (
         'kind = "drop"\nobservations = "data.csv"\n' + CONDITION.replace("200", "8"),
-        "condition[0].height_mm: 8 mm does not clear the chip's half length (10 mm)",
+        "condition[0].height_mm: 8 mm does not clear half the chip's largest extent (14.1 mm)",
     ),
     "unknown key": (
         'kind = "drop"\nobservations = "data.csv"\ncolour = 1\n' + CONDITION,
