@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 from core.schema import Scenario
 from core.stages import Stage, StageInputs, StageOptions, StageOutput
 from geometry.sections import GeometrySpec
+from packing.kinds import stack_kinds
 
 # The descriptors and their writers are imported where used: every command-line start
 # registers this stage, and they bring numpy, scipy and manifold3d (~1 s).
@@ -27,6 +28,7 @@ class GeometryStage(Stage):
     upstream = ("packing",)
     sections = ("geometry",)
     owned_sections = (GeometrySpec,)
+    kinds = property(lambda self: stack_kinds())  # the kinds whose stack goes on
     repeat_statistics = True
 
     def check_options(self, options: StageOptions) -> None:

@@ -17,6 +17,7 @@ from core.schema import Scenario
 from core.stages import Stage, StageInputs, StageOutput
 from meshing.sections import SolveSpec
 from meshing.solve_models import solve_model
+from packing.kinds import stack_kinds
 
 # The solver's driver, readers and writers are imported where used: every command-line
 # start registers this stage, and they bring numpy and scipy.
@@ -52,6 +53,7 @@ class SolveStage(Stage):
     upstream = ("mesh",)
     sections = ("solve",)
     owned_sections = (SolveSpec,)
+    kinds = property(lambda self: stack_kinds())  # the kinds whose stack goes on
     in_ensembles = False
 
     def check_run(self, scenario: Scenario) -> None:

@@ -14,6 +14,7 @@ from core.schema import Scenario
 from core.stages import Stage, StageInputs, StageOptions, StageOutput
 from meshing.kinds import MESH_KINDS, Built, crop_region, mesh_kinds
 from meshing.sections import MeshSpec
+from packing.kinds import stack_kinds
 
 # The meshers, checks and writers are imported where used: every command-line start
 # registers this stage, and they bring numpy, scipy, manifold3d and gmsh (~1 s).
@@ -48,6 +49,7 @@ class MeshStage(Stage):
     # new mesh).
     sections = ("geometry", "mesh")
     owned_sections = (MeshSpec,)
+    kinds = property(lambda self: stack_kinds())  # the kinds whose stack goes on
     in_ensembles = False
 
     def check(self, scenario: Scenario) -> None:

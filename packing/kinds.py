@@ -37,7 +37,7 @@ if TYPE_CHECKING:
     from core.stack import BatchResult, Stack
     from packing.conveyor import ConveyorResult
 
-__all__ = ["SCENARIO_KINDS", "ScenarioKind", "ChipExtent", "kind_of_summary"]
+__all__ = ["SCENARIO_KINDS", "ScenarioKind", "ChipExtent", "kind_of_summary", "stack_kinds"]
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +59,7 @@ class ScenarioKind:
 
     name: the value of the scenario's ``kind``.
     makes_stack: its packing leaves a :class:`~core.stack.Stack` (``stack.npz``).
+    later_stages: the later stages (geometry, mesh, solve) run on that stack.
     summary_keys: the top-level manifest entries its packing writes (the command line's
     summary of a run is told apart by them).
     sections: its own scenario tables (:class:`~core.schema.Section` classes with this
@@ -67,6 +68,7 @@ class ScenarioKind:
 
     name: ClassVar[str] = ""
     makes_stack: ClassVar[bool] = True
+    later_stages: ClassVar[bool] = True  # its stack goes on to geometry, mesh and solve
     summary_keys: ClassVar[frozenset[str]] = frozenset({"packing"})
     sections: ClassVar[tuple[type, ...]] = ()  # its own scenario tables (Section classes)
 
@@ -116,6 +118,11 @@ SCENARIO_KINDS: Registry[ScenarioKind] = Registry("scenario kind", "chipstack.sc
 def _register(cls: type[ScenarioKind]) -> type[ScenarioKind]:
     SCENARIO_KINDS.register(cls.name, cls())
     return cls
+
+
+def stack_kinds() -> tuple[str, ...]:
+    """The kinds whose stack goes on to the later stages (their ``Stage.kinds``)."""
+    return tuple(n for n in SCENARIO_KINDS.in_order() if SCENARIO_KINDS.get(n).later_stages)
 
 
 def kind_of_summary(summary: Mapping[str, Any]) -> ScenarioKind | None:
@@ -204,6 +211,7 @@ class DropKind(ScenarioKind):
 
     name = "drop"
     makes_stack = False
+    later_stages = False
     summary_keys = frozenset({"drop"})
     sections = (DropSpec,)
 
@@ -236,6 +244,7 @@ class ContainerKind(StackKind):
     settled chip's centre of mass inside the wall's footprint at or above the rim)."""
 
     name = "container"
+    later_stages = False  # a fill is described by its own summary (volume fraction)
     summary_keys = frozenset({"packing", "container"})
     sections = (ContainerSpec,)
 

@@ -1,7 +1,8 @@
 """Plugins: a package outside the project (``tests/plugins``: its module and its
 ``.dist-info`` with the entry points, on the path of the runs below as an installed
-package would be) adds a chip shape, a descriptor, a mesh kind and an effect without
-touching a file of the project; each works end to end, and its docs rows are generated."""
+package would be) adds a chip shape, a descriptor, a mesh kind, an effect and a scenario
+kind with its own table and deposition site without touching a file of the project; each
+works end to end, and its docs rows are generated."""
 
 from __future__ import annotations
 
@@ -32,6 +33,26 @@ target_size_mm = 80.0
 release_height_mm = [60.0, 120.0]
 [mesh]
 kind = "coarse_voxel"
+voxel_mm = 1.0
+"""
+
+RING = """
+name = "ring"
+kind = "ring"
+seed = 2
+[chip]
+length_mm = 10.0
+width_mm = 10.0
+thickness_mm = 2.0
+[deposition]
+chips = 12
+batch_size = 4
+target_size_mm = 80.0
+release_height_mm = [40.0, 120.0]
+[ring]
+radius_mm = 8.0
+centre_x_mm = 25.0
+[mesh]
 voxel_mm = 1.0
 """
 
@@ -87,6 +108,22 @@ def test_without_the_plugin_its_names_are_refused_in_one_line(tmp_path):
     assert not (tmp_path / "run").exists()
 
 
+def test_a_plugin_scenario_kind_with_its_own_table_runs_through_the_stages(tmp_path):
+    (tmp_path / "ring.toml").write_text(RING)
+    result = run(["-m", "pipeline", "run", "ring.toml", "--to", "mesh", "--out", "run"], tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert "[ring]\nradius_mm = 8.0" in (tmp_path / "run" / "scenario.toml").read_text()
+    with open(tmp_path / "run" / "packing" / "poses_after_batch_03.csv") as f:
+        rows = list(csv.DictReader(f))
+    x = [float(r["x_mm"]) for r in rows]
+    # Released over the disc 25 mm along x, not over the 80 mm square centred on 0.
+    assert len(x) == 12 and np.median(x) > 12.0
+    assert (tmp_path / "run" / "mesh" / "stack_voxel.vtu").exists()
+    without = run(["-m", "pipeline", "run", "ring.toml", "--out", "run2"], tmp_path, False)
+    assert without.returncode == 2
+    assert "ring: unknown key in the top level" in without.stderr  # its table, then its kind
+
+
 def test_a_plugin_effect_acts_on_simulated_drops(tmp_path):
     (tmp_path / "spec.toml").write_text(WIND)
     common = ["-m", "pipeline", "synth", "spec.toml", "--drops", "12", "--seed", "1"]
@@ -105,13 +142,13 @@ def test_a_plugin_effect_acts_on_simulated_drops(tmp_path):
 def test_plugin_rows_are_generated_in_the_docs_tables(tmp_path):
     code = (
         "from pipeline.reference import GENERATED\n"
-        "for name in ('shapes', 'descriptors', 'mesh_kinds', 'effects'):\n"
+        "for name in ('shapes', 'descriptors', 'mesh_kinds', 'effects', 'scenario_kinds'):\n"
         "    print(GENERATED[name]())\n"
     )
     with_plugin = run(["-c", code], tmp_path)
     assert with_plugin.returncode == 0, with_plugin.stderr
     rows = ("| `triangle` | An equilateral triangle", "| `centre_height` |", "| `coarse_voxel` |")
-    for row in (*rows, "| `crosswind` |"):
+    for row in (*rows, "| `crosswind` |", "| `ring` | Batch deposition over a disc"):
         assert row in with_plugin.stdout, row
     without = run(["-c", code], tmp_path, plugin=False)
     assert "triangle" not in without.stdout and "crosswind" not in without.stdout

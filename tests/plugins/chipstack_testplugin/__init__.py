@@ -1,16 +1,23 @@
-"""A plugin package outside the project: a chip shape, a descriptor, a mesh kind and an
-effect, declared only in its own entry points (``chipstack_testplugin-0.1.dist-info``).
+"""A plugin package outside the project: a chip shape, a descriptor, a mesh kind, an
+effect and a scenario kind (with its table and deposition site), declared only in its own
+entry points (``chipstack_testplugin-0.1.dist-info``).
 ``tests/test_plugins.py`` puts this folder on the path of a CLI run and checks that each
 works end to end."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import ClassVar
+
 import numpy as np
 
+from core.schema import Section, between, key
 from geometry.describe import Descriptor
 from meshing.kinds import VoxelKind
 from packing.effects import Effect
+from packing.kinds import StackKind
 from packing.shapes import ShapeKind, prism_shape
+from packing.sites import SquareTarget
 
 
 def _triangle(spec, rng=None, size=1.0):
@@ -74,3 +81,43 @@ class Crosswind(Effect):
 
 
 CROSSWIND = Crosswind()
+
+
+@dataclass(frozen=True)
+class RingSpec(Section):
+    """The round target of the plugin's ``ring`` kind."""
+
+    table: ClassVar[str] = "ring"
+    kinds: ClassVar[tuple[str, ...]] = ("ring",)
+
+    radius_mm: float = key(
+        30.0, "mm", "radius of the disc the chips are released over", between(1.0, 1000.0)
+    )
+    centre_x_mm: float = key(0.0, "mm", "where the disc's centre lies along x", between(-500, 500))
+
+
+class Ring(StackKind):
+    """Batch deposition over a disc (a scenario kind from a plugin)."""
+
+    name = "ring"
+    sections = (RingSpec,)
+
+
+class RingSite(SquareTarget):
+    """Chips released over the disc of ``[ring]`` (a deposition site from a plugin)."""
+
+    def release_point(self, scenario, clearance_mm, rng, zone_x_mm):
+        radius = scenario.ring.radius_mm * np.sqrt(rng.uniform())
+        angle = rng.uniform(0, 2 * np.pi)
+        height = max(rng.uniform(*scenario.deposition.release_height_mm), clearance_mm)
+        centre = scenario.ring.centre_x_mm
+        return np.array([centre + radius * np.cos(angle), radius * np.sin(angle), height])
+
+    def no_room(self, scenario, n):
+        from core.errors import InputError
+
+        return InputError(f"ring.radius_mm: cannot release {n} chips over the disc")
+
+
+RING = Ring()
+RING_SITE = RingSite()
