@@ -13,6 +13,7 @@ command-line start imports this registry.
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,6 +34,8 @@ if TYPE_CHECKING:
     from meshing.mesh import VolumeMesh
 
 __all__ = ["Built", "MeshKind", "MESH_KINDS", "COMBINED", "mesh_kinds"]
+
+log = logging.getLogger(__name__)
 
 # Names of ``mesh.kind`` that stand for several kinds, built in this order.
 COMBINED = {"both": ("voxel", "conformal")}
@@ -203,35 +206,57 @@ class ConformalKind(MeshKind):
         return (MeshingError, UnresolvedError)
 
     def build(self, arrangement, scenario, scratch):
-        from geometry.resolve import resolve_contacts
-        from meshing.conformal import conformal_mesh
+        from geometry.resolve import UnresolvedError, resolve_contacts
+        from meshing.conformal import MeshingError, conformal_mesh
 
         spec, g = scenario.mesh, scenario.geometry
         native = {}
         if "msh" in spec.formats:  # written by gmsh itself, physical groups and all
             native["msh"] = scratch / f"stack_{self.name}.msh"
-        # The mesh-ready arrangement: the settled one is left as it is (descriptors and
-        # the voxel mesh keep the physics' poses). Without the pore space nothing is
-        # meshed between chips, so line contacts stay touching (their class kept); with
-        # it they are cleared by the gap, which no pore element could fill.
-        resolution = resolve_contacts(
-            arrangement,
-            spec.gap_mm,
-            spec.snap_angle_deg,
-            contact_gap_mm=g.contact_gap_mm,
-            contact_extent_mm=g.contact_extent_mm,
-            touching_lines=spec.pore_space == "none",
-        )
-        mesh = conformal_mesh(
-            resolution.arrangement,
-            spec.size_mm,
-            spec.pore_space,
-            g.layer_mm,
-            spec.min_quality,
-            msh_path=native.get("msh"),
-        )
+
+        def resolve_and_mesh(touching_lines: bool):
+            # The mesh-ready arrangement: the settled one is left as it is (descriptors
+            # and the voxel mesh keep the physics' poses).
+            resolution = resolve_contacts(
+                arrangement,
+                spec.gap_mm,
+                spec.snap_angle_deg,
+                contact_gap_mm=g.contact_gap_mm,
+                contact_extent_mm=g.contact_extent_mm,
+                touching_lines=touching_lines,
+            )
+            mesh = conformal_mesh(
+                resolution.arrangement,
+                spec.size_mm,
+                spec.pore_space,
+                g.layer_mm,
+                spec.min_quality,
+                msh_path=native.get("msh"),
+            )
+            return resolution, mesh
+
+        # Without the pore space nothing is meshed between chips, so line contacts stay
+        # touching (their class kept); with it they are cleared by the gap, which no pore
+        # element could fill. Two chips laid within 0.2 um of each other can still make
+        # the mesh fail (paper-rectangles, seed 0): then they are cleared as well.
+        fell_back = None
+        if spec.pore_space == "none":
+            try:
+                resolution, mesh = resolve_and_mesh(True)
+            except (MeshingError, UnresolvedError) as exc:
+                fell_back = str(exc)
+                log.warning(
+                    "conformal mesh with line contacts touching failed (%s); "
+                    "clearing them by the gap instead",
+                    exc,
+                )
+                resolution, mesh = resolve_and_mesh(False)
+        else:
+            resolution, mesh = resolve_and_mesh(False)
         info = dict(mesh.info)
         info["resolution"] = resolution.summary()
+        if fell_back is not None:
+            info["resolution"]["touching_lines_failed"] = fell_back
         info["mesh_time_s"] = round(info["mesh_time_s"] + resolution.seconds, 3)
         mesh = type(mesh)(**{**mesh.__dict__, "info": info})
         return Built(mesh, native, {"resolution": resolution})
