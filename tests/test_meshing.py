@@ -579,6 +579,33 @@ def test_a_physics_stack_meshes_conformally_after_contact_resolution(tmp_path, s
     assert len(back.points) == entry["nodes"]
 
 
+def test_line_contacts_kept_touching_fall_back_to_the_gap_when_the_mesh_fails(
+    tmp_path, monkeypatch
+):
+    """Two chips side by side in a line contact: resolved with the contact touching first;
+    when that mesh fails, the contact is cleared by the gap and the stack meshed again,
+    and the report says so."""
+    import meshing.conformal as conformal
+    from core.schema import Scenario
+    from geometry.resolve import separation_mm
+    from meshing.kinds import MESH_KINDS
+
+    real, calls = conformal.conformal_mesh, []
+
+    def failing_once(arrangement, *args, **kwargs):
+        calls.append(separation_mm(arrangement, 0, 1))
+        if len(calls) == 1:
+            raise conformal.MeshingError("a sliver (test)")
+        return real(arrangement, *args, **kwargs)
+
+    monkeypatch.setattr(conformal, "conformal_mesh", failing_once)
+    pair = arrange([((-9.99, 0.0, 1.0), 0.0), ((9.99, 0.0, 1.0), 0.0)])
+    built = MESH_KINDS.get("conformal").build(pair, Scenario(), tmp_path)
+    assert calls[0] <= 1e-3 and 0.03 <= calls[1] <= 0.045  # touching, then cleared
+    assert built.mesh.info["resolution"]["touching_lines_failed"] == "a sliver (test)"
+    assert built.mesh.chip_volumes() == pytest.approx([800.0, 800.0], rel=1e-9)
+
+
 def test_a_single_chip_meshes_conformally():
     mesh = conformal_mesh(arrange([((0, 0, 1.0), 30.0)]), size_mm=2.0)
     assert mesh.chip_volumes() == pytest.approx([800.0], rel=1e-9)
