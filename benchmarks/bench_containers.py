@@ -52,7 +52,7 @@ from core import scenario_to_dict
 from core.provenance import code_versions
 from packing import deposit
 from packing.fill import container_fill
-from packing.stage import PackingStage
+from packing.stage import STAGE as PACKING
 from pipeline.scenario_files import load_scenario
 
 # The paper's model (mean ± sd over 10 repeats) and Freeman et al. 2019 (measured, about).
@@ -94,7 +94,7 @@ def scenario_hash(scenario) -> str:
     """A short hash of the scenario sections the packing stage depends on, seed excluded
     (the seed is in the cache file's name): a changed scenario never reuses a cached fill."""
     data = scenario_to_dict(scenario)
-    keyed = {k: data[k] for k in PackingStage.sections if k != "seed"}
+    keyed = {k: data[k] for k in PACKING.sections if k != "seed"}
     text = json.dumps(keyed, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:10]
 
