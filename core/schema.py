@@ -270,6 +270,7 @@ class Scenario:
             else:
                 value = f.default
             object.__setattr__(self, f.name, value)
+        values.pop("_by_table", None)  # Scenario(**other.__dict__): derived from the tables
         by_table = {cls.table: cls() for cls in sections()}
         given = {t.table: t for t in values.pop("tables", ())}
         given.update(values)

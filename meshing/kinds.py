@@ -245,12 +245,13 @@ class ConformalKind(MeshKind):
                 resolution, mesh = resolve_and_mesh(True)
             except (MeshingError, UnresolvedError) as exc:
                 fell_back = str(exc)
+                resolution, mesh = resolve_and_mesh(False)
+                # Said once it worked: when it fails too, its error is the one line.
                 log.warning(
-                    "conformal mesh with line contacts touching failed (%s); "
-                    "clearing them by the gap instead",
+                    "conformal mesh with line contacts touching failed (%s); they were "
+                    "cleared by the gap instead",
                     exc,
                 )
-                resolution, mesh = resolve_and_mesh(False)
         else:
             resolution, mesh = resolve_and_mesh(False)
         info = dict(mesh.info)
