@@ -136,8 +136,13 @@ def kind_of_summary(summary: Mapping[str, Any]) -> ScenarioKind | None:
     return max(fitting, key=lambda kind: len(kind.summary_keys), default=None)
 
 
+def _largest_radius(chips: list[ChipExtent]) -> float:
+    """The largest circumradius of the chip specs (mm)."""
+    return max((chip.radius_mm for chip in chips), default=0.0)
+
+
 def _release_clears_the_floor(scenario: Scenario, chips: list[ChipExtent]) -> None:
-    largest_radius = max((radius for _, _, radius in chips), default=0.0)
+    largest_radius = _largest_radius(chips)
     if scenario.deposition.release_height_mm[0] <= largest_radius:
         raise InputError(
             "deposition.release_height_mm: the lowest release height must clear the chip's "
@@ -216,7 +221,7 @@ class DropKind(ScenarioKind):
     sections = (DropSpec,)
 
     def check(self, scenario: Scenario, chips: list[ChipExtent]) -> None:
-        largest_radius = max((radius for _, _, radius in chips), default=0.0)
+        largest_radius = _largest_radius(chips)
         if scenario.drop.height_mm <= largest_radius:
             raise InputError(
                 f"drop.height_mm: must clear the chip's circumradius ({largest_radius:.1f} mm)"
@@ -280,7 +285,7 @@ class ConveyorKind(StackKind):
     def check(self, scenario: Scenario, chips: list[ChipExtent]) -> None:
         from packing.conveyor import check_conveyor
 
-        largest_radius = max((radius for _, _, radius in chips), default=0.0)
+        largest_radius = _largest_radius(chips)
         check_conveyor(scenario, 2 * largest_radius)
         _release_clears_the_floor(scenario, chips)
 
