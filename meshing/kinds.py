@@ -58,6 +58,10 @@ class MeshKind:
     name: str = ""
     doc: str = ""
     crops: bool = False  # takes mesh.crop
+    # Part of the mesh stage's cache key: raise it when the kind's algorithm gives another
+    # mesh for the same keys, so that run directories made before remesh instead of
+    # reusing the old mesh.
+    version: int = 1
     solve_models: tuple[str, ...] = ()  # names in meshing.solve_models.SOLVE_MODELS
     # Errors of the mesher that mean "this stack cannot be meshed this way" (a one-line
     # message); with mesh.kind = "both" the other kind's mesh still stands.
@@ -196,6 +200,7 @@ class VoxelKind(MeshKind):
 
 class ConformalKind(MeshKind):
     name = "conformal"
+    version = 2  # 2: line contacts kept touching for a mesh of the chips alone
     doc = "gmsh tetrahedra of the resolved arrangement, touching chips sharing faces"
 
     @property

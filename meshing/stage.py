@@ -76,7 +76,8 @@ class MeshStage(Stage):
             )
 
     def key_extra(self, scenario: Scenario, options: StageOptions) -> dict[str, Any]:
-        return {"figures": options.figures}
+        versions = {kind.name: kind.version for kind in mesh_kinds(scenario.mesh.kind)}
+        return {"figures": options.figures, "algorithms": versions}
 
     def compute(self, inputs: StageInputs) -> MeshedStack:
         from core.arrangement import stack_history

@@ -314,3 +314,25 @@ def test_a_full_disk_keeps_the_batches_and_the_run_resumes_once_there_is_room(
     assert again.returncode == 0, again.stderr
     assert _manifest(out)["resumed_after_batch"] == _batches(kept)
     assert _files(out) == _files(reference)
+
+
+def test_a_new_version_of_a_mesh_kind_redoes_the_mesh_and_what_follows(monkeypatch):
+    # A run directory meshed by an older algorithm must not reuse its mesh: the kind's
+    # version is part of the mesh stage's key (and so of the solve stage's).
+    from meshing.kinds import MESH_KINDS
+    from packing import scenario_from_dict
+    from pipeline.run import stage_inputs
+
+    scenario = scenario_from_dict({"mesh": {"kind": "conformal"}})
+    before = stage_inputs(scenario)
+    monkeypatch.setattr(type(MESH_KINDS.get("conformal")), "version", 99)
+    after = stage_inputs(scenario)
+    changed = sorted(name for name in before if before[name] != after[name])
+    assert changed == ["mesh", "solve"]
+    voxel = scenario_from_dict({"mesh": {"kind": "voxel"}})
+    voxel_before = stage_inputs(voxel)
+    assert voxel_before["mesh"] != before["mesh"]
+    assert stage_inputs(voxel) == voxel_before  # only the voxel kind's version counts
+    monkeypatch.setattr(type(MESH_KINDS.get("voxel")), "version", 2)
+    assert stage_inputs(voxel)["mesh"] != voxel_before["mesh"]
+    assert stage_inputs(voxel)["geometry"] == voxel_before["geometry"]
