@@ -66,7 +66,13 @@ from geometry._rigid import (
 )
 from geometry.contacts import GROUND, ContactTable, candidate_pairs, find_contacts
 
-__all__ = ["Resolution", "UnresolvedError", "resolve_contacts", "separation_mm"]
+__all__ = [
+    "Resolution",
+    "UnresolvedError",
+    "resolve_contacts",
+    "resolve_chips",
+    "separation_mm",
+]
 
 log = logging.getLogger(__name__)
 
@@ -79,7 +85,22 @@ _LATER_GIVE_MM = _SLACK_MM
 
 
 class UnresolvedError(ChipstackError):
-    """Some chips cannot be resolved by small motions (the message names them)."""
+    """Some chips cannot be resolved by small motions (the message names them).
+
+    unresolved: (chip, how far short of the gap, mm) of each."""
+
+    def __init__(self, message: str, unresolved: tuple[tuple[int, float], ...] = ()) -> None:
+        super().__init__(message)
+        self.unresolved = unresolved
+
+
+def _unresolved_error(unresolved, gap_mm: float) -> UnresolvedError:
+    names = ", ".join(f"{c} ({-w:.3f} mm short)" for c, w in unresolved[:12])
+    return UnresolvedError(
+        f"contact resolution: {len(unresolved)} chips cannot be cleared by {gap_mm:g} mm "
+        f"with small motions: chips {names}; use the voxel mesh (mesh.kind = 'voxel')",
+        tuple(unresolved),
+    )
 
 
 def separation_mm(arrangement: Arrangement, i: int, j: int) -> float:
@@ -159,6 +180,54 @@ def check_settings(gap_mm: float, snap_angle_deg: float, thinnest_mm: float) -> 
         )
     if not (np.isfinite(snap_angle_deg) and 0 <= snap_angle_deg <= 15):
         raise InputError(f"mesh.snap_angle_deg: must be between 0 and 15, got {snap_angle_deg!r}")
+
+
+def resolve_chips(arrangement: Arrangement, chips, **settings) -> Resolution:
+    """:func:`resolve_contacts` of ``chips`` alone (indices into ``arrangement``), as a
+    resolution of the whole arrangement: the other chips keep their settled poses.
+
+    For a crop: only the chips that reach into it are meshed, and resolving them alone
+    is several times faster than the whole stack (their neighbours outside the crop are
+    not meshed, so clearing them from those is of no use)."""
+    chips = np.unique(np.asarray(chips, dtype=np.int64))
+    part = dataclasses.replace(
+        arrangement,
+        shape_index=arrangement.shape_index[chips],
+        positions=arrangement.positions[chips],
+        quaternions=arrangement.quaternions[chips],
+        batch=arrangement.batch[chips],
+    )
+    try:
+        resolved = resolve_contacts(part, **settings)
+    except UnresolvedError as exc:  # named by their indices in the whole arrangement
+        if not exc.unresolved:
+            raise
+        named = [(int(chips[c]), w) for c, w in exc.unresolved]
+        raise _unresolved_error(named, settings.get("gap_mm", 0.03)) from None
+    positions = arrangement.positions.copy()
+    quaternions = arrangement.quaternions.copy()
+    positions[chips] = resolved.arrangement.positions
+    quaternions[chips] = resolved.arrangement.quaternions
+    translation = np.zeros(arrangement.n_chips)
+    rotation = np.zeros(arrangement.n_chips)
+    translation[chips] = resolved.translation_mm
+    rotation[chips] = resolved.rotation_deg
+
+    def whole(k: int) -> int:
+        return int(chips[k]) if k >= 0 else k
+
+    return dataclasses.replace(
+        resolved,
+        arrangement=dataclasses.replace(arrangement, positions=positions, quaternions=quaternions),
+        translation_mm=translation,
+        rotation_deg=rotation,
+        surface_cleared=tuple((whole(a), whole(b)) for a, b in resolved.surface_cleared),
+        info={
+            **resolved.info,
+            "chips_resolved": len(chips),
+            "mean_translation_mm": round(float(resolved.translation_mm.mean()), 5),
+        },
+    )
 
 
 def resolve_contacts(
@@ -379,11 +448,7 @@ def resolve_contacts(
             clusters += 1
         unresolved = _verify(order, near, placed, touching, rule)
     if unresolved:
-        names = ", ".join(f"{c} ({-w:.3f} mm short)" for c, w in unresolved[:12])
-        raise UnresolvedError(
-            f"contact resolution: {len(unresolved)} chips cannot be cleared by {gap_mm:g} mm "
-            f"with small motions: chips {names}; use the voxel mesh (mesh.kind = 'voxel')"
-        )
+        raise _unresolved_error(unresolved, gap_mm)
     resolved = dataclasses.replace(
         arrangement, positions=positions, quaternions=Rotation.from_matrix(rotations).as_quat()
     )

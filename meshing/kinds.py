@@ -58,6 +58,7 @@ class MeshKind:
     name: str = ""
     doc: str = ""
     crops: bool = False  # takes mesh.crop
+    periodic: bool = False  # takes mesh.periodic (opposite sides matching node for node)
     # Part of the mesh stage's cache key: raise it when the kind's algorithm gives another
     # mesh for the same keys, so that run directories made before remesh instead of
     # reusing the old mesh.
@@ -171,6 +172,7 @@ class VoxelKind(MeshKind):
     name = "voxel"
     doc = "hexahedra from the exact voxel image (always succeeds)"
     crops = True
+    periodic = True
     solve_models = ("volume",)
 
     def build(self, arrangement, scenario, scratch):
@@ -200,7 +202,11 @@ class VoxelKind(MeshKind):
 
 class ConformalKind(MeshKind):
     name = "conformal"
-    version = 2  # 2: line contacts kept touching for a mesh of the chips alone
+    # 2: line contacts kept touching for a mesh of the chips alone; with the pore space,
+    # the clearance mesh.pore_gap_mm
+    version = 2
+    crops = True
+    solve_models = ("volume",)
     doc = "gmsh tetrahedra of the resolved arrangement, touching chips sharing faces"
 
     @property
@@ -211,25 +217,49 @@ class ConformalKind(MeshKind):
         return (MeshingError, UnresolvedError)
 
     def build(self, arrangement, scenario, scratch):
-        from geometry.resolve import UnresolvedError, resolve_contacts
-        from meshing.conformal import MeshingError, conformal_mesh
+        from geometry.resolve import (
+            UnresolvedError,
+            check_settings,
+            resolve_chips,
+            resolve_contacts,
+        )
+        from meshing.conformal import MeshingError, chips_near, conformal_mesh
 
         spec, g = scenario.mesh, scenario.geometry
         native = {}
         if "msh" in spec.formats:  # written by gmsh itself, physical groups and all
             native["msh"] = scratch / f"stack_{self.name}.msh"
 
+        region = crop_region(scenario)
+        gap_key, gap = "mesh.gap_mm", spec.gap_mm
+        if spec.pore_space != "none":
+            gap_key, gap = "mesh.pore_gap_mm", pore_gap_mm(spec, arrangement)
+        settings = dict(
+            gap_mm=gap,
+            snap_angle_deg=spec.snap_angle_deg,
+            contact_gap_mm=g.contact_gap_mm,
+            contact_extent_mm=g.contact_extent_mm,
+        )
+        try:
+            check_settings(gap, spec.snap_angle_deg, arrangement.thinnest_mm)
+        except InputError as exc:
+            raise InputError(str(exc).replace("mesh.gap_mm", gap_key)) from None
+
         def resolve_and_mesh(touching_lines: bool):
             # The mesh-ready arrangement: the settled one is left as it is (descriptors
-            # and the voxel mesh keep the physics' poses).
-            resolution = resolve_contacts(
-                arrangement,
-                spec.gap_mm,
-                spec.snap_angle_deg,
-                contact_gap_mm=g.contact_gap_mm,
-                contact_extent_mm=g.contact_extent_mm,
-                touching_lines=touching_lines,
-            )
+            # and the voxel mesh keep the physics' poses). A crop resolves only the chips
+            # that can reach into it.
+            if region is None:
+                resolution = resolve_contacts(
+                    arrangement, **settings, touching_lines=touching_lines
+                )
+            else:
+                resolution = resolve_chips(
+                    arrangement,
+                    chips_near(arrangement, region),
+                    **settings,
+                    touching_lines=touching_lines,
+                )
             mesh = conformal_mesh(
                 resolution.arrangement,
                 spec.size_mm,
@@ -237,6 +267,7 @@ class ConformalKind(MeshKind):
                 g.layer_mm,
                 spec.min_quality,
                 msh_path=native.get("msh"),
+                region_mm=region,
             )
             return resolution, mesh
 
@@ -319,11 +350,6 @@ class ImageKind(MeshKind):
         from meshing.image import image_mesh
 
         spec = scenario.mesh
-        if spec.periodic:
-            raise InputError(
-                "mesh.periodic: the voxel mesh only (Mesh_3's opposite sides do not match "
-                "node for node)"
-            )
         mesh = image_mesh(
             arrangement,
             spec.image_voxel_mm,
@@ -465,6 +491,20 @@ def write_contact(
         "info": model.info,
         "files": sorted(files),
     }
+
+
+def pore_gap_mm(spec, arrangement: Arrangement) -> float:
+    """The contact resolution's clearance with the pore space (``mesh.pore_gap_mm``, or
+    its default: a tenth of the element size, at most a tenth of the thinnest chip
+    dimension), mm.
+
+    A pore slab between two chips is as thin as this, and elements of ``size_mm`` across
+    it are slivers unless it is about a tenth of their size (the reference stack's
+    middle 50 x 50 mm, seed 0, at 1.5 mm: 274 elements below quality 0.1 at 0.05 mm, none
+    at 0.1, 0.15 and 0.2 mm; the worst 0.104, 0.127, 0.131)."""
+    if spec.pore_gap_mm > 0:
+        return float(spec.pore_gap_mm)
+    return float(min(spec.size_mm / 10, arrangement.thinnest_mm / 10))
 
 
 def crop_region(scenario: Scenario) -> tuple[float, float, float, float] | None:

@@ -81,6 +81,14 @@ class MeshSpec(Section):
         "least this far apart (at most a tenth of the thinnest chip dimension)",
         between(1e-4, 10.0),
     )
+    pore_gap_mm: float = key(
+        0.0,
+        "mm",
+        "conformal mesh with the pore space: the clearance of the contact resolution in "
+        "place of gap_mm, wide enough for pore elements between chips (0: a tenth of "
+        "size_mm, at most a tenth of the thinnest chip dimension)",
+        between(0.0, 10.0),
+    )
     snap_angle_deg: float = key(
         3.0,
         "deg",

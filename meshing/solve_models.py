@@ -103,7 +103,10 @@ class VolumePress(SolveModel):
     platens."""
 
     name = "volume"
-    needs = "a cropped volume (mesh.kind = 'voxel' or 'image', mesh.crop, mesh.pore_space = 'box')"
+    needs = (
+        "a cropped volume (mesh.kind = 'voxel', 'image' or 'conformal', mesh.crop, "
+        "mesh.pore_space = 'box')"
+    )
 
     @staticmethod
     def stem(scenario) -> str:

@@ -69,6 +69,12 @@ class MeshStage(Stage):
             raise InputError(
                 f"mesh.crop: the {crops} mesh only so far (mesh.kind is {spec.kind!r})"
             )
+        if spec.periodic and not all(kind.periodic for kind in kinds):
+            able = ", ".join(n for n in MESH_KINDS.names() if MESH_KINDS.get(n).periodic)
+            raise InputError(
+                f"mesh.periodic: the {able} mesh only (mesh.kind is {spec.kind!r}: its "
+                "opposite sides do not match node for node)"
+            )
         if spec.periodic and (spec.crop == "none" or spec.pore_space != "box"):
             raise InputError(
                 "mesh.periodic: needs a crop (mesh.crop) and mesh.pore_space = 'box', so "

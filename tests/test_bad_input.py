@@ -103,7 +103,11 @@ BAD_SCENARIOS = {
         '[mesh]\nperiodic = true\ncrop = "target"\n',
         "mesh.periodic: needs a crop",
     ),
-    "crop of the conformal mesh": ('[mesh]\nkind = "conformal"\ncrop = "target"\n', "mesh.crop"),
+    "periodic sides of the conformal mesh": (
+        '[mesh]\nkind = "conformal"\ncrop = "target"\npore_space = "box"\nperiodic = true\n',
+        "mesh.periodic: the voxel mesh only (mesh.kind is 'conformal'",
+    ),
+    "crop of the contact model": ('[mesh]\nkind = "contact"\ncrop = "target"\n', "mesh.crop"),
     "unknown scenario kind": (
         'kind = "pour"\n',
         "kind: must be one of 'stack', 'drop', 'container', 'conveyor' (got 'pour')",

@@ -687,3 +687,38 @@ def test_a_volume_meshed_again_keeps_its_faces_and_its_neighbour():
         tets = np.array([where[t] for t in np.concatenate(nodes).tolist()]).reshape(-1, 4, 3)
         volume = np.abs(np.linalg.det(tets[:, 1:] - tets[:, :1])).sum() / 6
         assert volume == pytest.approx(2.0, rel=1e-12)
+
+
+def test_a_conformal_crop_with_the_pore_space_is_a_full_box_of_exact_cut_chips():
+    """The layup cropped to 40 x 40 mm, its pore space meshed: a box from the conveyor to
+    the top whose chips are their exact solids cut to the crop (OpenCASCADE cuts them
+    along planes), the chips outside it left out, and every element sound. Its sides run
+    along chip edges (corners exactly on a side cut no sliver), so they stay where asked."""
+    a = layup()
+    region = (-20.0, 20.0, -20.0, 20.0)
+    mesh = conformal_mesh(a, size_mm=2.0, pore_space="box", region_mm=region)
+    assert mesh.info["region_mm"] == list(region)
+    low, high = mesh.points.min(axis=0), mesh.points.max(axis=0)
+    assert np.allclose([low[0], high[0], low[1], high[1], low[2], high[2]], [*region, 0, 8])
+    cut = exact_chip_volumes(a, region)
+    assert cut[0] == pytest.approx(200.0)  # a corner chip: 10 x 10 x 2 inside
+    assert np.allclose(mesh.chip_volumes(), cut, rtol=1e-9)
+    assert mesh.element_volumes().sum() == pytest.approx(40 * 40 * 8, rel=1e-9)
+    assert mesh.quality.min() >= 0.1
+    report = check_mesh(mesh, a, surface_pairs(a), 0.1, region_mm=region)
+    assert report["valid"], report
+
+
+def test_a_crop_side_a_hair_from_a_corner_moves_to_clear_it():
+    """A side 0.05 mm inside a chip's edge would cut off a slab 0.05 mm thick, which no
+    element of 2 mm can fill: the side moves (by at most 1 mm) onto the edge or at least
+    a quarter element from every corner, and the mesh says where it went (here: onto the
+    edge, the nearest place that cuts no sliver)."""
+    a = arrange([((0, 0, 1.0), 0.0), ((25, 0, 1.0), 0.0)])
+    mesh = conformal_mesh(a, size_mm=2.0, pore_space="box", region_mm=(-9.95, 20.0, -5.0, 5.0))
+    x0, x1, y0, y1 = mesh.info["region_mm"]
+    assert (x1, y0, y1) == (20.0, -5.0, 5.0)
+    assert x0 == pytest.approx(-10.0, abs=1e-12)
+    assert mesh.points[:, 0].min() == pytest.approx(x0)
+    assert mesh.quality.min() >= 0.1
+    assert np.allclose(mesh.chip_volumes(), exact_chip_volumes(a, (x0, x1, y0, y1)), rtol=1e-9)

@@ -207,8 +207,8 @@ def test_solve_refuses_a_model_it_cannot_run(tmp_path):
     assert result.returncode == 2
     assert result.stderr.strip().splitlines() == [
         "pipeline: error: --to solve: needs the contact model (mesh.kind = 'contact') or a "
-        "cropped volume (mesh.kind = 'voxel' or 'image', mesh.crop, mesh.pore_space = "
-        "'box'); mesh.kind is 'voxel'"
+        "cropped volume (mesh.kind = 'voxel', 'image' or 'conformal', mesh.crop, "
+        "mesh.pore_space = 'box'); mesh.kind is 'voxel'"
     ]
     assert not (tmp_path / "run").exists()
 
