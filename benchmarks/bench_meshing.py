@@ -18,6 +18,7 @@ the resolution are compared pair by pair (the geometry stage's classification).
     .venv/bin/python benchmarks/bench_meshing.py --seeds 0 1 2 3 4 5 6 7 8 9 --no-voxel
     .venv/bin/python benchmarks/bench_meshing.py --no-voxel --no-conformal --image
     .venv/bin/python benchmarks/bench_meshing.py --scenario paper-rectangles --no-voxel
+    .venv/bin/python benchmarks/bench_meshing.py --no-voxel --pore-space box --crop 25
 
 The image route (``--image``, CGAL's Mesh_3 on the labelled voxel image, default voxel an
 eighth of the chip's thickness) is checked with volumes within 4 %, no inverted element
@@ -86,10 +87,27 @@ else:
     before = find_contacts(arrangement)
     # As the conformal kind does: line contacts touching for a mesh of the chips alone,
     # cleared by the gap when the resolution or the mesh fails (or with the pore space).
+    # With the pore space the clearance is the kind's default mesh.pore_gap_mm (a tenth of
+    # the element size, at most a tenth of the thinnest chip dimension); a crop resolves
+    # only the chips that can reach into it, as the conformal kind does.
+    half = float(sys.argv[6])
+    region = (-half, half, -half, half) if half > 0 else None
+    gap = 0.03 if pore == "none" else min(0.15, arrangement.thinnest_mm / 10)
     def attempt(touching):
-        resolution = resolve_contacts(arrangement, contacts=before, touching_lines=touching)
+        from geometry.resolve import resolve_chips
+        from meshing.conformal import chips_near
+        if region is None:
+            resolution = resolve_contacts(
+                arrangement, gap, contacts=before, touching_lines=touching
+            )
+        else:
+            resolution = resolve_chips(
+                arrangement, chips_near(arrangement, region), gap_mm=gap,
+                touching_lines=touching,
+            )
         resolve_s = time.perf_counter() - start
-        return resolution, resolve_s, conformal_mesh(resolution.arrangement, 1.5, pore_space=pore)
+        mesh = conformal_mesh(resolution.arrangement, 1.5, pore_space=pore, region_mm=region)
+        return resolution, resolve_s, mesh
     resolution, mesh = None, None
     try:
         resolution, resolve_s, mesh = attempt(pore == "none")
@@ -126,12 +144,15 @@ else:
             for a, b, k in zip(before.chip_a, before.chip_b, before.kind)
             if b >= 0 and KINDS[k] == "surface" and frozenset((int(a), int(b))) not in cleared
         ]
-        report = check_mesh(mesh, resolution.arrangement, np.array(surface).reshape(-1, 2), 0.1)
+        report = check_mesh(
+            mesh, resolution.arrangement, np.array(surface).reshape(-1, 2), 0.1,
+            region_mm=mesh.info.get("region_mm"),
+        )
         result.update(
             elements=mesh.n_elements, nodes=len(mesh.points),
             quality_min=report["quality_min"], volume_error_max=report["chip_volume_error_max"],
             valid=report["valid"], shared_missing=report["interfaces"].get("missing"),
-            surface_pairs=len(surface),
+            surface_pairs=len(surface), region_mm=mesh.info.get("region_mm"),
         )
         result["seconds"] = time.perf_counter() - start
 # Mesh_3 runs in a process of its own: the peak is the larger of this one and its children.
@@ -183,6 +204,8 @@ def describe(seed: int, r: dict) -> str:
             f"{r['peak_mb'] / 4096:.2f})"
         )
     res = r["resolution"]
+    if r.get("region_mm"):
+        head += " crop x {:g} to {:g}, y {:g} to {:g} mm".format(*r["region_mm"])
     return (
         f"{head} {'valid' if r['valid'] else 'NOT VALID'}: {r['elements']:,} tetrahedra, SICN min "
         f"{r['quality_min']:.3f}, chip volume error max {100 * r['volume_error_max']:.2f} %, "
@@ -213,6 +236,12 @@ def main() -> None:
     parser.add_argument("--image-voxel", type=float, default=0.0, help="mm (0: the default)")
     parser.add_argument("--image-optimise", action="store_true")
     parser.add_argument(
+        "--crop",
+        type=float,
+        default=0.0,
+        help="conformal route: mesh only the middle 2 x CROP mm square (0: the whole stack)",
+    )
+    parser.add_argument(
         "--scenario", default=None, help="a built-in scenario or TOML file (default: the reference)"
     )
     args = parser.parse_args()
@@ -235,7 +264,7 @@ def main() -> None:
                 kinds += [("conformal", pore) for pore in args.pore_space]
             if args.image:
                 kinds += [("image", pore) for pore in args.pore_space]
-            extra = (repr(args.image_voxel), str(int(args.image_optimise)))
+            extra = (repr(args.image_voxel), str(int(args.image_optimise)), repr(args.crop))
             for kind, pore in kinds:
                 r = run_child(path, kind, pore, *extra)
                 print(describe(seed, r), flush=True)
