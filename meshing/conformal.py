@@ -431,7 +431,9 @@ def _fragment(
     heights = []
     for tag in tags:
         points = gmsh.model.getBoundary([(3, tag)], recursive=True)
-        heights.append(np.array([occ.getBoundingBox(0, p)[2] for _, p in points]))
+        # A point's box is the point grown by OpenCASCADE's tolerance: its centre is it.
+        boxes = np.array([occ.getBoundingBox(0, p) for _, p in points])
+        heights.append((boxes[:, 2] + boxes[:, 5]) / 2)
     top = float(max(h.max() for h in heights))
     if clearance_mm > 0:
         top = _clear_plane(heights, top + np.linspace(0, _CROP_SHIFT_MM, 41), clearance_mm, top)
