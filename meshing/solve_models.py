@@ -79,7 +79,9 @@ class ContactPress(SolveModel):
     needs = "the contact model (mesh.kind = 'contact')"
 
     def accepts(self, scenario):
-        return scenario.mesh.kind == "contact"
+        from meshing.kinds import mesh_kinds
+
+        return any(self.name in kind.solve_models for kind in mesh_kinds(scenario.mesh.kind))
 
     def prepare(self, mesh_folder, scratch, job, scenario):
         from meshing.calculix_deck import write_contact_compaction
@@ -117,8 +119,11 @@ class VolumePress(SolveModel):
         return f"stack_{kind.name}"
 
     def accepts(self, scenario):
+        from meshing.kinds import mesh_kinds
+
         spec = scenario.mesh
-        return spec.crop != "none" and spec.pore_space == "box"
+        pressable = any(self.name in kind.solve_models for kind in mesh_kinds(spec.kind))
+        return pressable and spec.crop != "none" and spec.pore_space == "box"
 
     def check(self, scenario):
         if "inp" not in scenario.mesh.formats:
