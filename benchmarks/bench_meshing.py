@@ -88,11 +88,11 @@ else:
     # As the conformal kind does: line contacts touching for a mesh of the chips alone,
     # cleared by the gap when the resolution or the mesh fails (or with the pore space).
     # With the pore space the clearance is the kind's default mesh.pore_gap_mm (a tenth of
-    # the element size, at most a tenth of the thinnest chip dimension); a crop resolves
+    # the thinnest chip dimension); a crop resolves
     # only the chips that can reach into it, as the conformal kind does.
     half = float(sys.argv[6])
     region = (-half, half, -half, half) if half > 0 else None
-    gap = 0.03 if pore == "none" else min(0.15, arrangement.thinnest_mm / 10)
+    gap = 0.03 if pore == "none" else arrangement.thinnest_mm / 10
     def attempt(touching):
         from geometry.resolve import resolve_chips
         from meshing.conformal import chips_near
@@ -139,10 +139,17 @@ else:
         result["class_changes"] = changed
         result["pairs_before"] = len(c0)
         cleared = {frozenset(p) for p in resolution.surface_cleared}
+        # In a crop, as the mesh stage checks: the patches inside it, 1 mm clear of its sides.
+        def inside(centre):
+            if region is None:
+                return True
+            x0, x1, y0, y1 = region
+            return x0 + 1 < centre[0] < x1 - 1 and y0 + 1 < centre[1] < y1 - 1
         surface = [
             (int(a), int(b))
-            for a, b, k in zip(before.chip_a, before.chip_b, before.kind)
+            for a, b, k, c in zip(before.chip_a, before.chip_b, before.kind, before.centre_mm)
             if b >= 0 and KINDS[k] == "surface" and frozenset((int(a), int(b))) not in cleared
+            and inside(c)
         ]
         report = check_mesh(
             mesh, resolution.arrangement, np.array(surface).reshape(-1, 2), 0.1,

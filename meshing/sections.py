@@ -85,8 +85,8 @@ class MeshSpec(Section):
         0.0,
         "mm",
         "conformal mesh with the pore space: the clearance of the contact resolution in "
-        "place of gap_mm, wide enough for pore elements between chips (0: a tenth of "
-        "size_mm, at most a tenth of the thinnest chip dimension)",
+        "place of gap_mm, wide enough for pore elements between chips, about a tenth of "
+        "size_mm or more (0: a tenth of the thinnest chip dimension, the largest allowed)",
         between(0.0, 10.0),
     )
     snap_angle_deg: float = key(
