@@ -10,8 +10,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from diagnosis.model import DropData, Experiment
 from diagnosis.observables import FeatureMetric, drop_features, drop_observables, symmetry_order
-from diagnosis.spec import DropData, Experiment
 from diagnosis.statistics import energy_distance, mean_cross, mean_within, resample_weights
 from packing.effects import EFFECTS, contact_model
 from packing.presets import PRESETS

@@ -33,9 +33,9 @@ from __future__ import annotations
 import numpy as np
 
 from diagnosis.drop_simulations import Dataset, DropSimulations
+from diagnosis.model import DropData
 from diagnosis.observables import anisotropy
 from diagnosis.ranking import adjust_tests
-from diagnosis.spec import DropData
 from diagnosis.statistics import (
     PERMUTATIONS,
     energy_statistics,

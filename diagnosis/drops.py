@@ -39,8 +39,8 @@ from core.schema import Scenario
 from diagnosis.drop_effects import TILT_GRID_DEG, EffectRanking, Fold, how_far_best
 from diagnosis.drop_simulations import Dataset, DropSimulations
 from diagnosis.drop_where import locate_gap
+from diagnosis.model import DropData, Experiment
 from diagnosis.observables import DROP_OBSERVABLES, observable_names
-from diagnosis.spec import DropData, Experiment
 from diagnosis.verdicts import effect_verdict, off_text
 from packing.drop import DropProtocol, simulate_drops
 

@@ -12,30 +12,35 @@ import dataclasses
 import math
 import tomllib
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from core.errors import InputError
 from core.files import number, read_text
+from core.registry import Registry
 from core.schema import MAX_LENGTH_MM, Scenario, printable, scenario_from_dict, scenario_to_dict
+
+# The data model is re-exported: the diagnosis's readers and callers take it from here.
+from diagnosis.model import Condition, DiagnosisSettings, DropData, Experiment, QuantityData
 from packing.drop import DropProtocol
 from packing.effects import EFFECTS
 from packing.shapes import SHAPES
 
 __all__ = [
+    "EXPERIMENT_KINDS",
     "Condition",
     "DiagnosisSettings",
     "DropData",
     "Experiment",
+    "ExperimentKind",
     "QuantityData",
     "load_experiment",
     "read_drop_observations",
     "read_quantity_observations",
 ]
 
-KINDS = ("drop", "stack", "container")
 DROP_COLUMNS = ("condition", "drop", "x_mm", "y_mm")
 DROP_OPTIONAL = ("yaw_deg", "tilt_deg")
 QUANTITY_COLUMNS = ("condition", "quantity", "value")
@@ -54,89 +59,6 @@ OBSERVATION_RANGES = {
     "n": (1.0, MAX_QUANTITY),
 }
 MIN_DROPS = 10
-
-
-@dataclass(frozen=True)
-class Condition:
-    """One experimental condition: a drop protocol (drops) or a scenario (stacks,
-    containers) with the number of simulated repeats per setting."""
-
-    name: str
-    protocol: DropProtocol | None = None
-    scenario: Scenario | None = None
-    repeats: int = 2
-
-
-@dataclass(frozen=True)
-class DiagnosisSettings:
-    """How hard the diagnosis works (the ``[diagnosis]`` table)."""
-
-    sim_drops: int = 120  # simulated drops per condition and setting
-    bootstrap: int = 200  # resamples of the observations for intervals
-    grid_points: int = 11  # strengths tried across each effect's prior range
-    # What each fitted model is judged on (drop experiments): "halves" of every
-    # condition's drops, or whole "conditions" left out one at a time.
-    held_out: str = "halves"
-    # Drop experiments: the release tilt range "known" (the conditions' tilt_deg; effects
-    # are fitted at it, and the refitted baseline is a candidate of its own), or
-    # "fitted" jointly with every effect's strength (for a release nobody measured).
-    release_tilt: str = "known"
-    effects: tuple[str, ...] = ()  # candidates; () = every effect for this kind
-    alpha: float = 0.05
-
-
-@dataclass(frozen=True)
-class Experiment:
-    """A parsed spec: ``scenario`` carries the chip, physics and settling rules."""
-
-    name: str
-    kind: str
-    scenario: Scenario
-    conditions: tuple[Condition, ...]
-    observations: Path
-    position_sd_mm: float = 0.0
-    angle_sd_deg: float = 0.0
-    settings: DiagnosisSettings = DiagnosisSettings()
-
-    def condition(self, name: str) -> Condition:
-        return next(c for c in self.conditions if c.name == name)
-
-    @property
-    def candidate_effects(self) -> tuple[str, ...]:
-        return self.settings.effects or tuple(
-            n for n in EFFECTS.names() if self.kind in EFFECTS.get(n).kinds
-        )
-
-
-@dataclass(frozen=True)
-class DropData:
-    """Measured drops of one condition: positions (n, 2) mm, optional yaw and tilt
-    (n,) deg."""
-
-    positions: np.ndarray
-    yaw_deg: np.ndarray | None = None
-    tilt_deg: np.ndarray | None = None
-
-    @property
-    def n(self) -> int:
-        return len(self.positions)
-
-    def take(self, index: np.ndarray) -> DropData:
-        return DropData(
-            self.positions[index],
-            None if self.yaw_deg is None else self.yaw_deg[index],
-            None if self.tilt_deg is None else self.tilt_deg[index],
-        )
-
-
-@dataclass(frozen=True)
-class QuantityData:
-    """A measured quantity of one condition: value, its sd (nan if not given) and the
-    number of measurements behind it (1 if not given)."""
-
-    value: float
-    sd: float = math.nan
-    n: int = 1
 
 
 _TOP_KEYS = {
@@ -205,8 +127,10 @@ def load_experiment(
 def _experiment(data: dict, base: Path, load_scenario) -> Experiment:
     _table(data, "spec", _TOP_KEYS)
     kind = data.get("kind")
-    if kind not in KINDS:
-        raise InputError(f"kind: expected one of {', '.join(KINDS)}, got {kind!r}")
+    if not isinstance(kind, str) or kind not in EXPERIMENT_KINDS:
+        valid = ", ".join(EXPERIMENT_KINDS.in_order())
+        raise InputError(f"kind: expected one of {valid}, got {kind!r}")
+    behaviour = EXPERIMENT_KINDS.get(kind)
     name = data.get("name", "experiment")
     if not isinstance(name, str) or not name.strip():
         raise InputError(f"name: expected a non-empty string, got {name!r}")
@@ -214,7 +138,7 @@ def _experiment(data: dict, base: Path, load_scenario) -> Experiment:
     if not isinstance(observations, str) or not observations:
         raise InputError("observations: expected the path of the observations CSV file")
     observations_path = (base / observations).resolve()
-    base_name = data.get("scenario", "single-chip-drop" if kind == "drop" else None)
+    base_name = data.get("scenario", behaviour.default_scenario)
     scenario = None
     if base_name is not None:
         if not isinstance(base_name, str):
@@ -244,21 +168,18 @@ def _experiment(data: dict, base: Path, load_scenario) -> Experiment:
     raw = data.get("condition")
     if not isinstance(raw, list) or not raw:
         raise InputError("condition: give at least one [[condition]] table")
-    conditions = []
-    for k, entry in enumerate(raw):
-        key = f"condition[{k}]"
-        if kind == "drop":
-            conditions.append(_drop_condition(entry, key, scenario))
-        else:
-            conditions.append(_scenario_condition(entry, key, kind, scenario, base, load_scenario))
+    conditions = [
+        behaviour.condition(entry, f"condition[{k}]", scenario, base, load_scenario)
+        for k, entry in enumerate(raw)
+    ]
     names = [c.name for c in conditions]
     duplicated = sorted({n for n in names if names.count(n) > 1})
     if duplicated:
         raise InputError(f"condition: name {duplicated[0]!r} is given twice")
     if scenario is None:
         scenario = conditions[0].scenario
-    if kind == "drop" and scenario.kind != "drop":
-        scenario = dataclasses.replace(scenario, kind="drop")
+    if behaviour.scenario_kind not in (None, scenario.kind):
+        scenario = dataclasses.replace(scenario, kind=behaviour.scenario_kind)
     return Experiment(
         name=name.strip(),
         kind=kind,
@@ -317,7 +238,7 @@ def _held_out(value, kind: str) -> str:
         raise InputError(
             f"diagnosis.held_out: {value!r} is not one of {', '.join(map(repr, HELD_OUT))}"
         )
-    if kind != "drop" and value != "conditions":
+    if value not in EXPERIMENT_KINDS.get(kind).held_out:
         raise InputError(
             f"diagnosis.held_out: {kind} experiments hold out whole conditions; "
             '"halves" splits the drops of a drop experiment'
@@ -333,7 +254,7 @@ def _release_tilt(value, kind: str) -> str:
         raise InputError(
             f"diagnosis.release_tilt: {value!r} is not one of {', '.join(map(repr, RELEASE_TILT))}"
         )
-    if kind != "drop":
+    if not EXPERIMENT_KINDS.get(kind).release_tilt:
         raise InputError(
             f"diagnosis.release_tilt: only drop experiments have a release tilt, not {kind}"
         )
@@ -510,3 +431,115 @@ def read_quantity_observations(
         if condition.name not in data:
             raise InputError(f"{shown}: no observations for condition {condition.name!r}")
     return data
+
+
+# Experiment kinds: what an experiment of each kind observes, how its conditions are
+# given, and which routines read, diagnose and synthesise it; the spec reader and the CLI
+# ask the kind, never test its name. Plugins add kinds through the
+# ``chipstack.experiment_kinds`` entry points.
+
+
+class ExperimentKind:
+    """One kind of experiment (subclass and register in :data:`EXPERIMENT_KINDS`)."""
+
+    name: str = ""
+    doc: str = ""
+    default_scenario: str | None = None  # the base scenario when the spec names none
+    scenario_kind: str | None = None  # the scenario kind it runs as (None: the scenario's)
+    held_out: tuple[str, ...] = ("conditions",)  # the values diagnosis.held_out may take
+    release_tilt: bool = False  # whether diagnosis.release_tilt applies
+
+    def condition(
+        self, entry: Any, key: str, scenario: Scenario | None, base: Path, load_scenario
+    ) -> Condition:
+        """One ``[[condition]]`` table, checked (errors name ``key``)."""
+        raise NotImplementedError
+
+    def read_observations(self, experiment: Experiment) -> dict:
+        """The observations file, checked against the spec: data by condition."""
+        raise NotImplementedError
+
+    def diagnose(
+        self,
+        experiment: Experiment,
+        data: dict,
+        run_many,
+        seed: int,
+        progress: Callable[[str], None] | None = None,
+    ) -> dict:
+        raise NotImplementedError
+
+    def synthesize(
+        self,
+        experiment: Experiment,
+        strengths: dict[str, float],
+        seed: int,
+        run_many,
+        drops: int,
+        measurements: int | None,
+    ) -> list[dict]:
+        """Pseudo-experimental rows of the observations file, with these effects."""
+        raise NotImplementedError
+
+
+class DropExperiment(ExperimentKind):
+    name = "drop"
+    doc = "single chips dropped at release heights and yaws; where each comes to rest"
+    default_scenario = "single-chip-drop"
+    scenario_kind = "drop"
+    held_out = ("halves", "conditions")
+    release_tilt = True
+
+    def condition(self, entry, key, scenario, base, load_scenario):
+        return _drop_condition(entry, key, scenario)
+
+    def read_observations(self, experiment):
+        return read_drop_observations(experiment)
+
+    def diagnose(self, experiment, data, run_many, seed, progress=None):
+        from diagnosis.drops import diagnose_drops
+
+        return diagnose_drops(experiment, data, run_many, seed, progress)
+
+    def synthesize(self, experiment, strengths, seed, run_many, drops, measurements):
+        from diagnosis.synth import synthesize_drops
+
+        return synthesize_drops(experiment, strengths, seed, drops, run_many)
+
+
+class QuantityExperiment(ExperimentKind):
+    """Whole depositions (a stack, a container fill) measured by scalar quantities."""
+
+    def __init__(self, name: str, doc: str) -> None:
+        self.name, self.doc = name, doc
+
+    def condition(self, entry, key, scenario, base, load_scenario):
+        return _scenario_condition(entry, key, self.name, scenario, base, load_scenario)
+
+    def read_observations(self, experiment):
+        from diagnosis.stacks import QUANTITIES
+
+        return read_quantity_observations(experiment, tuple(QUANTITIES))
+
+    def diagnose(self, experiment, data, run_many, seed, progress=None):
+        from diagnosis.stacks import diagnose_stacks
+
+        return diagnose_stacks(experiment, data, run_many, seed, progress)
+
+    def synthesize(self, experiment, strengths, seed, run_many, drops, measurements):
+        from diagnosis.stacks import synthesize_quantities
+
+        return synthesize_quantities(
+            experiment, strengths, seed, run_many, measurements=measurements
+        )
+
+
+EXPERIMENT_KINDS: Registry[ExperimentKind] = Registry(
+    "experiment kind", "chipstack.experiment_kinds"
+)
+for _kind in (
+    DropExperiment(),
+    QuantityExperiment("stack", "stacks deposited per condition; contact and height figures"),
+    QuantityExperiment("container", "container fills per condition; the volume fraction"),
+):
+    EXPERIMENT_KINDS.register(_kind.name, _kind)

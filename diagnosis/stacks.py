@@ -34,8 +34,8 @@ from scipy.stats import t as student_t
 
 from core.errors import InputError
 from core.schema import Scenario
+from diagnosis.model import Experiment, QuantityData
 from diagnosis.ranking import adjust_tests
-from diagnosis.spec import Experiment, QuantityData
 from diagnosis.stack_effects import (
     BOOTSTRAP,
     StackEffectRanking,

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from diagnosis.drops import simulate_condition
-from diagnosis.spec import Experiment
+from diagnosis.model import Experiment
 from packing.effects import check_effects
 
 __all__ = ["synthesize_drops", "SYNTH_SEED_OFFSET"]

@@ -8,8 +8,8 @@ import math
 import numpy as np
 
 from core.errors import InputError
+from diagnosis.model import Experiment
 from diagnosis.observables import DROP_OBSERVABLES
-from diagnosis.spec import Experiment
 from packing.deposition import draw_shapes
 from packing.effects import EFFECTS, shaped
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from core.errors import InputError
 from core.schema import MAX_DROPS, printable
-from diagnosis.spec import Experiment, load_experiment, read_drop_observations
+from diagnosis.spec import EXPERIMENT_KINDS, Experiment, load_experiment
 from packing.effects import EFFECTS, check_effects
 from pipeline.execution import Executor
 from pipeline.rundir import RunDirectory, check_output_file, write_atomically
@@ -59,17 +59,13 @@ def diagnose(
     run_dir = RunDirectory(out, overwrite=overwrite)
     # The statistics, the simulations and the report are imported only once the inputs
     # are known to be good (seconds of scipy and matplotlib that a typo need not pay for).
-    from diagnosis.drops import diagnose_drops
     from diagnosis.report import write_diagnosis
-    from diagnosis.stacks import diagnose_stacks
 
     start = time.perf_counter()
     with run_dir as run:  # locked from here: a second diagnosis into it is refused
         with Executor(workers=workers, scheduler=scheduler) as executor:
-            if experiment.kind == "drop":
-                result = diagnose_drops(experiment, data, executor.map, seed, progress)
-            else:
-                result = diagnose_stacks(experiment, data, executor.map, seed, progress)
+            kind = EXPERIMENT_KINDS.get(experiment.kind)
+            result = kind.diagnose(experiment, data, executor.map, seed, progress)
         result["wall_time_s"] = time.perf_counter() - start
         result["command"] = list(command or [])
         result["spec"] = str(Path(spec).resolve())
@@ -80,12 +76,7 @@ def diagnose(
 
 
 def _observations(experiment: Experiment):
-    if experiment.kind == "drop":
-        return read_drop_observations(experiment)
-    from diagnosis.spec import read_quantity_observations
-    from diagnosis.stacks import QUANTITIES
-
-    return read_quantity_observations(experiment, tuple(QUANTITIES))
+    return EXPERIMENT_KINDS.get(experiment.kind).read_observations(experiment)
 
 
 def _manifest(result: dict, experiment: Experiment) -> dict:
@@ -132,16 +123,9 @@ def synth(
     strengths = parse_effects(effects, experiment.kind)
     shown = f"-o {printable(output)}"
     target = check_output_file(output, shown, overwrite)
-    from diagnosis.stacks import synthesize_quantities
-    from diagnosis.synth import synthesize_drops
-
+    kind = EXPERIMENT_KINDS.get(experiment.kind)
     with Executor(workers=workers) as executor:
-        if experiment.kind == "drop":
-            rows = synthesize_drops(experiment, strengths, seed, drops, executor.map)
-        else:
-            rows = synthesize_quantities(
-                experiment, strengths, seed, executor.map, measurements=measurements
-            )
+        rows = kind.synthesize(experiment, strengths, seed, executor.map, drops, measurements)
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=list(rows[0]), lineterminator="\n")
     writer.writeheader()

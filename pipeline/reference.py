@@ -115,6 +115,25 @@ def scenario_kinds_markdown() -> str:
     return _table(("kind", "what it is"), rows)
 
 
+def experiment_kinds_markdown() -> str:
+    """The diagnosis's experiment kinds, what they observe and what the spec may set."""
+    from diagnosis.spec import EXPERIMENT_KINDS
+
+    rows = []
+    for name in EXPERIMENT_KINDS.in_order():
+        kind = EXPERIMENT_KINDS.get(name)
+        base = f"`{kind.default_scenario}`" if kind.default_scenario else "each condition's"
+        tilt = "yes" if kind.release_tilt else "no"
+        rows.append(
+            (
+                name,
+                f"{kind.doc} (base scenario: {base}; `diagnosis.held_out`: "
+                f"{', '.join(kind.held_out)}; release tilt: {tilt})",
+            )
+        )
+    return _table(("kind", "what it observes"), rows)
+
+
 def presets_markdown() -> str:
     rows = [(n, PRESETS.get(n).description) for n in PRESETS.in_order()]
     return _table(("preset", "what it is"), rows)
@@ -131,6 +150,7 @@ GENERATED: dict[str, Callable[[], str]] = {
     "solve_models": solve_models_markdown,
     "effects": effects_markdown,
     "presets": presets_markdown,
+    "experiment_kinds": experiment_kinds_markdown,
 }
 
 
