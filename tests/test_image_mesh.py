@@ -175,7 +175,8 @@ def test_calculix_presses_cropped_image_and_conformal_volumes_as_stiff_as_the_vo
             + f'[mesh]\nkind = "{kind}"\nvoxel_mm = 0.5\npore_space = "box"\ncrop = "region"\n'
             + 'region_mm = [-20.0, 20.0, -20.0, 20.0]\nformats = ["inp"]\n'
         )
-        out = tmp_path / kind
+        # One run directory: packing and geometry are reused, the mesh and solve redone.
+        out = tmp_path / "run"
         result = run_cli("run", str(scenario), "--to", "solve", "--out", str(out), "--quiet")
         assert result.returncode == 0, result.stderr
         solve = json.loads((out / "manifest.json").read_text())["solve"]
