@@ -286,14 +286,22 @@ def _clear_crop(arrangement: Arrangement, region_mm, size_mm: float):
             reach = (low[:, 1 - axis] < hi + _CROP_SHIFT_MM) & (
                 high[:, 1 - axis] > lo - _CROP_SHIFT_MM
             )
-            chips = np.flatnonzero(reach)
-            along = [_corners(arrangement, [k])[:, axis] for k in chips]
-            if sweep:  # where chip edges cross the other axis's two sides
-                for value in (lo, hi):
-                    crossings = _edge_crossings(arrangement, chips, 1 - axis, value)
-                    along += [np.array([c]) for c in crossings[:, axis]]
+            along = []
+            for k in np.flatnonzero(reach):
+                points = [_corners(arrangement, [k])[:, axis]]
+                if sweep:  # where its edges cross the other axis's two sides
+                    for value in (lo, hi):
+                        crossings = _edge_crossings(arrangement, [k], 1 - axis, value)
+                        points.append(crossings[:, axis])
+                # One group per chip: a face of it lying on the side exempts its crossings too.
+                along.append(np.concatenate(points))
             if along:
                 out[side] = _clear_plane(along, region_mm[side] + shifts, wanted, region_mm[side])
+    if out[1] <= out[0] or out[3] <= out[2]:
+        raise InputError(
+            "mesh.region_mm: too narrow for the conformal mesh, whose sides move up to "
+            f"{_CROP_SHIFT_MM:g} mm to clear the chips' corners"
+        )
     if out != list(region_mm):
         log.info(
             "conformal mesh: crop sides moved to clear the chips' corners: x %g to %g, "
@@ -371,6 +379,11 @@ def _build_geometry(
     _cut_overlaps(occ, tags, cut_by, rank)
     if region_mm is not None:
         _crop(occ, arrangement, tags, region_mm)
+        if not tags:  # boxes reached into the crop, the solids do not
+            raise InputError(
+                "mesh.region_mm: the crop x {:g} to {:g}, y {:g} to {:g} mm holds no chip of "
+                "the stack".format(*region_mm)
+            )
     order = sorted(tags)
     mapping = _fragment(
         occ, arrangement, [tags[c] for c in order], pore_space, region_mm, order, clearance_mm

@@ -59,6 +59,7 @@ class MeshKind:
     doc: str = ""
     crops: bool = False  # takes mesh.crop
     periodic: bool = False  # takes mesh.periodic (opposite sides matching node for node)
+    crop_shift_mm: float = 0.0  # how far it may move a crop's sides (clear of chip corners)
     # Part of the mesh stage's cache key: raise it when the kind's algorithm gives another
     # mesh for the same keys, so that run directories made before remesh instead of
     # reusing the old mesh.
@@ -206,6 +207,7 @@ class ConformalKind(MeshKind):
     # the clearance mesh.pore_gap_mm
     version = 2
     crops = True
+    crop_shift_mm = 1.0  # meshing.conformal._CROP_SHIFT_MM
     solve_models = ("volume",)
     doc = "gmsh tetrahedra of the resolved arrangement, touching chips sharing faces"
 

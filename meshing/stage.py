@@ -185,7 +185,9 @@ def _surface_pairs(arrangement: Arrangement, scenario: Scenario) -> np.ndarray:
     checked = (table.chip_b >= 0) & (table.kind == KINDS.index("surface"))
     if (region := crop_region(scenario)) is not None:
         x0, x1, y0, y1 = region
-        margin = 2 * scenario.mesh.voxel_mm
+        # A kind that moves the crop's sides (to clear chip corners) moves them inward too.
+        shift = max(kind.crop_shift_mm for kind in mesh_kinds(scenario.mesh.kind))
+        margin = 2 * scenario.mesh.voxel_mm + shift
         x, y = table.centre_mm[:, 0], table.centre_mm[:, 1]
         checked &= (x > x0 + margin) & (x < x1 - margin)
         checked &= (y > y0 + margin) & (y < y1 - margin)
