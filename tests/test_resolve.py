@@ -12,7 +12,7 @@ from core.arrangement import Arrangement
 from core.errors import InputError
 from core.schema import ChipSpec
 from geometry.contacts import KINDS, find_contacts
-from geometry.resolve import UnresolvedError, resolve_contacts, separation_mm
+from geometry.resolve import UnresolvedError, resolve_chips, resolve_contacts, separation_mm
 from meshing import check_mesh, conformal_mesh
 from packing.shapes import box_shape
 
@@ -174,6 +174,24 @@ def test_an_overlap_no_small_motion_clears_is_named():
     a = arrange([((0.0, 0.0, 1.0), 0.0), ((0.0, 0.0, 1.5), 30.0)])
     with pytest.raises(UnresolvedError, match=r"2 chips .* chips 0 \(1.530 mm short\), 1 "):
         resolve_contacts(a)
+
+
+def test_resolving_some_chips_moves_only_them_and_names_chips_by_their_whole_index():
+    """For a crop: chips 1 and 2 (0.02 mm into each other) are resolved alone, chip 0
+    (0.02 mm into chip 1, but outside the crop) keeps its settled pose; what is reported
+    and what cannot be cleared is named by the chips' indices in the whole stack."""
+    a = arrange([((-19.98, 0.0, 1.0), 0.0), ((0.0, 0.0, 1.0), 0.0), ((19.98, 0.0, 1.0), 0.0)])
+    r = resolve_chips(a, [1, 2], gap_mm=0.03)
+    assert np.array_equal(r.arrangement.positions[0], a.positions[0])
+    assert np.array_equal(r.arrangement.quaternions[0], a.quaternions[0])
+    assert r.translation_mm[0] == 0 and r.rotation_deg[0] == 0
+    assert separation_mm(r.arrangement, 1, 2) >= 0.03
+    assert separation_mm(r.arrangement, 0, 1) < 0.03  # not asked for
+    assert r.summary()["chips_resolved"] == 2
+    stuck = arrange([((50.0, 0.0, 1.0), 0.0), ((0.0, 0.0, 1.0), 0.0), ((0.0, 0.0, 1.5), 30.0)])
+    with pytest.raises(UnresolvedError, match=r"chips 1 \(1.530 mm short\), 2 ") as caught:
+        resolve_chips(stuck, [1, 2])
+    assert [c for c, _ in caught.value.unresolved] == [1, 2]
 
 
 def test_the_settled_arrangement_is_left_as_it_was():
