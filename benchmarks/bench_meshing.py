@@ -92,7 +92,9 @@ else:
     # only the chips that can reach into it, as the conformal kind does.
     half = float(sys.argv[6])
     region = (-half, half, -half, half) if half > 0 else None
-    gap = 0.03 if pore == "none" else arrangement.thinnest_mm / 10
+    from meshing.kinds import pore_gap_mm
+    from meshing.sections import MeshSpec
+    gap = MeshSpec().gap_mm if pore == "none" else pore_gap_mm(MeshSpec(), arrangement)
     def attempt(touching):
         from geometry.resolve import resolve_chips
         from meshing.conformal import chips_near

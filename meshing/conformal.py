@@ -205,11 +205,14 @@ def conformal_mesh(
         cut_by.setdefault(upper, []).append(lower)
     if region_mm is not None:
         region_mm = _clear_crop(arrangement, tuple(float(v) for v in region_mm), size_mm)
-        inside = _chips_in_region(arrangement, region_mm)
+        inside = {int(k) for k in _chips_reaching(arrangement, region_mm)}
         cut_by = {u: [c for c in low if c in inside] for u, low in cut_by.items() if u in inside}
         cut_by = {u: low for u, low in cut_by.items() if low}
     with GmshSession(threads) as gmsh:
-        owner = _build_geometry(gmsh, arrangement, cut_by, pore_space, region_mm, size_mm / 4)
+        chips = sorted(inside) if region_mm is not None else list(range(n))
+        owner = _build_geometry(
+            gmsh, arrangement, cut_by, pore_space, chips, region_mm, size_mm / 4
+        )
         _set_mesh_size(gmsh, size_mm)
         geometry_s = time.perf_counter() - start
         _generate(gmsh, arrangement, owner, min_quality)
@@ -234,30 +237,22 @@ def chips_near(arrangement: Arrangement, region_mm) -> np.ndarray:
     """The chips that can reach into the crop (x_min, x_max, y_min, y_max) once its sides
     move to clear the chips' corners and the contact resolution has moved the chips:
     their bounding boxes reach within 3 mm of it."""
+    return _chips_reaching(arrangement, region_mm, _CROP_SHIFT_MM + 2.0)
+
+
+def _chips_reaching(arrangement: Arrangement, region_mm, reach_mm: float = 0.0) -> np.ndarray:
+    """The chips whose bounding boxes reach within ``reach_mm`` of the crop (x_min, x_max,
+    y_min, y_max); none is refused in one line."""
     x0, x1, y0, y1 = region_mm
     low, high = arrangement.bounds[:, 0], arrangement.bounds[:, 1]
-    reach = _CROP_SHIFT_MM + 2.0
-    near = (low[:, 0] < x1 + reach) & (high[:, 0] > x0 - reach)
-    near &= (low[:, 1] < y1 + reach) & (high[:, 1] > y0 - reach)
+    near = (low[:, 0] < x1 + reach_mm) & (high[:, 0] > x0 - reach_mm)
+    near &= (low[:, 1] < y1 + reach_mm) & (high[:, 1] > y0 - reach_mm)
     if not near.any():
         raise InputError(
             f"mesh.region_mm: the crop x {x0:g} to {x1:g}, y {y0:g} to {y1:g} mm holds no "
             "chip of the stack"
         )
     return np.flatnonzero(near)
-
-
-def _chips_in_region(arrangement: Arrangement, region_mm) -> set[int]:
-    """The chips whose bounding boxes reach into the crop (x_min, x_max, y_min, y_max)."""
-    x0, x1, y0, y1 = region_mm
-    low, high = arrangement.bounds[:, 0], arrangement.bounds[:, 1]
-    inside = (low[:, 0] < x1) & (high[:, 0] > x0) & (low[:, 1] < y1) & (high[:, 1] > y0)
-    if not inside.any():
-        raise InputError(
-            f"mesh.region_mm: the crop x {x0:g} to {x1:g}, y {y0:g} to {y1:g} mm holds no "
-            "chip of the stack"
-        )
-    return {int(k) for k in np.flatnonzero(inside)}
 
 
 _CROP_SHIFT_MM = 1.0  # how far a side of a crop may move to clear the chips' corners
@@ -277,6 +272,7 @@ def _clear_crop(arrangement: Arrangement, region_mm, size_mm: float):
     low, high = arrangement.bounds[:, 0], arrangement.bounds[:, 1]
     wanted = size_mm / 4
     shifts = np.linspace(-_CROP_SHIFT_MM, _CROP_SHIFT_MM, 81)
+    corners = [_corners(arrangement, [k]) for k in range(arrangement.n_chips)]
     out = list(region_mm)
     for sweep in range(2):  # the sides of one axis move the crossings on the other's
         for side, axis in enumerate((0, 0, 1, 1)):
@@ -288,10 +284,11 @@ def _clear_crop(arrangement: Arrangement, region_mm, size_mm: float):
             )
             along = []
             for k in np.flatnonzero(reach):
-                points = [_corners(arrangement, [k])[:, axis]]
+                points = [corners[k][:, axis]]
                 if sweep:  # where its edges cross the other axis's two sides
+                    edges = _edges(arrangement.shapes[arrangement.shape_index[k]])
                     for value in (lo, hi):
-                        crossings = _edge_crossings(arrangement, [k], 1 - axis, value)
+                        crossings = _edge_crossings(corners[k], edges, 1 - axis, value)
                         points.append(crossings[:, axis])
                 # One group per chip: a face of it lying on the side exempts its crossings too.
                 along.append(np.concatenate(points))
@@ -311,22 +308,23 @@ def _clear_crop(arrangement: Arrangement, region_mm, size_mm: float):
     return tuple(out)
 
 
-def _edge_crossings(arrangement: Arrangement, chips, axis: int, value: float) -> np.ndarray:
-    """(m, 3) the points where the edges of ``chips`` cross the plane where coordinate
-    ``axis`` equals ``value`` (mm)."""
+def _edges(shape) -> set[tuple[int, int]]:
+    """The edges of a chip shape: pairs of vertex indices, lower first."""
+    return {
+        (min(a, b), max(a, b))
+        for loop in shape.faces
+        for a, b in zip(loop, (*loop[1:], loop[0]), strict=True)
+    }
+
+
+def _edge_crossings(corners: np.ndarray, edges, axis: int, value: float) -> np.ndarray:
+    """(m, 3) the points where a chip's ``edges`` (between its ``corners``, mm) cross the
+    plane where coordinate ``axis`` equals ``value``."""
     points = []
-    for k in chips:
-        shape = arrangement.shapes[arrangement.shape_index[k]]
-        corners = shape.vertices @ arrangement.rotations[k].T + arrangement.positions[k]
-        edges = {
-            (min(a, b), max(a, b))
-            for loop in shape.faces
-            for a, b in zip(loop, (*loop[1:], loop[0]), strict=True)
-        }
-        for a, b in edges:
-            da, db = corners[a, axis] - value, corners[b, axis] - value
-            if da * db < 0:
-                points.append(corners[a] + (corners[b] - corners[a]) * (da / (da - db)))
+    for a, b in edges:
+        da, db = corners[a, axis] - value, corners[b, axis] - value
+        if da * db < 0:
+            points.append(corners[a] + (corners[b] - corners[a]) * (da / (da - db)))
     return np.array(points).reshape(-1, 3)
 
 
@@ -366,6 +364,7 @@ def _build_geometry(
     arrangement: Arrangement,
     cut_by: dict[int, list[int]],
     pore_space: str,
+    chips: list[int],
     region_mm=None,
     clearance_mm: float = 0.0,
 ) -> dict[int, int]:
@@ -374,7 +373,6 @@ def _build_geometry(
     occ = gmsh.model.occ
     n = arrangement.n_chips
     rank = arrangement.bottom_up_rank()
-    chips = range(n) if region_mm is None else sorted(_chips_in_region(arrangement, region_mm))
     tags = {chip: _add_chip(occ, arrangement, chip) for chip in chips}
     _cut_overlaps(occ, tags, cut_by, rank)
     if region_mm is not None:
