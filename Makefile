@@ -33,11 +33,12 @@ run: $(STAMP)
 	fi
 
 # Tests run on every core (-n auto); a module's tests stay on one worker (--dist loadfile)
-# so that its shared, expensive fixtures (10-repeat ensembles) are computed once.
+# so that its shared, expensive fixtures (10-repeat ensembles) are computed once; the
+# longest modules go first (tests/conftest.py), not the ones with the most tests.
 test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	$(BIN)/pytest -q -n auto --dist loadfile
+	$(BIN)/pytest -q -n auto --dist loadfile --no-loadscope-reorder
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_packing.py
