@@ -33,6 +33,7 @@ import numpy as np
 from scipy.stats import t as student_t
 
 from core.errors import InputError
+from core.registry import Registry
 from core.schema import Scenario
 from diagnosis.model import Experiment, QuantityData
 from diagnosis.ranking import adjust_tests
@@ -50,7 +51,13 @@ from packing.deposition import deposit
 from packing.effects import EFFECTS, contact_model
 from packing.presets import PRESETS
 
-__all__ = ["QUANTITIES", "diagnose_stacks", "simulate_quantities", "synthesize_quantities"]
+__all__ = [
+    "QUANTITIES",
+    "QUANTITY_MEASURES",
+    "diagnose_stacks",
+    "simulate_quantities",
+    "synthesize_quantities",
+]
 
 log = logging.getLogger(__name__)
 
@@ -81,16 +88,18 @@ for _k in range(MAX_LAYERS):
     )
 
 
-def simulate_quantities(scenario: Scenario, strengths: dict[str, float], seed: int) -> dict:
-    """One deposition of ``scenario`` with effects, reduced to every quantity of its kind."""
-    stack = deposit(scenario.with_seed(seed), effects=strengths)
-    if scenario.kind == "container":
-        from packing.fill import container_fill
+def _container_quantities(scenario: Scenario, stack) -> dict:
+    """A container fill's volume fraction and the chips inside it."""
+    from packing.fill import container_fill
 
-        volumes = np.array([stack.shapes[k].volume_mm3 for k in stack.shape_index])
-        c = scenario.container
-        fill = container_fill(stack.positions, volumes, c.radius_mm, c.height_mm)
-        return {"volume_fraction": fill["volume_fraction"], "chips_inside": fill["chips_inside"]}
+    volumes = np.array([stack.shapes[k].volume_mm3 for k in stack.shape_index])
+    c = scenario.container
+    fill = container_fill(stack.positions, volumes, c.radius_mm, c.height_mm)
+    return {"volume_fraction": fill["volume_fraction"], "chips_inside": fill["chips_inside"]}
+
+
+def _stack_quantities(scenario: Scenario, stack) -> dict:
+    """A stack's contacts per chip, heights, volume fraction and layer filling."""
     from geometry import arrangements_from_stack, describe
 
     description = describe(
@@ -112,6 +121,21 @@ def simulate_quantities(scenario: Scenario, strengths: dict[str, float], seed: i
     for k in range(MAX_LAYERS):
         out[f"layer_filling_{k}"] = (chips[k] if k < len(chips) else 0.0) / full
     return out
+
+
+# How a deposition of each scenario kind is reduced to its quantities (a plugin scenario
+# kind measured by quantities registers its own under the entry-point group).
+QUANTITY_MEASURES: Registry[Callable[[Scenario, object], dict]] = Registry(
+    "quantity measure", "chipstack.quantity_measures"
+)
+QUANTITY_MEASURES.register("stack", _stack_quantities)
+QUANTITY_MEASURES.register("container", _container_quantities)
+
+
+def simulate_quantities(scenario: Scenario, strengths: dict[str, float], seed: int) -> dict:
+    """One deposition of ``scenario`` with effects, reduced to every quantity of its kind."""
+    measure = QUANTITY_MEASURES.get(scenario.kind, key="scenario kind")
+    return measure(scenario, deposit(scenario.with_seed(seed), effects=strengths))
 
 
 class StackRuns:

@@ -168,13 +168,16 @@ class Resolution:
         }
 
 
-def check_settings(gap_mm: float, snap_angle_deg: float, thinnest_mm: float) -> None:
-    """Refuse a gap or snap angle that cannot work (one line naming the key)."""
+def check_settings(
+    gap_mm: float, snap_angle_deg: float, thinnest_mm: float, gap_key: str = "mesh.gap_mm"
+) -> None:
+    """Refuse a gap or snap angle that cannot work (one line naming the key; ``gap_key``:
+    the key the gap came from, ``mesh.pore_gap_mm`` with the pore space)."""
     if not (np.isfinite(gap_mm) and gap_mm > 0):
-        raise InputError(f"mesh.gap_mm: must be positive, got {gap_mm!r}")
+        raise InputError(f"{gap_key}: must be positive, got {gap_mm!r}")
     if gap_mm > thinnest_mm / 10:
         raise InputError(
-            f"mesh.gap_mm: {gap_mm:g} mm is above a tenth of the thinnest chip dimension "
+            f"{gap_key}: {gap_mm:g} mm is above a tenth of the thinnest chip dimension "
             f"({thinnest_mm:g} mm): clearing every near-contact by it would move chips apart "
             "by more than the stack's own tolerance"
         )

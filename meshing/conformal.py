@@ -237,7 +237,7 @@ def chips_near(arrangement: Arrangement, region_mm) -> np.ndarray:
     """The chips that can reach into the crop (x_min, x_max, y_min, y_max) once its sides
     move to clear the chips' corners and the contact resolution has moved the chips:
     their bounding boxes reach within 3 mm of it."""
-    return _chips_reaching(arrangement, region_mm, _CROP_SHIFT_MM + 2.0)
+    return _chips_reaching(arrangement, region_mm, CROP_SHIFT_MM + 2.0)
 
 
 def _chips_reaching(arrangement: Arrangement, region_mm, reach_mm: float = 0.0) -> np.ndarray:
@@ -255,12 +255,12 @@ def _chips_reaching(arrangement: Arrangement, region_mm, reach_mm: float = 0.0) 
     return np.flatnonzero(near)
 
 
-_CROP_SHIFT_MM = 1.0  # how far a side of a crop may move to clear the chips' corners
+CROP_SHIFT_MM = 1.0  # how far a side of a crop may move to clear the chips' corners
 _HOPELESS_FRACTION = 0.01  # elements below the quality bar beyond which no polish is tried
 
 
 def _clear_crop(arrangement: Arrangement, region_mm, size_mm: float):
-    """The crop with each side moved (by at most ``_CROP_SHIFT_MM``) to where it passes
+    """The crop with each side moved (by at most ``CROP_SHIFT_MM``) to where it passes
     furthest from every chip corner, up to a quarter element, and its vertical edges
     from every point where a chip's edge crosses a side.
 
@@ -272,7 +272,7 @@ def _clear_crop(arrangement: Arrangement, region_mm, size_mm: float):
     0.1 at the corner x = -24.9, y = 25.6 mm)."""
     low, high = arrangement.bounds[:, 0], arrangement.bounds[:, 1]
     wanted = size_mm / 4
-    shifts = np.linspace(-_CROP_SHIFT_MM, _CROP_SHIFT_MM, 81)
+    shifts = np.linspace(-CROP_SHIFT_MM, CROP_SHIFT_MM, 81)
     corners = [_corners(arrangement, [k]) for k in range(arrangement.n_chips)]
     out = list(region_mm)
     for sweep in range(2):  # the sides of one axis move the crossings on the other's
@@ -280,8 +280,8 @@ def _clear_crop(arrangement: Arrangement, region_mm, size_mm: float):
             # Every corner of the chips that reach the side's span: an edge across the
             # crop can have both its corners outside it.
             lo, hi = out[2 - 2 * axis], out[3 - 2 * axis]
-            reach = (low[:, 1 - axis] < hi + _CROP_SHIFT_MM) & (
-                high[:, 1 - axis] > lo - _CROP_SHIFT_MM
+            reach = (low[:, 1 - axis] < hi + CROP_SHIFT_MM) & (
+                high[:, 1 - axis] > lo - CROP_SHIFT_MM
             )
             along = []
             for k in np.flatnonzero(reach):
@@ -298,7 +298,7 @@ def _clear_crop(arrangement: Arrangement, region_mm, size_mm: float):
     if out[1] <= out[0] or out[3] <= out[2]:
         raise InputError(
             "mesh.region_mm: too narrow for the conformal mesh, whose sides move up to "
-            f"{_CROP_SHIFT_MM:g} mm to clear the chips' corners"
+            f"{CROP_SHIFT_MM:g} mm to clear the chips' corners"
         )
     if out != list(region_mm):
         log.info(
@@ -443,7 +443,7 @@ def _fragment(
 ) -> list:
     """Fragment the chips (``tags``, of ``chips``; and the pore box, last) together;
     returns, per object, the volumes it became. The pore box's top is raised (by at most
-    ``_CROP_SHIFT_MM``) to clear every corner by ``clearance_mm`` unless it lies exactly
+    ``CROP_SHIFT_MM``) to clear every corner by ``clearance_mm`` unless it lies exactly
     on it: at the highest corner itself, the top of a chip lying nearly flat up there left
     a wedge of pore a hundredth of a millimetre thick (reference stack, seed 3, middle
     50 x 50 mm: 4 elements below quality 0.1)."""
@@ -477,7 +477,7 @@ def _fragment(
         heights.append((boxes[:, 2] + boxes[:, 5]) / 2)
     top = float(max(h.max() for h in heights))
     if clearance_mm > 0:
-        top = _clear_plane(heights, top + np.linspace(0, _CROP_SHIFT_MM, 41), clearance_mm, top)
+        top = _clear_plane(heights, top + np.linspace(0, CROP_SHIFT_MM, 41), clearance_mm, top)
     if pore_space == "box":
         if region_mm is None:
             lo = arrangement.bounds[:, 0, :2].min(axis=0)

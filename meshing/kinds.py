@@ -207,9 +207,14 @@ class ConformalKind(MeshKind):
     # the clearance mesh.pore_gap_mm
     version = 2
     crops = True
-    crop_shift_mm = 1.0  # meshing.conformal._CROP_SHIFT_MM
     solve_models = ("volume",)
     doc = "gmsh tetrahedra of the resolved arrangement, touching chips sharing faces"
+
+    @property
+    def crop_shift_mm(self) -> float:
+        from meshing.conformal import CROP_SHIFT_MM
+
+        return CROP_SHIFT_MM
 
     @property
     def failures(self):
@@ -242,10 +247,9 @@ class ConformalKind(MeshKind):
             contact_gap_mm=g.contact_gap_mm,
             contact_extent_mm=g.contact_extent_mm,
         )
-        try:
-            check_settings(gap, spec.snap_angle_deg, arrangement.thinnest_mm)
-        except InputError as exc:
-            raise InputError(str(exc).replace("mesh.gap_mm", gap_key)) from None
+        # Before any work, naming the key the gap came from (the resolution checks again,
+        # for callers of the library, with the default key).
+        check_settings(gap, spec.snap_angle_deg, arrangement.thinnest_mm, gap_key)
 
         def resolve_and_mesh(touching_lines: bool):
             # The mesh-ready arrangement: the settled one is left as it is (descriptors
