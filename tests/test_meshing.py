@@ -722,3 +722,48 @@ def test_a_crop_side_a_hair_from_a_corner_moves_to_clear_it():
     assert mesh.points[:, 0].min() == pytest.approx(x0)
     assert mesh.quality.min() >= 0.1
     assert np.allclose(mesh.chip_volumes(), exact_chip_volumes(a, (x0, x1, y0, y1)), rtol=1e-9)
+
+
+def test_a_crop_side_does_not_cross_a_face_at_a_shallow_angle():
+    """A square turned 5 deg: a side at x = 9.6 mm would cross its face at 5 deg, a wedge
+    of chip and pore (measured: SICN 0.12 at 2 mm elements, 0.11 at x = 10.2). The side
+    moves off the face (its span along x: 9.09 to 10.83 mm) and every element is sound
+    (measured 0.41 and 0.34)."""
+    a = arrange([((0, 0, 1.0), 5.0)])
+    for asked in (9.6, 10.2):
+        mesh = conformal_mesh(a, size_mm=2.0, pore_space="box", region_mm=(-20, asked, -20, 20))
+        moved = mesh.info["region_mm"][1]
+        assert moved <= 9.09 or moved >= 10.83, moved
+        assert abs(moved - asked) <= 1.0
+        assert mesh.quality.min() >= 0.3
+        assert np.allclose(
+            mesh.chip_volumes(), exact_chip_volumes(a, mesh.info["region_mm"]), rtol=1e-9
+        )
+
+
+def test_a_crop_side_that_would_cut_a_concave_chip_in_two_moves_off():
+    """A U-shaped chip (three convex pieces, the arms standing on part of the base's
+    face): a side 0.5 mm above the base keeps two separate arms, which the crop refuses;
+    it moves into the base instead (the nearest place that keeps one piece and clears
+    the corners by a quarter element), and the chip is meshed in one piece."""
+    from meshing.checks import chip_pieces
+    from meshing.conformal import _splits
+    from packing.shapes import prism_shape
+
+    outline = np.array([(0, 0), (30, 0), (30, 20), (20, 20), (20, 6), (10, 6), (10, 20), (0, 20)])
+    u = prism_shape("u 30x20x2", "polygon", outline.astype(float), 2.0, ChipSpec(), principal=False)
+    a = Arrangement(
+        (u,),
+        np.zeros(1, int),
+        np.array([[0, 0, 1.0]]),
+        np.array([[0, 0, 0, 1.0]]),
+        np.ones(1, int),
+        60.0,
+    )
+    base_top = float(u.vertices[:, 1].min()) + 6.0
+    planes = base_top + np.array([-0.5, -0.1, 0.1, 0.5])
+    assert _splits(a, 0, 1, False, planes).tolist() == [False, False, True, True]
+    mesh = conformal_mesh(a, size_mm=2.0, pore_space="box", region_mm=(-20, 20, base_top + 0.5, 20))
+    assert mesh.info["region_mm"][2] == pytest.approx(base_top - 0.5)
+    assert chip_pieces(mesh).tolist() == [1]
+    assert mesh.quality.min() >= 0.1
