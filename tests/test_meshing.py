@@ -689,6 +689,30 @@ def test_a_volume_meshed_again_keeps_its_faces_and_its_neighbour():
         assert volume == pytest.approx(2.0, rel=1e-12)
 
 
+def test_a_volume_with_a_hole_meshed_again_leaves_the_hole_empty():
+    """The pore is a box with chips as holes in it: meshed again, its outer shell and each
+    hole are separate surfaces of the new volume, so the holes stay empty (as one surface
+    they were filled too, over the chip's own elements: mixed-shapes seed 4)."""
+    from meshing.conformal import _remesh_delaunay
+
+    with GmshSession() as gmsh:
+        model = gmsh.model
+        box, chip = model.occ.addBox(0, 0, 0, 4, 4, 4), model.occ.addBox(1, 1, 1, 2, 2, 2)
+        model.occ.fragment([(3, box)], [(3, chip)])
+        model.occ.synchronize()
+        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.5)
+        gmsh.option.setNumber("Mesh.Algorithm3D", 10)
+        model.mesh.generate(3)
+        (pore,) = [v for _, v in model.getEntities(3) if model.occ.getMass(3, v) > 50]
+        _remesh_delaunay(gmsh, [(3, pore)])
+        _, _, nodes = model.mesh.getElements(3)
+        node_tags, xyz, _ = model.mesh.getNodes()
+        where = dict(zip(node_tags.tolist(), xyz.reshape(-1, 3), strict=True))
+        tets = np.array([where[t] for t in np.concatenate(nodes).tolist()]).reshape(-1, 4, 3)
+        volume = np.abs(np.linalg.det(tets[:, 1:] - tets[:, :1])).sum() / 6
+        assert volume == pytest.approx(64.0, rel=1e-12)  # 56 of pore and 8 of chip, once
+
+
 def test_a_conformal_crop_with_the_pore_space_is_a_full_box_of_exact_cut_chips():
     """The layup cropped to 40 x 40 mm, its pore space meshed: a box from the conveyor to
     the top whose chips are their exact solids cut to the crop (OpenCASCADE cuts them
