@@ -123,8 +123,9 @@ def _stack_quantities(scenario: Scenario, stack) -> dict:
     return out
 
 
-# How a deposition of each scenario kind is reduced to its quantities (a plugin scenario
-# kind measured by quantities registers its own under the entry-point group).
+# How a deposition of each scenario kind is reduced to its quantities, looked up by the
+# scenario's kind (a plugin scenario kind would also need its quantities in QUANTITIES
+# and an experiment kind of its own).
 QUANTITY_MEASURES: Registry[Callable[[Scenario, object], dict]] = Registry(
     "quantity measure", "chipstack.quantity_measures"
 )

@@ -282,6 +282,7 @@ def _clear_crop(arrangement: Arrangement, region_mm, size_mm: float):
     shifts = np.linspace(-CROP_SHIFT_MM, CROP_SHIFT_MM, 81)
     corners = [_corners(arrangement, [k]) for k in range(arrangement.n_chips)]
     out = list(region_mm)
+    splitting: dict[int, np.ndarray] = {}
     for sweep in range(2):  # the sides of one axis move the crossings on the other's
         for side, axis in enumerate((0, 0, 1, 1)):
             # Every corner of the chips that reach the side's span: an edge across the
@@ -291,11 +292,16 @@ def _clear_crop(arrangement: Arrangement, region_mm, size_mm: float):
                 high[:, 1 - axis] > lo - CROP_SHIFT_MM
             )
             along, across = [], []
-            splitting = np.zeros(len(shifts), dtype=bool)
+            candidates = region_mm[side] + shifts
+            if sweep == 0:  # the candidates do not depend on the sweep
+                splitting[side] = np.zeros(len(shifts), dtype=bool)
             for k in np.flatnonzero(reach):
                 points = [corners[k][:, axis]]
-                across.extend(_shallow_faces(arrangement, k, corners[k], axis))
-                splitting |= _splits(arrangement, k, axis, side % 2 == 1, region_mm[side] + shifts)
+                crossed = low[k, axis] < candidates[-1] and high[k, axis] > candidates[0]
+                if crossed:
+                    across.extend(_shallow_faces(arrangement, k, corners[k], axis))
+                if crossed and sweep == 0:
+                    splitting[side] |= _splits(arrangement, k, axis, side % 2 == 1, candidates)
                 if sweep:  # where its edges cross the other axis's two sides
                     edges = _edges(arrangement.shapes[arrangement.shape_index[k]])
                     for value in (lo, hi):
@@ -305,7 +311,7 @@ def _clear_crop(arrangement: Arrangement, region_mm, size_mm: float):
                 along.append(np.concatenate(points))
             if along:
                 out[side] = _clear_plane(
-                    along, region_mm[side] + shifts, wanted, region_mm[side], across, splitting
+                    along, candidates, wanted, region_mm[side], across, splitting[side]
                 )
     if out[1] <= out[0] or out[3] <= out[2]:
         raise InputError(
@@ -353,7 +359,7 @@ def _shallow_faces(arrangement: Arrangement, chip: int, corners: np.ndarray, axi
     out = []
     for loop in shape.faces:
         points = corners[list(loop)]
-        normal = np.cross(points[1] - points[0], points[2] - points[0])
+        normal = np.cross(points, np.roll(points, -1, axis=0)).sum(axis=0)  # Newell's
         length = np.linalg.norm(normal)
         if length > 0 and abs(normal[axis]) / length > np.cos(np.radians(_SHALLOW_DEG)):
             out.append((float(points[:, axis].min()), float(points[:, axis].max())))
@@ -382,6 +388,18 @@ def _splits(arrangement: Arrangement, chip: int, axis: int, keep_below: bool, pl
             on_a = _on_hull(shape.convex_pieces[b], planes_of[a])
             if on_a.sum() + on_b.sum() >= 3:
                 joins.append((a, b, np.concatenate([pieces[a][on_b, axis], pieces[b][on_a, axis]])))
+
+    def groups(kept: np.ndarray, links) -> int:
+        graph = coo_matrix(
+            (np.ones(len(links)), ([a for a, _ in links], [b for _, b in links])),
+            shape=(len(pieces), len(pieces)),
+        )
+        _, label = connected_components(graph, directed=False)
+        return len(set(label[kept]))
+
+    # Pieces that do not join even uncut (approximate pieces of a chip read from a file)
+    # are not a cut's doing: only more groups than the whole chip has count.
+    whole = groups(np.ones(len(pieces), dtype=bool), [(a, b) for a, b, _ in joins])
     sign = 1.0 if keep_below else -1.0
     for index, plane in enumerate(planes):
         kept = np.array([np.any(sign * (p[:, axis] - plane) < -_ON_PLANE_MM) for p in pieces])
@@ -392,12 +410,7 @@ def _splits(arrangement: Arrangement, chip: int, axis: int, keep_below: bool, pl
             for a, b, along in joins
             if kept[a] and kept[b] and np.any(sign * (along - plane) < -_ON_PLANE_MM)
         ]
-        graph = coo_matrix(
-            (np.ones(len(links)), ([a for a, _ in links], [b for _, b in links])),
-            shape=(len(pieces), len(pieces)),
-        )
-        _, label = connected_components(graph, directed=False)
-        out[index] = len(set(label[kept])) > 1
+        out[index] = groups(kept, links) > whole
     return out
 
 
@@ -428,10 +441,16 @@ def _clear_plane(
         on = distance < _ON_PLANE_MM
         distance[on & (on.sum(axis=1, keepdims=True) >= 3)] = np.inf
         score = np.minimum(score, distance.min(axis=1))
-    for low, high in shallow:  # a plane through a face at a shallow angle: the worst
-        score[(planes > low + _ON_PLANE_MM) & (planes < high - _ON_PLANE_MM)] = 0.0
-    if splitting is not None:  # a chip cut in two: refused by the crop, worse than any
-        score[splitting] = -1.0
+    # Tiers: a plane through a face at a shallow angle is worse than any that is not, a
+    # plane cutting a chip in two (refused by the crop) worse still; within a tier the
+    # clearance of the corners decides.
+    tier = wanted + 1.0
+    through = np.zeros(len(planes), dtype=bool)
+    for low, high in shallow:
+        through |= (planes > low + _ON_PLANE_MM) & (planes < high - _ON_PLANE_MM)
+    score = score - tier * through
+    if splitting is not None:
+        score = score - 2 * tier * splitting
     best = np.flatnonzero(score == score.max())
     return float(planes[best[np.argmin(np.abs(planes[best] - preferred))]])
 
@@ -721,10 +740,14 @@ def _corners_near_box(gmsh, reach_mm: float) -> dict[int, float]:
     """Points of the model closer than ``reach_mm`` to a plane of its bounding box without
     lying on it: point tag -> that distance (mm)."""
     model = gmsh.model
-    box = np.array(model.getBoundingBox(-1, -1), dtype=float).reshape(2, 3)
+    points = [p for _, p in model.getEntities(0)]
+    xyz_of = {p: np.asarray(model.getValue(0, p, []), dtype=float) for p in points}
+    # From the points themselves: OpenCASCADE's bounding box is widened by its tolerance.
+    every = np.array(list(xyz_of.values())).reshape(-1, 3)
+    box = np.stack([every.min(axis=0), every.max(axis=0)])
     near: dict[int, float] = {}
-    for _, point in model.getEntities(0):
-        xyz = np.asarray(model.getValue(0, point, []), dtype=float)
+    for point in points:
+        xyz = xyz_of[point]
         distance = np.abs(xyz[None, :] - box).ravel()
         off = distance[distance > _ON_PLANE_MM]
         if len(off) and off.min() < reach_mm:
@@ -826,10 +849,11 @@ def _polish(gmsh, min_quality: float) -> None:
 
     # The polish removes slivers here and there (measured: at most a few hundred in
     # 200,000 elements); a mesh with more than 1 % of its elements below the bar asks for
-    # a quality the mesher does not reach, and polishing every volume would only delay
-    # the refusal (by 10 s on the 24-chip test stack at a bar of 0.9).
+    # a quality the mesher does not reach (and more than 200, for small meshes), and
+    # polishing every volume would only delay the refusal (by 10 s on the 24-chip test
+    # stack at a bar of 0.9).
     volumes = poor()
-    if counts[0] > _HOPELESS_FRACTION * counts[1]:
+    if counts[0] > max(_HOPELESS_FRACTION * counts[1], 200):
         log.info(
             "conformal mesh: %d of %d elements below quality %g, not polished",
             *counts,
@@ -935,6 +959,21 @@ def _remesh_delaunay(gmsh, volumes: list[tuple[int, int]]) -> None:
         renumber = dict(zip(inner.tolist(), range(next_node, next_node + len(inner)), strict=True))
         tets = np.array([renumber.get(int(t), int(t)) for t in tets[0]], dtype=np.int64)
         new_inner = np.arange(next_node, next_node + len(inner))
+        # A new mesh that does not fill the volume exactly once (a hole filled, a part
+        # left empty) is not taken: the quality check then refuses the old one.
+        where = dict(zip(node_tags.tolist(), node_xyz, strict=True))
+        where.update(zip(new_inner.tolist(), np.asarray(inner_xyz).reshape(-1, 3), strict=True))
+        corners = np.array([where[int(t)] for t in tets]).reshape(-1, 4, 3)
+        filled = np.abs(np.linalg.det(corners[:, 1:] - corners[:, :1])).sum() / 6
+        exact = model.occ.getMass(3, volume)
+        if abs(filled - exact) > 1e-6 * exact:
+            log.warning(
+                "conformal mesh: volume %d meshed again fills %.6g mm3 of %.6g; kept as it was",
+                volume,
+                filled,
+                exact,
+            )
+            continue
         elements = np.arange(next_element, next_element + len(tets) // 4)
         next_node += len(inner)
         next_element += len(elements)

@@ -204,8 +204,10 @@ class VoxelKind(MeshKind):
 class ConformalKind(MeshKind):
     name = "conformal"
     # 2: line contacts kept touching for a mesh of the chips alone; with the pore space,
-    # the clearance mesh.pore_gap_mm
-    version = 2
+    # the clearance mesh.pore_gap_mm. 3: crop sides off shallow faces and concave chips'
+    # notches, grading toward corners near the box's planes, the sliver fallback keeping
+    # holes empty.
+    version = 3
     crops = True
     solve_models = ("volume",)
     doc = "gmsh tetrahedra of the resolved arrangement, touching chips sharing faces"

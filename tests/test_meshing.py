@@ -766,8 +766,8 @@ def test_a_crop_side_does_not_cross_a_face_at_a_shallow_angle():
 
 
 def test_a_crop_side_that_would_cut_a_concave_chip_in_two_moves_off():
-    """A U-shaped chip (three convex pieces, the arms standing on part of the base's
-    face): a side 0.5 mm above the base keeps two separate arms, which the crop refuses;
+    """A U-shaped chip (three convex pieces joined along shared faces): a side 0.5 mm
+    above the base keeps two separate arms, which the crop refuses;
     it moves into the base instead (the nearest place that keeps one piece and clears
     the corners by a quarter element), and the chip is meshed in one piece."""
     from meshing.checks import chip_pieces
