@@ -791,3 +791,39 @@ def test_a_crop_side_that_would_cut_a_concave_chip_in_two_moves_off():
     assert mesh.info["region_mm"][2] == pytest.approx(base_top - 0.5)
     assert chip_pieces(mesh).tolist() == [1]
     assert mesh.quality.min() >= 0.1
+
+
+def test_pieces_joined_along_part_of_a_face_count_as_one_chip():
+    """The same U split as a base and two arms standing on part of the base's top face
+    (no corner of the base at the arms' inner corners): the arms join the base where
+    their corners lie on its face, so a side through the base keeps one piece and a side
+    through the arms two."""
+    import dataclasses
+
+    from meshing.conformal import _splits
+    from packing.shapes import prism_shape
+
+    outline = np.array([(0, 0), (30, 0), (30, 20), (20, 20), (20, 6), (10, 6), (10, 20), (0, 20)])
+    u = prism_shape("u 30x20x2", "polygon", outline.astype(float), 2.0, ChipSpec(), principal=False)
+    low = u.vertices.min(axis=0)
+
+    def block(x0, x1, y0, y1):
+        return np.array([(x, y, z) for x in (x0, x1) for y in (y0, y1) for z in (-1.0, 1.0)]) + (
+            low[0],
+            low[1],
+            0.0,
+        )
+
+    pieces = (block(0, 30, 0, 6), block(0, 10, 6, 20), block(20, 30, 6, 20))
+    split = dataclasses.replace(u, convex_pieces=pieces)
+    a = Arrangement(
+        (split,),
+        np.zeros(1, int),
+        np.array([[0, 0, 1.0]]),
+        np.array([[0, 0, 0, 1.0]]),
+        np.ones(1, int),
+        60.0,
+    )
+    base_top = float(low[1]) + 6.0
+    planes = base_top + np.array([-0.5, 0.5])
+    assert _splits(a, 0, 1, False, planes).tolist() == [False, True]
