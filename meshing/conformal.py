@@ -370,7 +370,7 @@ def _splits(arrangement: Arrangement, chip: int, axis: int, keep_below: bool, pl
     """(len(planes),) bool: whether a crop side at each of ``planes`` (coordinates along
     ``axis``, mm; the crop keeps what lies below it when ``keep_below``) cuts ``chip``
     into more than one piece. A chip made of several convex pieces (a star, a concave
-    polygon) whose neighbouring pieces share whole faces: the pieces a side keeps are
+    polygon), neighbours joined along a face or part of one: the pieces a side keeps are
     one piece of the chip as long as the faces joining them reach the kept side."""
     shape = arrangement.shapes[arrangement.shape_index[chip]]
     out = np.zeros(len(planes), dtype=bool)
