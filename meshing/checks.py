@@ -142,7 +142,14 @@ def check_mesh(
     starts = np.flatnonzero(np.concatenate([[True], ~same]))
     counts = np.diff(np.concatenate([starts, [len(faces)]]))
     shared_ok = bool((counts <= 2).all())
-    split = np.flatnonzero(chip_pieces(mesh, (faces, owner)) > 1)
+    # A crop can cut a concave chip into separate pieces (a star's two arms): those are
+    # its exact part inside, not a chip falling apart.
+    expected = np.ones(mesh.n_chips, dtype=int)
+    if region_mm is not None:
+        for k, solid in enumerate(cut[: mesh.n_chips]):
+            if not solid.is_empty():
+                expected[k] = max(1, len(solid.decompose()))
+    split = np.flatnonzero(chip_pieces(mesh, (faces, owner)) > expected)
     interfaces = {}
     if surface_pairs is not None and len(surface_pairs):
         pair_faces = starts[counts == 2]

@@ -482,47 +482,54 @@ def _build_geometry(
     rank = arrangement.bottom_up_rank()
     tags = {chip: _add_chip(occ, arrangement, chip) for chip in chips}
     _cut_overlaps(occ, tags, cut_by, rank)
+    volumes = {chip: [tag] for chip, tag in tags.items()}  # a crop can leave a chip in pieces
     if region_mm is not None:
-        _crop(occ, arrangement, tags, region_mm)
-        if not tags:  # boxes reached into the crop, the solids do not
+        _crop(occ, arrangement, volumes, region_mm)
+        if not volumes:  # boxes reached into the crop, the solids do not
             raise InputError(
                 "mesh.region_mm: the crop x {:g} to {:g}, y {:g} to {:g} mm holds no chip of "
                 "the stack".format(*region_mm)
             )
-    order = sorted(tags)
+    order = sorted(volumes)
+    flat = [(chip, tag) for chip in order for tag in volumes[chip]]
     mapping = _fragment(
-        occ, arrangement, [tags[c] for c in order], pore_space, region_mm, order, clearance_mm
+        occ,
+        arrangement,
+        [tag for _, tag in flat],
+        pore_space,
+        region_mm,
+        [chip for chip, _ in flat],
+        clearance_mm,
     )
     occ.synchronize()
-    owner = _volume_owners(dict(zip(order, mapping[: len(order)], strict=True)), rank)
+    per_chip: dict[int, list] = {}
+    for (chip, _), became in zip(flat, mapping[: len(flat)], strict=True):
+        per_chip.setdefault(chip, []).extend(became)
+    owner = _volume_owners(per_chip, rank)
     pores = []
     if pore_space == "box":
-        pores = [v for _, v in mapping[len(order)] if v not in owner]
+        pores = [v for _, v in mapping[len(flat)] if v not in owner]
     _volume_groups(gmsh.model, owner, pores, n, order)
     _surface_groups(gmsh, n + 2)
     return owner
 
 
-def _crop(occ, arrangement: Arrangement, tags: dict[int, int], region_mm) -> None:
-    """Cut the chips that cross the crop's sides to it (``tags`` updated; a chip left with
-    nothing inside is dropped)."""
+def _crop(occ, arrangement: Arrangement, volumes: dict[int, list[int]], region_mm) -> None:
+    """Cut the chips that cross the crop's sides to it (``volumes``, each chip's one volume,
+    updated: a chip left with nothing inside is dropped, a concave one the crop cuts into
+    pieces, a star's two arms say, keeps them all)."""
     x0, x1, y0, y1 = region_mm
     low, high = arrangement.bounds[:, 0], arrangement.bounds[:, 1]
     top = float(high[:, 2].max()) + 1.0
-    for chip in sorted(tags):
+    for chip in sorted(volumes):
         if np.all(low[chip, :2] >= (x0, y0)) and np.all(high[chip, :2] <= (x1, y1)):
             continue
         box = occ.addBox(x0, y0, -1.0, x1 - x0, y1 - y0, top + 1.0)
-        out, _ = occ.intersect([(3, tags[chip])], [(3, box)])
-        if not out:
-            del tags[chip]
-        elif len(out) == 1:
-            tags[chip] = out[0][1]
-        else:  # a chip that is not convex can leave the crop in pieces
-            raise MeshingError(
-                f"chip {chip}: the crop cuts it into {len(out)} pieces; crop elsewhere or "
-                "use the voxel or image mesh"
-            )
+        out, _ = occ.intersect([(3, t) for t in volumes[chip]], [(3, box)])
+        if out:
+            volumes[chip] = [t for _, t in out]
+        else:
+            del volumes[chip]
 
 
 def _cut_overlaps(occ, tags: dict[int, int], cut_by: dict[int, list[int]], rank) -> None:
@@ -547,8 +554,9 @@ def _fragment(
     chips: list[int],
     clearance_mm: float = 0.0,
 ) -> list:
-    """Fragment the chips (``tags``, of ``chips``; and the pore box, last) together;
-    returns, per object, the volumes it became. The pore box's top is raised (by at most
+    """Fragment the chips' volumes (``tags``, of ``chips``, where a chip the crop cut in
+    pieces appears once per piece; and the pore box, last) together; returns, per object,
+    the volumes it became. The pore box's top is raised (by at most
     ``CROP_SHIFT_MM``) to clear every corner by ``clearance_mm`` unless it lies exactly
     on it: at the highest corner itself, the top of a chip lying nearly flat up there left
     a wedge of pore a hundredth of a millimetre thick (reference stack, seed 3, middle
@@ -557,10 +565,12 @@ def _fragment(
     if pore_space == "none":
         # Only chips that touch share faces: fragmenting each touching group on its own
         # is several times faster than fragmenting the whole stack at once.
-        position = {chip: k for k, chip in enumerate(chips)}
+        position: dict[int, list[int]] = {}  # a chip's volumes (several: cut in pieces)
+        for k, chip in enumerate(chips):
+            position.setdefault(chip, []).append(k)
         mapping: list = [None] * len(tags)
         for whole_group in _touching_groups(arrangement):
-            group = [position[c] for c in whole_group if c in position]
+            group = [k for c in whole_group for k in position.get(c, [])]
             if not group:
                 continue
             if len(group) == 1:

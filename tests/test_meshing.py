@@ -827,3 +827,30 @@ def test_pieces_joined_along_part_of_a_face_count_as_one_chip():
     base_top = float(low[1]) + 6.0
     planes = base_top + np.array([-0.5, 0.5])
     assert _splits(a, 0, 1, False, planes).tolist() == [False, True]
+
+
+def test_a_crop_that_must_cut_a_concave_chip_in_two_meshes_both_pieces():
+    """A side 5 mm into the U's arms, every place within 1 mm of it cutting them: both arm
+    tips are meshed as the chip's part inside the crop (its exact volume there), and the
+    checks count two pieces as what the crop leaves, not as a chip falling apart."""
+    from meshing.checks import chip_pieces
+    from packing.shapes import prism_shape
+
+    outline = np.array([(0, 0), (30, 0), (30, 20), (20, 20), (20, 6), (10, 6), (10, 20), (0, 20)])
+    u = prism_shape("u 30x20x2", "polygon", outline.astype(float), 2.0, ChipSpec(), principal=False)
+    a = Arrangement(
+        (u,),
+        np.zeros(1, int),
+        np.array([[0, 0, 1.0]]),
+        np.array([[0, 0, 0, 1.0]]),
+        np.ones(1, int),
+        60.0,
+    )
+    base_top = float(u.vertices[:, 1].min()) + 6.0
+    mesh = conformal_mesh(a, size_mm=2.0, pore_space="box", region_mm=(-20, 20, base_top + 5, 20))
+    region = mesh.info["region_mm"]
+    assert region[2] > base_top + 3.9  # still through the arms
+    assert chip_pieces(mesh).tolist() == [2]
+    assert np.allclose(mesh.chip_volumes(), exact_chip_volumes(a, region), rtol=1e-9)
+    report = check_mesh(mesh, a, None, 0.1, region_mm=region)
+    assert report["valid"] and report["chips_in_pieces_count"] == 0, report
