@@ -442,8 +442,8 @@ def _clear_plane(
         distance[on & (on.sum(axis=1, keepdims=True) >= 3)] = np.inf
         score = np.minimum(score, distance.min(axis=1))
     # Tiers: a plane through a face at a shallow angle is worse than any that is not, a
-    # plane cutting a chip in two (refused by the crop) worse still; within a tier the
-    # clearance of the corners decides.
+    # plane cutting a chip in two (kept as two pieces, a loose bit of chip) worse still;
+    # within a tier the clearance of the corners decides.
     tier = wanted + 1.0
     through = np.zeros(len(planes), dtype=bool)
     for low, high in shallow:
