@@ -920,6 +920,7 @@ def _remesh_delaunay(gmsh, volumes: list[tuple[int, int]]) -> None:
     node_tags, node_xyz = node_tags[order], node_xyz.reshape(-1, 3)[order]
     next_node = int(model.mesh.getMaxNodeTag()) + 1
     next_element = int(model.mesh.getMaxElementTag()) + 1
+    surface_xyz = dict(zip(node_tags.tolist(), node_xyz, strict=True))  # once, not per volume
     saved = {
         name: option.getNumber(name)
         for name in ("Mesh.Algorithm3D", "Mesh.MeshSizeExtendFromBoundary", "Mesh.Renumber")
@@ -971,9 +972,9 @@ def _remesh_delaunay(gmsh, volumes: list[tuple[int, int]]) -> None:
         new_inner = np.arange(next_node, next_node + len(inner))
         # A new mesh that does not fill the volume exactly once (a hole filled, a part
         # left empty) is not taken: the quality check then refuses the old one.
-        where = dict(zip(node_tags.tolist(), node_xyz, strict=True))
-        where.update(zip(new_inner.tolist(), np.asarray(inner_xyz).reshape(-1, 3), strict=True))
-        corners = np.array([where[int(t)] for t in tets]).reshape(-1, 4, 3)
+        added = dict(zip(new_inner.tolist(), np.asarray(inner_xyz).reshape(-1, 3), strict=True))
+        corners = np.array([added.get(int(t), surface_xyz.get(int(t))) for t in tets])
+        corners = corners.reshape(-1, 4, 3)
         filled = np.abs(np.linalg.det(corners[:, 1:] - corners[:, :1])).sum() / 6
         exact = model.occ.getMass(3, volume)
         if abs(filled - exact) > 1e-6 * exact:

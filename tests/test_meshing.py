@@ -772,18 +772,8 @@ def test_a_crop_side_that_would_cut_a_concave_chip_in_two_moves_off():
     the corners by a quarter element), and the chip is meshed in one piece."""
     from meshing.checks import chip_pieces
     from meshing.conformal import _splits
-    from packing.shapes import prism_shape
 
-    outline = np.array([(0, 0), (30, 0), (30, 20), (20, 20), (20, 6), (10, 6), (10, 20), (0, 20)])
-    u = prism_shape("u 30x20x2", "polygon", outline.astype(float), 2.0, ChipSpec(), principal=False)
-    a = Arrangement(
-        (u,),
-        np.zeros(1, int),
-        np.array([[0, 0, 1.0]]),
-        np.array([[0, 0, 0, 1.0]]),
-        np.ones(1, int),
-        60.0,
-    )
+    u, a = _u_chip()
     base_top = float(u.vertices[:, 1].min()) + 6.0
     planes = base_top + np.array([-0.5, -0.1, 0.1, 0.5])
     assert _splits(a, 0, 1, False, planes).tolist() == [False, False, True, True]
@@ -801,10 +791,8 @@ def test_pieces_joined_along_part_of_a_face_count_as_one_chip():
     import dataclasses
 
     from meshing.conformal import _splits
-    from packing.shapes import prism_shape
 
-    outline = np.array([(0, 0), (30, 0), (30, 20), (20, 20), (20, 6), (10, 6), (10, 20), (0, 20)])
-    u = prism_shape("u 30x20x2", "polygon", outline.astype(float), 2.0, ChipSpec(), principal=False)
+    u, _ = _u_chip()
     low = u.vertices.min(axis=0)
 
     def block(x0, x1, y0, y1):
@@ -815,15 +803,7 @@ def test_pieces_joined_along_part_of_a_face_count_as_one_chip():
         )
 
     pieces = (block(0, 30, 0, 6), block(0, 10, 6, 20), block(20, 30, 6, 20))
-    split = dataclasses.replace(u, convex_pieces=pieces)
-    a = Arrangement(
-        (split,),
-        np.zeros(1, int),
-        np.array([[0, 0, 1.0]]),
-        np.array([[0, 0, 0, 1.0]]),
-        np.ones(1, int),
-        60.0,
-    )
+    _, a = _u_chip(dataclasses.replace(u, convex_pieces=pieces))
     base_top = float(low[1]) + 6.0
     planes = base_top + np.array([-0.5, 0.5])
     assert _splits(a, 0, 1, False, planes).tolist() == [False, True]
@@ -834,18 +814,8 @@ def test_a_crop_that_must_cut_a_concave_chip_in_two_meshes_both_pieces():
     tips are meshed as the chip's part inside the crop (its exact volume there), and the
     checks count two pieces as what the crop leaves, not as a chip falling apart."""
     from meshing.checks import chip_pieces
-    from packing.shapes import prism_shape
 
-    outline = np.array([(0, 0), (30, 0), (30, 20), (20, 20), (20, 6), (10, 6), (10, 20), (0, 20)])
-    u = prism_shape("u 30x20x2", "polygon", outline.astype(float), 2.0, ChipSpec(), principal=False)
-    a = Arrangement(
-        (u,),
-        np.zeros(1, int),
-        np.array([[0, 0, 1.0]]),
-        np.array([[0, 0, 0, 1.0]]),
-        np.ones(1, int),
-        60.0,
-    )
+    u, a = _u_chip()
     base_top = float(u.vertices[:, 1].min()) + 6.0
     mesh = conformal_mesh(a, size_mm=2.0, pore_space="box", region_mm=(-20, 20, base_top + 5, 20))
     region = mesh.info["region_mm"]
@@ -854,3 +824,16 @@ def test_a_crop_that_must_cut_a_concave_chip_in_two_meshes_both_pieces():
     assert np.allclose(mesh.chip_volumes(), exact_chip_volumes(a, region), rtol=1e-9)
     report = check_mesh(mesh, a, None, 0.1, region_mm=region)
     assert report["valid"] and report["chips_in_pieces_count"] == 0, report
+
+
+def _u_chip(shape=None):
+    """A U-shaped chip 30 x 20 x 2 mm (arms 10 mm wide, a 6 mm base), lying flat at the
+    origin: its shape and a one-chip arrangement of ``shape`` (default: that shape)."""
+    from packing.shapes import prism_shape
+
+    outline = np.array([(0, 0), (30, 0), (30, 20), (20, 20), (20, 6), (10, 6), (10, 20), (0, 20)])
+    u = prism_shape("u 30x20x2", "polygon", outline.astype(float), 2.0, ChipSpec(), principal=False)
+    placed = (shape or u,)
+    one = np.ones(1, int)
+    a = Arrangement(placed, one - 1, np.array([[0, 0, 1.0]]), np.array([[0, 0, 0, 1.0]]), one, 60.0)
+    return u, a
