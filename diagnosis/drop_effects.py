@@ -42,6 +42,7 @@ __all__ = [
     "JointFit",
     "how_far_best",
     "quadratic_minimum",
+    "smoothed_minimum",
     "vertex",
     "within",
 ]
@@ -61,6 +62,10 @@ STRENGTH_RESOLUTION = 1e-3
 ADEQUACY_REPLICATES = 39
 REPLICATE_PERMUTATIONS = 199
 CALIBRATION_POOL_FACTOR = 6  # a calibration pool holds this many times what its tests take
+# A strength is fitted on its discrepancy curve smoothed over this many grid points
+# (``smoothed_minimum``), minimised on a fine grid of this many points.
+SMOOTHING_SPAN = 7
+SMOOTHING_POINTS = 401
 
 
 @dataclass
@@ -117,6 +122,48 @@ def vertex(grid: list[float], curve: np.ndarray, resolution: float) -> np.ndarra
         v = np.where(den < 0, x1 - 0.5 * num / den, x[k])
     v = np.clip(v, x[np.maximum(k - 1, 0)], x[np.minimum(k + 1, len(x) - 1)])
     return snap(v, resolution, x[0], x[-1])
+
+
+def smoothed_minimum(
+    grid: list[float], curve: np.ndarray, resolution: float, span: int = SMOOTHING_SPAN
+) -> np.ndarray:
+    """The minimum of a noisy discrepancy curve (S, R) over ``grid`` (S,), per column:
+    the curve smoothed by local quadratic regression (LOESS: at each point of a fine
+    grid, a parabola fitted by weighted least squares to the ``span`` nearest grid
+    points, tricube weights) and minimised on the fine grid, rounded to ``resolution``.
+
+    Why not ``vertex``: each grid point is its own simulation, and when an effect moves
+    the drops little for its strength (air drag below 2) the noise of one point is as
+    large as the whole curve's bend; the parabola through the lowest point and its two
+    neighbours then follows that one point (measured, sweep case air drag 1.33: grid
+    sums 0.40, 0.45, 0.40, 0.39 at 0.8 to 2.0, 0.09 at 1.33, folds fitted 1.86 and
+    0.87). Pooling ``span`` points divides the noise's variance by about that many,
+    at the price of a little bias where the curve bends sharply."""
+    x = np.asarray(grid, dtype=float)
+    curve = np.asarray(curve, dtype=float).reshape(len(x), -1)
+    if len(x) <= 3:
+        return vertex(grid, curve, resolution)
+    fine = np.linspace(x[0], x[-1], SMOOTHING_POINTS)
+    smoother = _loess_matrix(x, fine, min(span, len(x)))
+    smooth = smoother @ curve  # (F, R)
+    return snap(fine[smooth.argmin(axis=0)], resolution, x[0], x[-1])
+
+
+def _loess_matrix(x: np.ndarray, at: np.ndarray, span: int) -> np.ndarray:
+    """The linear map from values at ``x`` to their local-quadratic fit at ``at``
+    (len(at), len(x)): row i holds the weights of the intercept of the parabola fitted
+    around ``at[i]``. The bandwidth reaches just past the ``span``-th nearest point (so
+    that it weighs in), and at least past three points (a parabola needs three)."""
+    rows = []
+    step = np.min(np.diff(x)) if len(x) > 1 else 1.0
+    for u in at:
+        d = np.abs(x - u)
+        h = np.sort(d)[span - 1] + 0.5 * step
+        w = np.clip(1 - (d / h) ** 3, 0.0, None) ** 3
+        design = np.column_stack([np.ones_like(x), x - u, (x - u) ** 2])
+        weighted = design * w[:, None]
+        rows.append(np.linalg.solve(design.T @ weighted, weighted.T)[0])
+    return np.array(rows)
 
 
 def snap(values: np.ndarray, resolution: float, low: float, high: float) -> np.ndarray:
@@ -339,7 +386,7 @@ class StrengthGrids:
         simulated drops (1 + B,)."""
         lo, hi = EFFECTS.get(effect).prior
         curve = self.curve(datasets, tilt, effect)
-        return vertex(self.grids[effect], curve, STRENGTH_RESOLUTION * (hi - lo))
+        return smoothed_minimum(self.grids[effect], curve, STRENGTH_RESOLUTION * (hi - lo))
 
 
 class EffectRanking:

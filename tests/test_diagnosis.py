@@ -147,6 +147,30 @@ def test_strength_fit_finds_the_minimum_between_grid_points():
     assert 0.4 <= fitted[3] <= 0.8
 
 
+def test_a_noisy_strength_curve_is_fitted_on_its_smoothed_shape_not_its_lowest_point():
+    """Each grid point of a strength curve is its own simulation. The smoothed minimum
+    finds a parabola's vertex exactly (a local quadratic reproduces one), and on curves
+    whose grid points carry noise as large as the curve's bend (400 draws, minimum
+    anywhere in the middle of the prior) it misses the truth by less than the parabola
+    through the lowest point and its two neighbours does; a single low outlier beside
+    the truth does not drag it most of a grid step away."""
+    from diagnosis.drop_effects import smoothed_minimum, vertex
+
+    grid = [0.0, 0.4, 0.8, 1.2, 1.6, 2.0, 2.4, 2.8, 3.2, 3.6, 4.0]
+    x = np.array(grid)
+    assert smoothed_minimum(grid, (x - 1.37) ** 2, 1e-3)[0] == pytest.approx(1.37, abs=2e-3)
+    rng = np.random.default_rng(5)
+    truths = rng.uniform(0.5, 3.5, 400)
+    curves = np.column_stack([0.1 * (x - t) ** 2 + rng.normal(0, 0.1, x.size) for t in truths])
+    smooth_error = np.sqrt(np.mean((smoothed_minimum(grid, curves, 1e-3) - truths) ** 2))
+    vertex_error = np.sqrt(np.mean((vertex(grid, curves, 1e-3) - truths) ** 2))
+    assert smooth_error < 0.92 * vertex_error
+    outlier = 0.1 * (x - 2.0) ** 2
+    outlier[7] -= 0.1  # 2.8 looks lowest, by one point's noise
+    assert vertex(grid, outlier, 1e-3)[0] > 2.6
+    assert smoothed_minimum(grid, outlier, 1e-3)[0] < 2.4
+
+
 def test_joint_fit_finds_the_minimum_of_a_tilted_bowl_between_grid_points():
     """Strength and tilt together: a quadratic bowl with a cross term (the tilt absorbs
     part of the strength) sampled on the 3 x 3 stencil has its minimum found off both
