@@ -5,9 +5,12 @@ these, :mod:`packing.kinds`)."""
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from core.registry import Registry
 from core.schema import Scenario
 
 # The records and writers bring numpy, trimesh and matplotlib: imported where used.
@@ -17,6 +20,8 @@ if TYPE_CHECKING:
     from packing.drop import DropResult
 
 __all__ = [
+    "STACK_WRITERS",
+    "StackWriter",
     "container_summary",
     "mat_summary",
     "packing_summary",
@@ -27,18 +32,34 @@ __all__ = [
 ]
 
 
-def write_stack_files(folder: Path, stack: Stack) -> None:
-    """The exact record (``stack.npz``), shapes, poses and contacts after each batch, and
-    a VTK time series of the stack."""
+@dataclass(frozen=True)
+class StackWriter:
+    """One kind of file the packing stage writes for a settled stack: what it is,
+    the files it makes (shown in the docs) and whether later stages read it (``record``:
+    always written; a plugin's writer is an extra and may be absent from older runs)."""
+
+    name: str
+    files: str  # the file names it writes, as the docs show them
+    doc: str
+    write: Callable[[Path, Stack], list[str]]  # (folder, stack) -> files written
+    record: bool = False
+
+
+STACK_WRITERS: Registry[StackWriter] = Registry("stack writer", "chipstack.stack_writers")
+
+
+def write_stack_files(folder: Path, stack: Stack) -> list[str]:
+    """Every registered stack writer's files (the exact record first); returns the names
+    written."""
+    written: list[str] = []
+    for name in STACK_WRITERS.in_order():
+        written += STACK_WRITERS.get(name).write(folder, stack)
+    return written
+
+
+def _write_record(folder: Path, stack: Stack) -> list[str]:
     import numpy as np
 
-    from export import (
-        stack_polydata,
-        write_contacts_csv,
-        write_poses_csv,
-        write_pvd,
-        write_stack_vtp,
-    )
     from packing.checkpoint import stack_to_arrays
     from packing.shapes import shape_record
 
@@ -46,11 +67,36 @@ def write_stack_files(folder: Path, stack: Stack) -> None:
     (folder / "shapes.json").write_text(json.dumps(shapes) + "\n")
     # The exact record (float64 poses, contacts) later stages start from.
     np.savez(folder / "stack.npz", **stack_to_arrays(stack))
+    return ["shapes.json", "stack.npz"]
+
+
+def _write_poses(folder: Path, stack: Stack) -> list[str]:
+    from export import write_poses_csv
+
+    written = []
+    for result in stack.batches:
+        name = f"poses_after_batch_{result.batch:02d}.csv"
+        write_poses_csv(folder / name, stack, result)
+        written.append(name)
+    return written
+
+
+def _write_contacts(folder: Path, stack: Stack) -> list[str]:
+    from export import write_contacts_csv
+
+    written = []
+    for result in stack.batches:
+        name = f"contacts_after_batch_{result.batch:02d}.csv"
+        write_contacts_csv(folder / name, result)
+        written.append(name)
+    return written
+
+
+def _write_vtk_series(folder: Path, stack: Stack) -> list[str]:
+    from export import stack_polydata, write_pvd, write_stack_vtp
+
     series = []
     for result in stack.batches:
-        tag = f"batch_{result.batch:02d}"
-        write_poses_csv(folder / f"poses_after_{tag}.csv", stack, result)
-        write_contacts_csv(folder / f"contacts_after_{tag}.csv", result)
         n = len(result.positions)
         mesh = stack_polydata(
             stack.shapes,
@@ -59,9 +105,44 @@ def write_stack_files(folder: Path, stack: Stack) -> None:
             result.quaternions,
             stack.batch[:n],
         )
-        write_stack_vtp(folder / f"stack_after_{tag}.vtp", mesh)
-        series.append((float(result.batch), f"stack_after_{tag}.vtp"))
+        name = f"stack_after_batch_{result.batch:02d}.vtp"
+        write_stack_vtp(folder / name, mesh)
+        series.append((float(result.batch), name))
     write_pvd(folder / "stack.pvd", series)
+    return [name for _, name in series] + ["stack.pvd"]
+
+
+for _writer in (
+    StackWriter(
+        "record",
+        "shapes.json, stack.npz",
+        "the exact record later stages start from: every chip's shape, float64 poses and "
+        "contacts after each batch",
+        _write_record,
+        record=True,
+    ),
+    StackWriter(
+        "poses",
+        "poses_after_batch_NN.csv",
+        "every chip's batch, shape, position (mm), quaternion and whether it landed inside "
+        "the target, after each batch",
+        _write_poses,
+        record=True,
+    ),
+    StackWriter(
+        "contacts",
+        "contacts_after_batch_NN.csv",
+        "every contact point between chips and with the conveyor after each batch",
+        _write_contacts,
+    ),
+    StackWriter(
+        "vtk",
+        "stack_after_batch_NN.vtp, stack.pvd",
+        "the chips as polydata after each batch, and the series for ParaView",
+        _write_vtk_series,
+    ),
+):
+    STACK_WRITERS.register(_writer.name, _writer)
 
 
 def write_drop_files(folder: Path, scenario: Scenario, drops: DropResult, figures: bool) -> dict:

@@ -66,6 +66,17 @@ def mesh_formats_markdown() -> str:
     return _table(("format", "what is written"), rows)
 
 
+def stack_writers_markdown() -> str:
+    from packing.files import STACK_WRITERS
+
+    rows = []
+    for name in STACK_WRITERS.in_order():
+        writer = STACK_WRITERS.get(name)
+        read = "; read by later stages" if writer.record else ""
+        rows.append((name, f"`{writer.files}`: {writer.doc}{read}"))
+    return _table(("stack writer", "what it writes into packing/"), rows)
+
+
 def mesh_kinds_markdown() -> str:
     from meshing.kinds import MESH_KINDS
 
@@ -146,6 +157,7 @@ GENERATED: dict[str, Callable[[], str]] = {
     "shapes": shapes_markdown,
     "descriptors": descriptors_markdown,
     "mesh_formats": mesh_formats_markdown,
+    "stack_writers": stack_writers_markdown,
     "mesh_kinds": mesh_kinds_markdown,
     "solve_models": solve_models_markdown,
     "effects": effects_markdown,

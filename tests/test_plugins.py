@@ -1,8 +1,8 @@
 """Plugins: a package outside the project (``tests/plugins``: its module and its
 ``.dist-info`` with the entry points, on the path of the runs below as an installed
-package would be) adds a chip shape, a descriptor, a mesh kind, an effect and a scenario
-kind with its own table and deposition site without touching a file of the project; each
-works end to end, and its docs rows are generated."""
+package would be) adds a chip shape, a descriptor, a mesh kind, an effect, a scenario
+kind with its own table and deposition site and a stack writer without touching a file of
+the project; each works end to end, and its docs rows are generated."""
 
 from __future__ import annotations
 
@@ -79,11 +79,17 @@ def run(args: list[str], cwd: Path, plugin: bool = True) -> subprocess.Completed
     )
 
 
-def test_a_plugin_shape_descriptor_and_mesh_kind_run_through_their_stages(tmp_path):
+def test_a_plugin_shape_descriptor_mesh_kind_and_writer_run_through_their_stages(tmp_path):
     (tmp_path / "tri.toml").write_text(TRIANGLES)
     result = run(["-m", "pipeline", "run", "tri.toml", "--to", "mesh", "--out", "run"], tmp_path)
     assert result.returncode == 0, result.stderr
     assert "coarse_voxel mesh:" in result.stdout
+    # The plugin's stack writer: the centres after the last batch, as the poses file has them.
+    centres = np.loadtxt(tmp_path / "run" / "packing" / "centres.xyz")
+    with open(tmp_path / "run" / "packing" / "poses_after_batch_01.csv") as f:
+        rows = list(csv.DictReader(f))
+    poses = np.array([[float(r[k]) for k in ("x_mm", "y_mm", "z_mm")] for r in rows])
+    assert centres.shape == (12, 3) and np.allclose(centres, poses, atol=1e-5)
     description = json.loads((tmp_path / "run" / "geometry" / "descriptors.json").read_text())
     heights = description["descriptors"]["centre_height"]
     # Triangles 2 mm thick lying on the conveyor and on each other: centres from 1 mm up.
@@ -142,16 +148,20 @@ def test_a_plugin_effect_acts_on_simulated_drops(tmp_path):
 def test_plugin_rows_are_generated_in_the_docs_tables(tmp_path):
     code = (
         "from pipeline.reference import GENERATED\n"
-        "for name in ('shapes', 'descriptors', 'mesh_kinds', 'effects', 'scenario_kinds'):\n"
+        "names = ('shapes', 'descriptors', 'mesh_kinds', 'effects', 'scenario_kinds',\n"
+        "         'stack_writers')\n"
+        "for name in names:\n"
         "    print(GENERATED[name]())\n"
     )
     with_plugin = run(["-c", code], tmp_path)
     assert with_plugin.returncode == 0, with_plugin.stderr
     rows = ("| `triangle` | An equilateral triangle", "| `centre_height` |", "| `coarse_voxel` |")
-    for row in (*rows, "| `crosswind` |", "| `ring` | Batch deposition over a disc"):
+    rows += ("| `crosswind` |", "| `ring` | Batch deposition over a disc", "| `centres` |")
+    for row in rows:
         assert row in with_plugin.stdout, row
     without = run(["-c", code], tmp_path, plugin=False)
     assert "triangle" not in without.stdout and "crosswind" not in without.stdout
+    assert "centres" not in without.stdout
 
 
 def test_a_broken_plugin_names_itself_every_time(tmp_path, monkeypatch):

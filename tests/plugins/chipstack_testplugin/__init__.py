@@ -1,5 +1,6 @@
 """A plugin package outside the project: a chip shape, a descriptor, a mesh kind, an
-effect and a scenario kind (with its table and deposition site), declared only in its own
+effect, a scenario kind (with its table and deposition site) and a stack writer, declared
+only in its own
 entry points (``chipstack_testplugin-0.1.dist-info``).
 ``tests/test_plugins.py`` puts this folder on the path of a CLI run and checks that each
 works end to end."""
@@ -15,6 +16,7 @@ from core.schema import Section, between, key
 from geometry.describe import Descriptor
 from meshing.kinds import VoxelKind
 from packing.effects import Effect
+from packing.files import StackWriter
 from packing.kinds import StackKind
 from packing.shapes import ShapeKind, prism_shape
 from packing.sites import SquareTarget
@@ -121,3 +123,16 @@ class RingSite(SquareTarget):
 
 RING = Ring()
 RING_SITE = RingSite()
+
+
+def _write_centres(folder, stack):
+    """The chips' centres after the last batch as an XYZ point cloud (mm)."""
+    last = stack.batches[-1]
+    rows = [f"{x:.6f} {y:.6f} {z:.6f}" for x, y, z in np.asarray(last.positions)]
+    (folder / "centres.xyz").write_text("\n".join(rows) + "\n")
+    return ["centres.xyz"]
+
+
+CENTRES = StackWriter(
+    "centres", "centres.xyz", "the chips' centres as a point cloud, from a plugin", _write_centres
+)
