@@ -108,7 +108,8 @@ SWEEP_POINTS = 6
 # take, and one pseudo-experiment's datasets from a pool disjoint (a review found the
 # pseudo-experiments of method 5 drawn, overlapping, from one pool of 120 drops). 7: a
 # strength fitted on its discrepancy curve smoothed over 7 grid points (LOESS), not the
-# parabola through the lowest point and its neighbours (``smoothed_minimum``).
+# parabola through the lowest point and its neighbours (``smoothed_minimum``); an effect
+# leaves the tie set only if worse than the best at every strength it plausibly has.
 METHOD = {
     "nulls": 2,
     "effects": 7,

@@ -45,6 +45,7 @@ __all__ = [
     "smoothed_minimum",
     "vertex",
     "within",
+    "worse_everywhere_p",
 ]
 
 TILT_RESOLUTION_DEG = 0.1
@@ -522,16 +523,55 @@ class EffectRanking:
     def _tie_set(self, ranked: list[str], results: dict, held: dict[str, HeldOut]) -> None:
         """Every effect's one-sided paired test of "worse than the best" on the per-drop
         held-out scores, Holm-adjusted across the effects: those not significantly worse
-        are tied with the best."""
+        are tied with the best.
+
+        An effect is worse only if it is worse at every strength it plausibly has, not
+        just at the one its folds fitted (an intersection-union test: the largest p-value
+        of the fitted model and of every grid strength in a fold's 95 % interval, the
+        neutral one aside, which is the baseline). A weak effect's fit follows the
+        simulations' noise (air drag 1.33 fitted at 1.86 and 0.87 on the two folds of a
+        sweep case): scored only there it lost to an imitator, and restitution was named
+        alone for a gap air drag made."""
         best = ranked[0]
         others = ranked[1:]
-        raw = [_p_worse(held[e].scores - held[best].scores) for e in others]
-        adjusted = holm(raw) if raw else []
+        self.sims.ensure([key for e in others for key in self._plausible_keys(e)])
+        raw = [self._p_worse_everywhere(e, held[e], held[best]) for e in others]
+        adjusted = holm([p for p, _ in raw]) if raw else []
         results[best]["p_worse_than_best"] = 1.0
         results[best]["indistinguishable_from_best"] = True
-        for effect, p in zip(others, adjusted, strict=True):
+        for effect, p, (_, tried) in zip(others, adjusted, raw, strict=True):
             results[effect]["p_worse_than_best"] = float(p)
+            results[effect]["strengths_compared_with_best"] = tried
             results[effect]["indistinguishable_from_best"] = bool(p >= self.alpha)
+
+    def _plausible_settings(self, effect: str) -> list[tuple[float, float]]:
+        """The (strength, tilt offset) grid settings within any fold's 95 % interval of
+        the effect's fit, its neutral strength aside."""
+        neutral = EFFECTS.get(effect).neutral(self.sims.contact)
+        settings = {s for fold in self.folds for s in fold.plausible.get(effect, [])}
+        return sorted(s for s in settings if abs(s[0] - neutral) > 1e-12)
+
+    def _plausible_keys(self, effect: str) -> list[tuple]:
+        return [
+            self.sims.grid_at_offset(ds.condition, o, effect, v)
+            for v, o in self._plausible_settings(effect)
+            for ds in self.everything
+        ]
+
+    def _p_worse_everywhere(self, effect: str, fitted: HeldOut, best: HeldOut) -> tuple:
+        """(the largest one-sided p of "worse than the best" over the effect's fitted
+        model and its plausible settings, the strengths tried)."""
+        settings = self._plausible_settings(effect)
+        candidates = [fitted.scores] + [
+            np.concatenate(
+                [
+                    self.sims.scores(ds, self.sims.grid_at_offset(ds.condition, o, effect, v))
+                    for _, ds in self._held_pairs()
+                ]
+            )
+            for v, o in settings
+        ]
+        return worse_everywhere_p(candidates, best.scores), [float(v) for v, _ in settings]
 
     def _baseline_refit(
         self, tilt_all: float, base: HeldOut, refit: HeldOut, best: HeldOut | None
@@ -633,6 +673,14 @@ class EffectRanking:
 
     def _prediction(self, ds: Dataset, fold: Fold, effect: str) -> np.ndarray:
         return self.sims.observables[fold.model(self.sims, ds.condition, effect)]
+
+
+def worse_everywhere_p(candidates: list[np.ndarray], best: np.ndarray) -> float:
+    """p-value of "every candidate scores worse than the best": the largest of the
+    one-sided paired tests of each candidate's per-drop scores against the best's (an
+    intersection-union test, exact at its level without adjustment over the candidates:
+    to reject, each must be rejected)."""
+    return max(_p_worse(scores - best) for scores in candidates)
 
 
 def _p_worse(differences: np.ndarray) -> float:

@@ -171,6 +171,24 @@ def test_a_noisy_strength_curve_is_fitted_on_its_smoothed_shape_not_its_lowest_p
     assert smoothed_minimum(grid, outlier, 1e-3)[0] < 2.4
 
 
+def test_an_effect_leaves_the_tie_only_if_worse_at_every_plausible_strength():
+    """The tie set's test: an effect scored worse than the best at the strength its folds
+    fitted (on noise) but as well at another strength within its interval stays tied;
+    one worse at every strength it plausibly has is out; with one candidate the test is
+    the plain paired test."""
+    from diagnosis.drop_effects import _p_worse, worse_everywhere_p
+
+    rng = np.random.default_rng(8)
+    best = rng.normal(1.0, 0.3, 150)
+    misfitted = best + 0.15 + rng.normal(0, 0.1, 150)  # its fitted strength: clearly worse
+    as_good = best + rng.normal(0, 0.1, 150)  # a plausible strength: no worse
+    assert _p_worse(misfitted - best) < 1e-6
+    assert worse_everywhere_p([misfitted, as_good], best) > 0.05
+    worse_too = best + 0.1 + rng.normal(0, 0.1, 150)
+    assert worse_everywhere_p([misfitted, worse_too], best) < 1e-6
+    assert worse_everywhere_p([misfitted], best) == _p_worse(misfitted - best)
+
+
 def test_joint_fit_finds_the_minimum_of_a_tilted_bowl_between_grid_points():
     """Strength and tilt together: a quadratic bowl with a cross term (the tilt absorbs
     part of the strength) sampled on the 3 x 3 stencil has its minimum found off both
