@@ -38,7 +38,9 @@ MATERIALS = {
     "PORE": {"E": 2000.0, "nu": 0.35},
 }
 
-MESH_FORMATS: Registry[Callable[[Path, VolumeMesh], list[Path]]] = Registry("mesh format")
+MESH_FORMATS: Registry[Callable[[Path, VolumeMesh], list[Path]]] = Registry(
+    "mesh format", "chipstack.mesh_formats"
+)
 
 log = logging.getLogger(__name__)
 
