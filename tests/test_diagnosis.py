@@ -150,21 +150,28 @@ def test_strength_fit_finds_the_minimum_between_grid_points():
 def test_a_noisy_strength_curve_is_fitted_on_its_smoothed_shape_not_its_lowest_point():
     """Each grid point of a strength curve is its own simulation. The smoothed minimum
     finds a parabola's vertex exactly (a local quadratic reproduces one), and on curves
-    whose grid points carry noise as large as the curve's bend (400 draws, minimum
+    whose grid points carry noise as large as the curve's bend (2,000 draws, minimum
     anywhere in the middle of the prior) it misses the truth by less than the parabola
-    through the lowest point and its two neighbours does; a single low outlier beside
-    the truth does not drag it most of a grid step away."""
+    through the lowest point and its two neighbours does; on flat noise it does not pile
+    up at the ends of the prior; a single low outlier beside the truth does not drag it
+    most of a grid step away."""
     from diagnosis.drop_effects import smoothed_minimum, vertex
 
     grid = [0.0, 0.4, 0.8, 1.2, 1.6, 2.0, 2.4, 2.8, 3.2, 3.6, 4.0]
     x = np.array(grid)
     assert smoothed_minimum(grid, (x - 1.37) ** 2, 1e-3)[0] == pytest.approx(1.37, abs=2e-3)
     rng = np.random.default_rng(5)
-    truths = rng.uniform(0.5, 3.5, 400)
+    truths = rng.uniform(0.5, 3.5, 2000)
     curves = np.column_stack([0.1 * (x - t) ** 2 + rng.normal(0, 0.1, x.size) for t in truths])
     smooth_error = np.sqrt(np.mean((smoothed_minimum(grid, curves, 1e-3) - truths) ** 2))
     vertex_error = np.sqrt(np.mean((vertex(grid, curves, 1e-3) - truths) ** 2))
+    # Over 20 seeds of 2,000 draws the ratio was 0.85 to 0.89.
     assert smooth_error < 0.92 * vertex_error
+    # On flat noise a parabola fitted at an end of the grid is noisier than mid-grid; an
+    # end is kept only where the raw curve is lowest there too (unguarded: 39 % at the
+    # ends; the vertex: 17 %).
+    flat = smoothed_minimum(grid, rng.normal(0, 0.1, (x.size, 4000)), 1e-3)
+    assert np.mean((flat <= 0.0) | (flat >= 4.0)) < 0.22
     outlier = 0.1 * (x - 2.0) ** 2
     outlier[7] -= 0.1  # 2.8 looks lowest, by one point's noise
     assert vertex(grid, outlier, 1e-3)[0] > 2.6
