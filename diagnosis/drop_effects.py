@@ -15,6 +15,7 @@ data are then tested against an independent simulation of it (the adequacy test 
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -146,8 +147,8 @@ def smoothed_minimum(
     if len(x) <= 3:
         return vertex(grid, curve, resolution)
     fine = np.linspace(x[0], x[-1], SMOOTHING_POINTS)
-    smoother = _loess_matrix(x, fine, min(span, len(x)))
-    smooth = smoother @ curve  # (F, R)
+    # The same grid is fitted for every fold, dataset and resample: its map is built once.
+    smooth = _loess_matrix(tuple(x.tolist()), max(3, min(span, len(x)))) @ curve  # (F, R)
     k = smooth.argmin(axis=0)
     # A parabola fitted at an end of the grid leans on neighbours all on one side, so its
     # value there is twice as noisy as mid-grid: on flat noise alone 39 % of minima land
@@ -162,21 +163,26 @@ def smoothed_minimum(
     return snap(fine[k], resolution, x[0], x[-1])
 
 
-def _loess_matrix(x: np.ndarray, at: np.ndarray, span: int) -> np.ndarray:
-    """The linear map from values at ``x`` to their local-quadratic fit at ``at``
-    (len(at), len(x)): row i holds the weights of the intercept of the parabola fitted
-    around ``at[i]``. The bandwidth reaches just past the ``span``-th nearest point (so
-    that it weighs in), and at least past three points (a parabola needs three)."""
+@functools.lru_cache(maxsize=64)
+def _loess_matrix(grid: tuple[float, ...], span: int) -> np.ndarray:
+    """The linear map from values on ``grid`` to their local-quadratic fit at the
+    ``SMOOTHING_POINTS`` points across it (SMOOTHING_POINTS, len(grid)): row i holds the
+    weights of the intercept of the parabola fitted there. The bandwidth reaches just
+    past the ``span``-th nearest grid point (so that it weighs in; ``span`` >= 3, as a
+    parabola needs three)."""
+    x = np.asarray(grid)
+    step = np.min(np.diff(x))
     rows = []
-    step = np.min(np.diff(x)) if len(x) > 1 else 1.0
-    for u in at:
+    for u in np.linspace(x[0], x[-1], SMOOTHING_POINTS):
         d = np.abs(x - u)
         h = np.sort(d)[span - 1] + 0.5 * step
         w = np.clip(1 - (d / h) ** 3, 0.0, None) ** 3
         design = np.column_stack([np.ones_like(x), x - u, (x - u) ** 2])
         weighted = design * w[:, None]
         rows.append(np.linalg.solve(design.T @ weighted, weighted.T)[0])
-    return np.array(rows)
+    matrix = np.array(rows)
+    matrix.flags.writeable = False  # shared by every caller through the cache
+    return matrix
 
 
 def snap(values: np.ndarray, resolution: float, low: float, high: float) -> np.ndarray:
@@ -549,56 +555,52 @@ class EffectRanking:
         alone for a gap air drag made."""
         best = ranked[0]
         others = ranked[1:]
-        self.sims.ensure([key for e in others for key in self._plausible_keys(e)])
-        raw = [self._p_worse_everywhere(e, held[e], held[best]) for e in others]
-        adjusted = holm([p for p, _ in raw]) if raw else []
+        candidates = {e: self._candidates(e) for e in others}
+        self.sims.ensure([key for c in candidates.values() for keys in c.values() for key in keys])
+        raw = [
+            worse_everywhere_p(self._scored(held[e], candidates[e]), held[best].scores)
+            for e in others
+        ]
+        adjusted = holm(raw) if raw else []
         results[best]["p_worse_than_best"] = 1.0
         results[best]["strengths_compared_with_best"] = []
         results[best]["indistinguishable_from_best"] = True
-        for effect, p, (_, tried) in zip(others, adjusted, raw, strict=True):
+        for effect, p in zip(others, adjusted, strict=True):
             results[effect]["p_worse_than_best"] = float(p)
-            results[effect]["strengths_compared_with_best"] = tried
+            results[effect]["strengths_compared_with_best"] = [
+                [float(v), float(o)] for v, o in candidates[effect]
+            ]
             results[effect]["indistinguishable_from_best"] = bool(p >= self.alpha)
 
-    def _plausible_settings(self, effect: str) -> list[tuple[float, float]]:
-        """The (strength, tilt offset) grid settings within any fold's confidence set
-        of the effect's fit (``StrengthGrids.plausible``), its neutral strength aside."""
-        neutral = EFFECTS.get(effect).neutral(self.sims.contact)
-        settings = {s for fold in self.folds for s in fold.plausible.get(effect, [])}
-        return sorted(s for s in settings if abs(s[0] - neutral) > 1e-12)
-
-    def _candidate_key(self, fold: Fold, ds: Dataset, effect: str, setting) -> tuple:
-        """The simulation a held-out dataset is scored against for a candidate setting:
-        the setting where this fold's calibration data found it plausible, else the
+    def _candidates(self, effect: str) -> dict[tuple[float, float], list[tuple]]:
+        """Each (strength, tilt offset) grid setting within any fold's confidence set of
+        the effect's fit (``StrengthGrids.plausible``), its neutral strength aside, with
+        the simulation each held-out dataset is scored against for it (``_held_pairs``
+        order): the setting where that fold's calibration found it plausible, else the
         fold's fitted model (a setting only another fold found plausible was chosen with
         these very drops, which would then judge it)."""
-        if setting in fold.plausible.get(effect, []):
-            strength, offset = setting
-            return self.sims.grid_at_offset(ds.condition, offset, effect, strength)
-        return fold.model(self.sims, ds.condition, effect)
+        neutral = EFFECTS.get(effect).neutral(self.sims.contact)
+        settings = {s for fold in self.folds for s in fold.plausible.get(effect, [])}
+        return {
+            (v, o): [
+                self.sims.grid_at_offset(ds.condition, o, effect, v)
+                if (v, o) in fold.plausible.get(effect, [])
+                else fold.model(self.sims, ds.condition, effect)
+                for fold, ds in self._held_pairs()
+            ]
+            for v, o in sorted(settings)
+            if abs(v - neutral) > 1e-12
+        }
 
-    def _plausible_keys(self, effect: str) -> list[tuple]:
-        return [
-            self._candidate_key(fold, ds, effect, setting)
-            for setting in self._plausible_settings(effect)
-            for fold, ds in self._held_pairs()
-        ]
-
-    def _p_worse_everywhere(self, effect: str, fitted: HeldOut, best: HeldOut) -> tuple:
-        """(the largest one-sided p of "worse than the best" over the effect's fitted
-        model and its plausible settings, the settings tried as [strength, offset])."""
-        settings = self._plausible_settings(effect)
-        candidates = [fitted.scores] + [
+    def _scored(self, fitted: HeldOut, candidates: dict) -> list[np.ndarray]:
+        """Per-drop held-out scores of the fitted model, then of each candidate setting."""
+        pairs = self._held_pairs()
+        return [fitted.scores] + [
             np.concatenate(
-                [
-                    self.sims.scores(ds, self._candidate_key(fold, ds, effect, setting))
-                    for fold, ds in self._held_pairs()
-                ]
+                [self.sims.scores(ds, k) for (_, ds), k in zip(pairs, keys, strict=True)]
             )
-            for setting in settings
+            for keys in candidates.values()
         ]
-        tried = [[float(v), float(o)] for v, o in settings]
-        return worse_everywhere_p(candidates, best.scores), tried
 
     def _baseline_refit(
         self, tilt_all: float, base: HeldOut, refit: HeldOut, best: HeldOut | None

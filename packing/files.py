@@ -70,26 +70,28 @@ def _write_record(folder: Path, stack: Stack) -> list[str]:
     return ["shapes.json", "stack.npz"]
 
 
+def _per_batch(folder: Path, stack: Stack, pattern: str, write) -> list[str]:
+    """``write(path, result)`` once per batch, to ``pattern`` with the batch's number."""
+    written = []
+    for result in stack.batches:
+        name = pattern.format(result.batch)
+        write(folder / name, result)
+        written.append(name)
+    return written
+
+
 def _write_poses(folder: Path, stack: Stack) -> list[str]:
     from export import write_poses_csv
 
-    written = []
-    for result in stack.batches:
-        name = f"poses_after_batch_{result.batch:02d}.csv"
-        write_poses_csv(folder / name, stack, result)
-        written.append(name)
-    return written
+    return _per_batch(
+        folder, stack, "poses_after_batch_{:02d}.csv", lambda p, r: write_poses_csv(p, stack, r)
+    )
 
 
 def _write_contacts(folder: Path, stack: Stack) -> list[str]:
     from export import write_contacts_csv
 
-    written = []
-    for result in stack.batches:
-        name = f"contacts_after_batch_{result.batch:02d}.csv"
-        write_contacts_csv(folder / name, result)
-        written.append(name)
-    return written
+    return _per_batch(folder, stack, "contacts_after_batch_{:02d}.csv", write_contacts_csv)
 
 
 def _write_vtk_series(folder: Path, stack: Stack) -> list[str]:
