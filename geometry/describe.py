@@ -103,13 +103,38 @@ def _no_figures(record: Any, section: dict[str, Any], folder: Path) -> list[str]
     return []
 
 
+def _no_ensemble_figures(summary: dict[str, Any], folder: Path) -> list[str]:
+    return []
+
+
+def _no_comparison_figures(
+    labels: tuple[str, str], summaries: tuple[dict[str, Any], dict[str, Any]], folder: Path
+) -> list[str]:
+    return []
+
+
+def bands(profile: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """An ensemble profile's mean and its 95 % band (the mean where the band is
+    undefined: a single repeat)."""
+
+    def array(key: str) -> np.ndarray:
+        return np.array([np.nan if v is None else v for v in profile[key]], dtype=float)
+
+    mean = array("mean")
+    low, high = array("ci_low"), array("ci_high")
+    return mean, np.where(np.isnan(low), mean, low), np.where(np.isnan(high), mean, high)
+
+
 @dataclass(frozen=True)
 class Descriptor:
     """A registered descriptor: how to compute it and what it writes.
 
     compute(ctx) -> (record of arrays, JSON section); tables(record) -> {CSV name:
     (header, rows)}; files(record, folder) -> other files written (names);
-    figures(record, section, folder) -> figures drawn into ``folder`` (names).
+    figures(record, section, folder) -> figures drawn into ``folder`` (names);
+    ensemble_figures(summary, folder) -> the same over an ensemble's repeats, from this
+    descriptor's part of ``ensemble.json`` (with 95 % bands); comparison_figures(labels,
+    summaries, folder) -> two ensembles side by side (``pipeline compare``).
     """
 
     name: str
@@ -118,6 +143,8 @@ class Descriptor:
     tables: Callable[[Any], dict[str, Table]] = _no_tables
     files: Callable[[Any, Path], list[str]] = _no_files
     figures: Callable[[Any, dict[str, Any], Path], list[str]] = _no_figures
+    ensemble_figures: Callable[[dict[str, Any], Path], list[str]] = _no_ensemble_figures
+    comparison_figures: Callable[[tuple, tuple, Path], list[str]] = _no_comparison_figures
 
 
 DESCRIPTORS: Registry[Descriptor] = Registry("descriptor", "chipstack.descriptors")
@@ -180,11 +207,25 @@ def _contact_figures(history: ContactHistory, section: dict[str, Any], folder: P
     return ["contact_types.png"]
 
 
+def _contact_ensemble_figures(summary: dict[str, Any], folder: Path) -> list[str]:
+    """Fig. 7 with 95 % confidence bands over the repeats."""
+    from export import figures  # matplotlib only when drawing
+
+    profiles = summary["profiles"]
+    batches = np.array(profiles["point_per_chip_by_batch"]["index"])
+    mean, low, high = {}, {}, {}
+    for kind in KINDS:
+        mean[kind], low[kind], high[kind] = bands(profiles[f"{kind}_per_chip_by_batch"])
+    figures.plot_contact_types(folder / "contact_types.png", batches, mean, low, high)
+    return ["contact_types.png"]
+
+
 @_register(
     "contacts",
     "contact types per chip (point, line, surface) and partner place, by NBD",
     tables=_contact_tables,
     figures=_contact_figures,
+    ensemble_figures=_contact_ensemble_figures,
 )
 def _contacts(ctx: _Context):
     spec = ctx.spec
@@ -351,11 +392,44 @@ def _layer_figures(filling: LayerFilling, section: dict[str, Any], folder: Path)
     return ["layer_filling.png", "porosity_profile.png"]
 
 
+def _layer_ensemble_figures(summary: dict[str, Any], folder: Path) -> list[str]:
+    """Fig. 10 with 95 % confidence bands over the repeats."""
+    from export import figures  # matplotlib only when drawing
+
+    chips = summary["profiles"]["chips"]
+    mean, low, high = bands(chips)
+    full = summary["scalars"]["full_layer"]["mean"]
+    figures.plot_layer_filling(
+        folder / "layer_filling.png", np.array(chips["index"]), mean, full, low, high
+    )
+    return ["layer_filling.png"]
+
+
+def _layer_comparison_figures(
+    labels: tuple[str, str], summaries: tuple[dict[str, Any], dict[str, Any]], folder: Path
+) -> list[str]:
+    """Fig. 12: the two ensembles' layer filling side by side."""
+    from export import figures  # matplotlib only when drawing
+
+    series = []
+    longest: list[Any] = []
+    for label, summary in zip(labels, summaries, strict=True):
+        chips = summary["profiles"]["chips"]
+        mean, low, high = bands(chips)
+        series.append((label, mean, low, high))
+        longest = max(longest, chips["index"], key=len)
+    full = summaries[0]["scalars"]["full_layer"]["mean"]
+    figures.plot_layer_comparison(folder / "layer_filling.png", np.array(longest), series, full)
+    return ["layer_filling.png"]
+
+
 @_register(
     "layers",
     "layer filling by centre of mass, solid and covered fractions per layer",
     tables=_layer_tables,
     figures=_layer_figures,
+    ensemble_figures=_layer_ensemble_figures,
+    comparison_figures=_layer_comparison_figures,
 )
 def _layers(ctx: _Context):
     filling: LayerFilling = layer_filling(ctx.final, ctx.union, ctx.spec.layer_mm)

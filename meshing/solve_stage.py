@@ -151,8 +151,7 @@ def _write_results(result: Compaction, folder: Path, figures: bool) -> list[str]
             writer.writerow([f"{v:.9g}" for v in row])
     files.append("force_displacement.csv")
     if figures:
-        from export.figures import plot_force_displacement  # matplotlib only when drawing
+        from export.figure_kinds import draw_figures  # matplotlib only when drawing
 
-        plot_force_displacement(folder / "force_displacement.png", result.press_mm, result.force_n)
-        files.append("force_displacement.png")
+        files += draw_figures("compaction", folder, result)
     return files

@@ -148,7 +148,8 @@ for _writer in (
 
 
 def write_drop_files(folder: Path, scenario: Scenario, drops: DropResult, figures: bool) -> dict:
-    """Every final pose, the statistics and Fig. 15; returns the statistics."""
+    """Every final pose, the statistics and, with figures, the drops' figures (Fig. 15,
+    ``export.figure_kinds``); returns the statistics."""
     from export.tables import write_drops_csv
     from packing.scatter import drop_statistics
 
@@ -157,15 +158,10 @@ def write_drop_files(folder: Path, scenario: Scenario, drops: DropResult, figure
     statistics["settled"] = int(drops.settled.sum())
     (folder / "drop_statistics.json").write_text(json.dumps(statistics, indent=2) + "\n")
     if figures:
-        from export.figures import plot_drops  # matplotlib only when drawing
+        from export.figure_kinds import DropScatter, draw_figures
 
-        (folder / "figures").mkdir(exist_ok=True)
-        plot_drops(
-            folder / "figures" / "fig15_drops.png",
-            drops.positions[:, :2],
-            statistics,
-            scenario.drop.yaw_deg,
-        )
+        scatter = DropScatter(drops.positions[:, :2], statistics, scenario.drop.yaw_deg)
+        draw_figures("drops", folder / "figures", scatter)
     return statistics
 
 
@@ -362,7 +358,8 @@ def _panel_weights(mat: MatRecord, on, steady: tuple[float, float], panel_mm: fl
 
 def write_mat_files(folder: Path, scenario: Scenario, mat: MatRecord, figures: bool) -> dict:
     """The whole mat (``mat.npz``, ``mat_shapes.json``), its descriptors (``mat.json``)
-    and, with figures, ``figures/mat.png``; returns the manifest entry."""
+    and, with figures, the mat's figures (``export.figure_kinds``); returns the manifest
+    entry."""
     import numpy as np
 
     from packing.shapes import shape_record
@@ -380,9 +377,8 @@ def write_mat_files(folder: Path, scenario: Scenario, mat: MatRecord, figures: b
     )
     summary, record = mat_summary(scenario, mat)
     (folder / "mat.json").write_text(json.dumps(record, indent=1) + "\n")
-    if figures and record["areal_weight"] and record["thickness"]:
-        from export.figures import plot_mat
+    if figures:
+        from export.figure_kinds import draw_figures
 
-        (folder / "figures").mkdir(exist_ok=True)
-        plot_mat(folder / "figures" / "mat.png", record)
+        draw_figures("mat", folder / "figures", record)
     return summary

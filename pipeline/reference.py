@@ -77,6 +77,17 @@ def stack_writers_markdown() -> str:
     return _table(("stack writer", "what it writes into packing/"), rows)
 
 
+def figures_markdown() -> str:
+    from export.figure_kinds import FIGURES, SUBJECTS
+
+    rows = []
+    for name in FIGURES.in_order():
+        kind = FIGURES.get(name)
+        where = SUBJECTS[kind.subject].rsplit("(", 1)[-1].rstrip(")")
+        rows.append((name, f"`{where}{kind.files}`, from {kind.subject}: {kind.doc}"))
+    return _table(("figure", "what it draws"), rows)
+
+
 def mesh_kinds_markdown() -> str:
     from meshing.kinds import MESH_KINDS
 
@@ -158,6 +169,7 @@ GENERATED: dict[str, Callable[[], str]] = {
     "descriptors": descriptors_markdown,
     "mesh_formats": mesh_formats_markdown,
     "stack_writers": stack_writers_markdown,
+    "figures": figures_markdown,
     "mesh_kinds": mesh_kinds_markdown,
     "solve_models": solve_models_markdown,
     "effects": effects_markdown,

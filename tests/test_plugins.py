@@ -1,8 +1,8 @@
 """Plugins: a package outside the project (``tests/plugins``: its module and its
 ``.dist-info`` with the entry points, on the path of the runs below as an installed
 package would be) adds a chip shape, a descriptor, a mesh kind, an effect, a scenario
-kind with its own table and deposition site and a stack writer without touching a file of
-the project; each works end to end, and its docs rows are generated."""
+kind with its own table and deposition site, a stack writer and a figure without touching
+a file of the project; each works end to end, and its docs rows are generated."""
 
 from __future__ import annotations
 
@@ -90,6 +90,11 @@ def test_a_plugin_shape_descriptor_mesh_kind_and_writer_run_through_their_stages
         rows = list(csv.DictReader(f))
     poses = np.array([[float(r[k]) for k in ("x_mm", "y_mm", "z_mm")] for r in rows])
     assert centres.shape == (12, 3) and np.allclose(centres, poses, atol=1e-5)
+    # The plugin's figure of the stack: drawn by the geometry stage and listed with its files.
+    top_view = tmp_path / "run" / "geometry" / "figures" / "centres_top.png"
+    assert top_view.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    manifest = json.loads((tmp_path / "run" / "manifest.json").read_text())
+    assert "figures/centres_top.png" in manifest["stages"]["geometry"]["summary"]["files"]
     description = json.loads((tmp_path / "run" / "geometry" / "descriptors.json").read_text())
     heights = description["descriptors"]["centre_height"]
     # Triangles 2 mm thick lying on the conveyor and on each other: centres from 1 mm up.
@@ -149,7 +154,7 @@ def test_plugin_rows_are_generated_in_the_docs_tables(tmp_path):
     code = (
         "from pipeline.reference import GENERATED\n"
         "names = ('shapes', 'descriptors', 'mesh_kinds', 'effects', 'scenario_kinds',\n"
-        "         'stack_writers')\n"
+        "         'stack_writers', 'figures')\n"
         "for name in names:\n"
         "    print(GENERATED[name]())\n"
     )
@@ -157,11 +162,12 @@ def test_plugin_rows_are_generated_in_the_docs_tables(tmp_path):
     assert with_plugin.returncode == 0, with_plugin.stderr
     rows = ("| `triangle` | An equilateral triangle", "| `centre_height` |", "| `coarse_voxel` |")
     rows += ("| `crosswind` |", "| `ring` | Batch deposition over a disc", "| `centres` |")
+    rows += ("| `top_view` | `geometry/figures/centres_top.png`, from stack",)
     for row in rows:
         assert row in with_plugin.stdout, row
     without = run(["-c", code], tmp_path, plugin=False)
     assert "triangle" not in without.stdout and "crosswind" not in without.stdout
-    assert "centres" not in without.stdout
+    assert "centres" not in without.stdout and "top_view" not in without.stdout
 
 
 def test_a_broken_plugin_names_itself_every_time(tmp_path, monkeypatch):

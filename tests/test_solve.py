@@ -142,6 +142,9 @@ def test_solve_end_to_end_writes_results_paraview_reads(tmp_path):
     forces = [float(r["platen_force_n"]) for r in rows]
     assert len(forces) == 4 and all(np.diff(forces) > 0)
     assert float(rows[-1]["conveyor_force_n"]) == pytest.approx(forces[-1], rel=1e-6)
+    # The compaction's figure (a registered figure of the press's result), listed.
+    assert (out / "solve" / "force_displacement.png").stat().st_size > 10_000
+    assert "force_displacement.png" in manifest["stages"]["solve"]["summary"]["files"]
     solved = pyvista.read(out / "solve" / "compaction.vtu")
     assert {"U", "S", "CONTACT"} <= set(solved.point_data.keys())
     top = solved.points[:, 2] > solved.points[:, 2].max() - 1e-3

@@ -1,7 +1,6 @@
 """A plugin package outside the project: a chip shape, a descriptor, a mesh kind, an
-effect, a scenario kind (with its table and deposition site) and a stack writer, declared
-only in its own
-entry points (``chipstack_testplugin-0.1.dist-info``).
+effect, a scenario kind (with its table and deposition site), a stack writer and a
+figure, declared only in its own entry points (``chipstack_testplugin-0.1.dist-info``).
 ``tests/test_plugins.py`` puts this folder on the path of a CLI run and checks that each
 works end to end."""
 
@@ -13,6 +12,7 @@ from typing import ClassVar
 import numpy as np
 
 from core.schema import Section, between, key
+from export.figure_kinds import FigureKind
 from geometry.describe import Descriptor
 from meshing.kinds import VoxelKind
 from packing.effects import Effect
@@ -135,4 +135,30 @@ def _write_centres(folder, stack):
 
 CENTRES = StackWriter(
     "centres", "centres.xyz", "the chips' centres as a point cloud, from a plugin", _write_centres
+)
+
+
+def _draw_top_view(folder, arrangement):
+    """The chips' centres seen from above, coloured by height (mm)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib import pyplot
+
+    xyz = np.asarray(arrangement.positions)
+    figure, ax = pyplot.subplots(figsize=(4, 4))
+    ax.scatter(xyz[:, 0], xyz[:, 1], c=xyz[:, 2])
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    figure.savefig(folder / "centres_top.png", dpi=60)
+    pyplot.close(figure)
+    return ["centres_top.png"]
+
+
+TOP_VIEW = FigureKind(
+    "top_view",
+    "stack",
+    "centres_top.png",
+    "the chips' centres from above, from a plugin",
+    _draw_top_view,
 )
