@@ -113,6 +113,14 @@ def _no_comparison_figures(
     return []
 
 
+def _no_columns(record: Any) -> dict[str, list]:
+    return {}
+
+
+def _no_headline(section: dict[str, Any]) -> str | None:
+    return None
+
+
 def bands(profile: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """An ensemble profile's mean and its 95 % band (the mean where the band is
     undefined: a single repeat)."""
@@ -134,7 +142,11 @@ class Descriptor:
     figures(record, section, folder) -> figures drawn into ``folder`` (names);
     ensemble_figures(summary, folder) -> the same over an ensemble's repeats, from this
     descriptor's part of ``ensemble.json`` (with 95 % bands); comparison_figures(labels,
-    summaries, folder) -> two ensembles side by side (``pipeline compare``).
+    summaries, folder) -> two ensembles side by side (``pipeline compare``);
+    chip_columns(record) -> {column: one value per chip} for ``chips.csv``; headline(section)
+    -> its part of the stage's one-line report, or None. ``order``: where its columns and
+    its part of the report come among the other descriptors' (lower first; the built-ins
+    keep the order their files have always had).
     """
 
     name: str
@@ -145,6 +157,9 @@ class Descriptor:
     figures: Callable[[Any, dict[str, Any], Path], list[str]] = _no_figures
     ensemble_figures: Callable[[dict[str, Any], Path], list[str]] = _no_ensemble_figures
     comparison_figures: Callable[[tuple, tuple, Path], list[str]] = _no_comparison_figures
+    chip_columns: Callable[[Any], dict[str, list]] = _no_columns
+    headline: Callable[[dict[str, Any]], str | None] = _no_headline
+    order: int = 100
 
 
 DESCRIPTORS: Registry[Descriptor] = Registry("descriptor", "chipstack.descriptors")
@@ -220,12 +235,32 @@ def _contact_ensemble_figures(summary: dict[str, Any], folder: Path) -> list[str
     return ["contact_types.png"]
 
 
+def _contact_columns(history: ContactHistory) -> dict[str, list]:
+    counts = contact_counts(history.tables[-1])
+    columns = {
+        f"{kind}_contacts": counts[:, k].sum(axis=1).tolist() for k, kind in enumerate(KINDS)
+    }
+    for p, place in enumerate(PLACES):
+        columns[f"contacts_{place}"] = counts[:, :, p].sum(axis=1).tolist()
+    return columns
+
+
+def _contact_headline(section: dict[str, Any]) -> str:
+    s = section["scalars"]
+    return "contacts per chip: " + ", ".join(
+        f"{k} {s[k + '_per_chip']['value']:.2f}" for k in KINDS
+    )
+
+
 @_register(
     "contacts",
     "contact types per chip (point, line, surface) and partner place, by NBD",
     tables=_contact_tables,
     figures=_contact_figures,
     ensemble_figures=_contact_ensemble_figures,
+    chip_columns=_contact_columns,
+    headline=_contact_headline,
+    order=20,
 )
 def _contacts(ctx: _Context):
     spec = ctx.spec
@@ -430,6 +465,8 @@ def _layer_comparison_figures(
     figures=_layer_figures,
     ensemble_figures=_layer_ensemble_figures,
     comparison_figures=_layer_comparison_figures,
+    headline=lambda section: f"highest layer {int(section['scalars']['highest_layer']['value'])}",
+    order=50,
 )
 def _layers(ctx: _Context):
     filling: LayerFilling = layer_filling(ctx.final, ctx.union, ctx.spec.layer_mm)
@@ -491,6 +528,11 @@ def _overlap_tables(o: Overlaps) -> dict[str, Table]:
     "overlaps",
     "interpenetration volumes and projected overlap areas between chips",
     tables=_overlap_tables,
+    chip_columns=lambda o: {
+        "projected_overlap_mm2": [fmt(v) for v in o.per_chip_projected_mm2],
+        "penetration_mm3": [fmt(v) for v in o.per_chip_penetration_mm3],
+    },
+    order=40,
 )
 def _overlaps(ctx: _Context):
     result: Overlaps = find_overlaps(ctx.final)
@@ -529,7 +571,15 @@ class Orientation:
     layer_tensors: dict[int, np.ndarray] = field(default_factory=dict)
 
 
-@_register("orientation", "chip tilt, in-plane direction and fibre orientation tensors")
+@_register(
+    "orientation",
+    "chip tilt, in-plane direction and fibre orientation tensors",
+    chip_columns=lambda o: {
+        "tilt_deg": [fmt(v) for v in o.tilt_deg],
+        "direction_deg": [fmt(v) for v in o.direction_deg],
+    },
+    order=10,
+)
 def _orientation(ctx: _Context):
     a = ctx.final
     tilt = tilt_deg(a.rotations)
@@ -588,7 +638,20 @@ def _orientation(ctx: _Context):
 
 
 # -- whole stack ---------------------------------------------------------------------------
-@_register("stack", "height, bulk volume fraction, bare and uneven target area")
+def _stack_headline(section: dict[str, Any]) -> str:
+    s = section["scalars"]
+    return (
+        f"mean height {s['height_mean_mm']['value']:.1f} mm, "
+        f"volume fraction {s['volume_fraction']['value']:.3f}"
+    )
+
+
+@_register(
+    "stack",
+    "height, bulk volume fraction, bare and uneven target area",
+    headline=_stack_headline,
+    order=30,
+)
 def _stack(ctx: _Context):
     a = ctx.final
     maps = ctx.rays

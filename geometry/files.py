@@ -9,8 +9,6 @@ from typing import Any
 
 import numpy as np
 
-from export.tables import fmt
-from geometry.contacts import KINDS, PLACES
 from geometry.describe import DESCRIPTORS, Description
 
 __all__ = ["write_description"]
@@ -62,8 +60,6 @@ def write_description(
 
 def _write_chips(folder: Path, description: Description, arrangement) -> str:
     """chips.csv: one row per chip with every per-chip figure that was computed."""
-    from geometry.contacts import contact_counts
-
     records = description.records
     n = arrangement.n_chips
     layer = np.floor(arrangement.positions[:, 2] / description.spec.layer_mm).astype(int)
@@ -73,18 +69,8 @@ def _write_chips(folder: Path, description: Description, arrangement) -> str:
         "layer": np.maximum(layer, 0).tolist(),
         "inside_target": arrangement.inside_target().astype(int).tolist(),
     }
-    if "orientation" in records:
-        columns["tilt_deg"] = [fmt(v) for v in records["orientation"].tilt_deg]
-        columns["direction_deg"] = [fmt(v) for v in records["orientation"].direction_deg]
-    if "contacts" in records:
-        counts = contact_counts(records["contacts"].tables[-1])
-        for k, kind in enumerate(KINDS):
-            columns[f"{kind}_contacts"] = counts[:, k].sum(axis=1).tolist()
-        for p, place in enumerate(PLACES):
-            columns[f"contacts_{place}"] = counts[:, :, p].sum(axis=1).tolist()
-    if "overlaps" in records:
-        o = records["overlaps"]
-        columns["projected_overlap_mm2"] = [fmt(v) for v in o.per_chip_projected_mm2]
-        columns["penetration_mm3"] = [fmt(v) for v in o.per_chip_penetration_mm3]
+    # Each descriptor's own per-chip columns, in the order the descriptors declare.
+    for name in sorted(records, key=lambda n: DESCRIPTORS.get(n).order):
+        columns.update(DESCRIPTORS.get(name).chip_columns(records[name]))
     _write_csv(folder / "chips.csv", list(columns), zip(*columns.values(), strict=True))
     return "chips.csv"

@@ -67,27 +67,13 @@ class GeometryStage(Stage):
         return json.loads((folder / "descriptors.json").read_text())
 
     def report(self, summary: Mapping[str, Any], folder: Path) -> list[str]:
-        from geometry.contacts import KINDS
+        from geometry.describe import DESCRIPTORS
 
-        data = json.loads((folder / "descriptors.json").read_text())
-        d = data["descriptors"]
-        parts = []
-        if "contacts" in d:
-            s = d["contacts"]["scalars"]
-            parts.append(
-                "contacts per chip: "
-                + ", ".join(f"{k} {s[k + '_per_chip']['value']:.2f}" for k in KINDS)
-            )
-        if "stack" in d:
-            s = d["stack"]["scalars"]
-            parts.append(
-                f"mean height {s['height_mean_mm']['value']:.1f} mm, "
-                f"volume fraction {s['volume_fraction']['value']:.3f}"
-            )
-        if "layers" in d:
-            parts.append(f"highest layer {int(d['layers']['scalars']['highest_layer']['value'])}")
+        d = json.loads((folder / "descriptors.json").read_text())["descriptors"]
+        known = sorted((n for n in d if n in DESCRIPTORS), key=lambda n: DESCRIPTORS.get(n).order)
+        parts = [DESCRIPTORS.get(n).headline(d[n]) for n in known]
         seconds = summary["descriptor_time_s"]
-        return [f"descriptors in {seconds:.2f} s: " + "; ".join(parts)]
+        return [f"descriptors in {seconds:.2f} s: " + "; ".join(p for p in parts if p)]
 
     def summarize_repeats(self, folders, seeds) -> dict[str, Any]:
         """Mean and 95 % confidence interval of every descriptor over the repeats."""

@@ -99,6 +99,13 @@ def test_a_plugin_shape_descriptor_mesh_kind_and_writer_run_through_their_stages
     heights = description["descriptors"]["centre_height"]
     # Triangles 2 mm thick lying on the conveyor and on each other: centres from 1 mm up.
     assert 0.99 < heights["mean_mm"] <= heights["max_mm"] < 10.0
+    # Its per-chip column in chips.csv (the chips' heights, as the poses have them) and its
+    # part of the stage's report line.
+    with open(tmp_path / "run" / "geometry" / "chips.csv") as f:
+        chip_rows = list(csv.DictReader(f))
+    column = [float(r["centre_height_mm"]) for r in chip_rows]
+    assert np.allclose(column, poses[:, 2], atol=1e-5)
+    assert f"centres up to {heights['max_mm']:.1f} mm" in result.stdout
     mesh = meshio.read(tmp_path / "run" / "mesh" / "stack_coarse_voxel.vtu")
     chips = np.unique(mesh.cell_data["chip"][0])
     assert set(chips[chips >= 0]) == set(range(12))

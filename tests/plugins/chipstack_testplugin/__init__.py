@@ -49,7 +49,11 @@ def _centre_heights(ctx):
 
 
 CENTRE_HEIGHT = Descriptor(
-    "centre_height", "height of the chips' centres of mass above the conveyor (mm)", _centre_heights
+    "centre_height",
+    "height of the chips' centres of mass above the conveyor (mm)",
+    _centre_heights,
+    chip_columns=lambda z: {"centre_height_mm": [f"{v:.6f}" for v in z]},
+    headline=lambda section: f"centres up to {section['max_mm']:.1f} mm",
 )
 
 
