@@ -156,12 +156,67 @@ def experiment_kinds_markdown() -> str:
     return _table(("kind", "what it observes"), rows)
 
 
+# The layers, lowest first (``tests/test_architecture.py`` checks that no import runs up
+# them), each with what it holds besides its registries.
+LAYERS = (
+    ("core", "data model (chip shape, stack, contacts, arrangement, overlap rules), scenario"),
+    ("export", "CSV, VTK, figure drawing"),
+    ("packing", "deposition, drops, conveyor, effects (PyBullet)"),
+    ("geometry", "descriptors (manifold3d), ensembles, contact resolution"),
+    ("meshing", "voxel, conformal, image and contact meshes; the solve stage (CalculiX)"),
+    ("diagnosis", "experiment specs, drop and stack diagnoses, the report"),
+    ("pipeline", "command line, run directory, stage cache, sweeps, validation"),
+)
+
+
+def _registries() -> dict[str, list]:
+    """Every registry of the project, by the layer that defines it (found by importing
+    every module of each layer: a registry is first met in its own layer, since only
+    higher layers import it)."""
+    import importlib
+    import pkgutil
+
+    from core.registry import Registry
+
+    found: dict[int, tuple[str, Registry]] = {}
+    for layer, _ in LAYERS:
+        package = importlib.import_module(layer)
+        for info in pkgutil.walk_packages(package.__path__, layer + "."):
+            if info.name.endswith("__main__"):
+                continue
+            module = importlib.import_module(info.name)
+            for item in vars(module).values():
+                if isinstance(item, Registry) and id(item) not in found:
+                    found[id(item)] = (layer, item)
+    by_layer: dict[str, list] = {layer: [] for layer, _ in LAYERS}
+    for layer, registry in found.values():
+        by_layer[layer].append(registry)
+    return by_layer
+
+
+def layers_markdown() -> str:
+    """The layers, lowest at the bottom, with the registries each defines: what the
+    registry holds, its entry-point group and its built-in names."""
+    by_layer = _registries()
+    lines = ["```text"]
+    for k, (layer, what) in enumerate(reversed(LAYERS)):
+        if k:
+            lines.append("   ^ imports only the layers below")
+        lines.append(f"{layer + '/':<11}{what}")
+        for registry in sorted(by_layer[layer], key=lambda r: r.kind):
+            names = ", ".join(registry.in_order())
+            lines.append(f"{'':<11}  [{registry.kind}] {registry.entry_points}: {names}")
+    lines.append("```")
+    return "\n".join(lines)
+
+
 def presets_markdown() -> str:
     rows = [(n, PRESETS.get(n).description) for n in PRESETS.in_order()]
     return _table(("preset", "what it is"), rows)
 
 
 GENERATED: dict[str, Callable[[], str]] = {
+    "layers": layers_markdown,
     "scenario_keys": key_table_markdown,
     "scenario_kinds": scenario_kinds_markdown,
     "stages": stages_markdown,

@@ -106,6 +106,12 @@ def test_core_imports_no_stage():
 LAYERS = ("core", "export", "packing", "geometry", "meshing", "diagnosis", "pipeline")
 
 
+def test_the_docs_picture_of_the_layers_has_these_layers():
+    from pipeline.reference import LAYERS as PICTURED
+
+    assert tuple(layer for layer, _ in PICTURED) == LAYERS
+
+
 def _upward(graph: dict[str, set[str]]) -> list[str]:
     rank = {layer: k for k, layer in enumerate(LAYERS)}
     return sorted(
