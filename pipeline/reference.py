@@ -108,12 +108,21 @@ def solve_models_markdown() -> str:
 
 
 def effects_markdown() -> str:
-    rows = []
+    """Every effect: its strength and unit, the prior the diagnosis searches, the kinds of
+    scenario it acts in and why it may be missing from the model."""
+    lines = [
+        "| effect | strength | prior | kinds | why it may be missing from the model |",
+        "|---|---|---|---|---|",
+    ]
     for name in EFFECTS.in_order():
         effect = EFFECTS.get(name)
         unit = f" ({effect.unit})" if effect.unit else ""
-        rows.append((name, f"strength: {effect.parameter}{unit}"))
-    return _table(("effect", "its strength"), rows)
+        lo, hi = effect.prior
+        lines.append(
+            f"| `{name}` | {effect.parameter}{unit} | {lo:g} to {hi:g} | "
+            f"{', '.join(effect.kinds)} | {_first_line(effect.justification)} |"
+        )
+    return "\n".join(lines)
 
 
 def scenario_kinds_markdown() -> str:
