@@ -490,6 +490,7 @@ def report(part: str) -> None:
             "95 % strength intervals covering the truth: "
             f"{rate(sum(covered), len(covered))}; target 90 to 98 %"
         )
+        _losses(runs, truth)
         _confusion(truth, [r["best"] or "none" for r in runs])
         print("\n| true effect | strength | verdict | best | tie set |")
         print("|---|---|---|---|---|")
@@ -548,6 +549,37 @@ def report(part: str) -> None:
     elif part == "seeds":
         agree = [len({(r["verdict"], r["best"]) for r in c["runs"]}) == 1 for c in cases]
         print(f"three seeds agree on verdict and best effect: {rate(sum(agree), len(agree))}")
+
+
+def _loss(run: dict, truth: str) -> str:
+    """Where a case leaves the identification target, at the first step it fails."""
+    verdict, tied = run["verdict"], run["tie_set"]
+    if verdict == "no significant gap":
+        return "not detected"
+    if verdict == "unexplained":
+        own = run["effects"].get(truth, {}).get("p_better_than_baseline_holm", 1.0)
+        if run["best"] != truth and own < 0.05:
+            return "unexplained: the truth closes a significant part but is not ranked first"
+        return "unexplained: the best effect closes no significant part of the gap"
+    if verdict == "partly explained":
+        return "partly explained: the best effect's adequacy test rejects it"
+    if truth not in tied:
+        return "explained, the truth neither first nor tied (a precision failure)"
+    if len(tied) > 2:
+        return "explained, the truth in a tie of more than 2"
+    return "identified"
+
+
+def _losses(runs: list[dict], truth: list[str]) -> None:
+    """How many cases each step of the method loses (``_loss``), with their effects."""
+    losses: dict[str, list[str]] = {}
+    for r, t in zip(runs, truth, strict=True):
+        losses.setdefault(_loss(r, t), []).append(t)
+    print("\n| where the case ends | cases | true effects |")
+    print("|---|---|---|")
+    for loss, effects in sorted(losses.items(), key=lambda item: -len(item[1])):
+        names = ", ".join(f"{e} {effects.count(e)}" for e in sorted(set(effects)))
+        print(f"| {loss} | {len(effects)} | {names} |")
 
 
 def _confusion(truth: list[str], best: list[str]) -> None:
