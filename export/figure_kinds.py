@@ -18,16 +18,33 @@ from typing import Any
 
 from core.registry import Registry
 
-__all__ = ["FIGURES", "SUBJECTS", "DropScatter", "FigureKind", "draw_figures"]
+__all__ = [
+    "FIGURES",
+    "SUBJECTS",
+    "SUBJECT_FOLDERS",
+    "DropScatter",
+    "FigureKind",
+    "MeshPicture",
+    "draw_figures",
+]
 
 log = logging.getLogger(__name__)
 
-# What a figure may be drawn from, and where the stage that holds it puts its figures.
+# What a figure may be drawn from, and the folder of a run the stage that holds it puts
+# its figures in.
 SUBJECTS: dict[str, str] = {
-    "stack": "the final arrangement of a stack or a mat's panel (geometry/figures/)",
-    "drops": "single-chip drops: their landing points and statistics (packing/figures/)",
-    "mat": "a conveyor's mat: its areal weight and thickness along the belt (packing/figures/)",
-    "compaction": "the press's force against its travel (solve/)",
+    "stack": "the final arrangement of a stack or a mat's panel",
+    "drops": "single-chip drops: their landing points and statistics",
+    "mat": "a conveyor's mat: its areal weight and thickness along the belt",
+    "mesh": "a volume mesh of the stack (``MeshPicture``)",
+    "compaction": "the press's force against its travel",
+}
+SUBJECT_FOLDERS: dict[str, str] = {
+    "stack": "geometry/figures/",
+    "drops": "packing/figures/",
+    "mat": "packing/figures/",
+    "mesh": "mesh/",
+    "compaction": "solve/",
 }
 
 
@@ -61,21 +78,36 @@ class DropScatter:
     yaw_deg: float
 
 
+@dataclass(frozen=True)
+class MeshPicture:
+    """The subject ``mesh``: a volume mesh (``meshing.mesh.VolumeMesh``) and the stem its
+    files are written under (``stack_voxel``, ...)."""
+
+    stem: str
+    mesh: Any
+
+
 FIGURES: Registry[FigureKind] = Registry("figure", "chipstack.figures")
 
 
 def draw_figures(subject: str, folder: Path, data: Any) -> list[str]:
-    """Every registered figure of ``subject`` drawn from ``data`` into ``folder`` (made
-    when a figure is drawn); returns the names written, in registry order."""
+    """Every registered figure of ``subject`` drawn from ``data`` into ``folder``; returns
+    the names written, in registry order. ``folder`` is made for the figures and left
+    out again when none draws anything (a mat without a steady part has no figure)."""
     if subject not in SUBJECTS:
         valid = ", ".join(SUBJECTS)
         raise ValueError(f"unknown figure subject {subject!r}; valid subjects: {valid}")
+    kinds = [FIGURES.get(n) for n in FIGURES.in_order()]
+    kinds = [k for k in kinds if k.subject == subject]
+    if not kinds:
+        return []
+    made = not folder.exists()
+    folder.mkdir(parents=True, exist_ok=True)
     written: list[str] = []
-    for name in FIGURES.in_order():
-        kind = FIGURES.get(name)
-        if kind.subject == subject:
-            folder.mkdir(parents=True, exist_ok=True)
-            written += kind.draw(folder, data)
+    for kind in kinds:
+        written += kind.draw(folder, data)
+    if made and not written and not any(folder.iterdir()):
+        folder.rmdir()
     return written
 
 

@@ -144,9 +144,10 @@ class Descriptor:
     descriptor's part of ``ensemble.json`` (with 95 % bands); comparison_figures(labels,
     summaries, folder) -> two ensembles side by side (``pipeline compare``);
     chip_columns(record) -> {column: one value per chip} for ``chips.csv``; headline(section)
-    -> its part of the stage's one-line report, or None. ``order``: where its columns and
-    its part of the report come among the other descriptors' (lower first; the built-ins
-    keep the order their files have always had).
+    -> its part of the stage's one-line report, or None; ensemble_scalars: the scalars an
+    ensemble's summary on the command line shows with their intervals. ``order``: where
+    its columns and its part of the reports come among the other descriptors' (lower
+    first; the built-ins keep the order their files have always had).
     """
 
     name: str
@@ -158,6 +159,7 @@ class Descriptor:
     ensemble_figures: Callable[[dict[str, Any], Path], list[str]] = _no_ensemble_figures
     comparison_figures: Callable[[tuple, tuple, Path], list[str]] = _no_comparison_figures
     chip_columns: Callable[[Any], dict[str, list]] = _no_columns
+    ensemble_scalars: tuple[str, ...] = ()
     headline: Callable[[dict[str, Any]], str | None] = _no_headline
     order: int = 100
 
@@ -165,7 +167,7 @@ class Descriptor:
 DESCRIPTORS: Registry[Descriptor] = Registry("descriptor", "chipstack.descriptors")
 
 
-def _register(name: str, doc: str, **outputs: Callable):
+def _register(name: str, doc: str, **outputs: Any):
     def wrap(function):
         DESCRIPTORS.register(name, Descriptor(name, doc, function, **outputs))
         return function
@@ -260,6 +262,7 @@ def _contact_headline(section: dict[str, Any]) -> str:
     ensemble_figures=_contact_ensemble_figures,
     chip_columns=_contact_columns,
     headline=_contact_headline,
+    ensemble_scalars=tuple(f"{kind}_per_chip" for kind in KINDS),
     order=20,
 )
 def _contacts(ctx: _Context):
@@ -465,6 +468,7 @@ def _layer_comparison_figures(
     figures=_layer_figures,
     ensemble_figures=_layer_ensemble_figures,
     comparison_figures=_layer_comparison_figures,
+    ensemble_scalars=("highest_layer",),
     headline=lambda section: f"highest layer {int(section['scalars']['highest_layer']['value'])}",
     order=50,
 )
@@ -650,6 +654,7 @@ def _stack_headline(section: dict[str, Any]) -> str:
     "stack",
     "height, bulk volume fraction, bare and uneven target area",
     headline=_stack_headline,
+    ensemble_scalars=("height_max_mm", "volume_fraction"),
     order=30,
 )
 def _stack(ctx: _Context):

@@ -71,6 +71,10 @@ def _write_chips(folder: Path, description: Description, arrangement) -> str:
     }
     # Each descriptor's own per-chip columns, in the order the descriptors declare.
     for name in sorted(records, key=lambda n: DESCRIPTORS.get(n).order):
-        columns.update(DESCRIPTORS.get(name).chip_columns(records[name]))
+        for column, values in DESCRIPTORS.get(name).chip_columns(records[name]).items():
+            if column in columns or len(values) != n:
+                problem = "is already a column" if column in columns else f"has not {n} values"
+                raise ValueError(f"descriptor {name!r}: its chips.csv column {column!r} {problem}")
+            columns[column] = values
     _write_csv(folder / "chips.csv", list(columns), zip(*columns.values(), strict=True))
     return "chips.csv"

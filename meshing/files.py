@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from core.registry import Registry
+from export.figure_kinds import FIGURES, FigureKind
 from meshing.boundaries import FACET_TAGS, boundary_facets
 from meshing.mesh import PORE, VolumeMesh
 
@@ -267,12 +268,14 @@ def write_mesh(folder: Path, stem: str, mesh: VolumeMesh, formats: list[str]) ->
     return written
 
 
-def mesh_figure(path: Path, mesh) -> list[str]:
+def _mesh_view(folder: Path, picture) -> list[str]:
     """The mesh's outer surface coloured by chip (pores hidden), rendered off screen."""
     import pyvista
 
     from export import figures
 
+    mesh = picture.mesh
+    path = folder / f"{picture.stem}.png"
     grid = pyvista.from_meshio(to_meshio(mesh))
     grid = grid.extract_cells(np.flatnonzero(np.asarray(mesh.chip) >= 0))
     surface = grid.extract_surface(algorithm="dataset_surface")
@@ -284,3 +287,15 @@ def mesh_figure(path: Path, mesh) -> list[str]:
         log.warning("mesh picture not rendered: %s", exc)
         return []
     return [path.name]
+
+
+FIGURES.register(
+    "mesh_view",
+    FigureKind(
+        "mesh_view",
+        "mesh",
+        "stack_<kind>.png",
+        "the mesh's outer surface coloured by chip, pores hidden (needs OpenGL)",
+        _mesh_view,
+    ),
+)

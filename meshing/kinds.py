@@ -130,9 +130,10 @@ def write_volume_mesh(
         shutil.move(built.native[name], folder / f"{stem}.{name}")
         files.append(f"{stem}.{name}")
     if inputs.options.figures:
-        from meshing.files import mesh_figure  # pyvista only when drawing
+        # meshing.files (imported above) registers the mesh's figure.
+        from export.figure_kinds import MeshPicture, draw_figures
 
-        files += mesh_figure(folder / f"{stem}.png", built.mesh)
+        files += draw_figures("mesh", folder, MeshPicture(stem, built.mesh))
     (folder / f"{stem}_checks.json").write_text(json.dumps(report, indent=2) + "\n")
     files.append(f"{stem}_checks.json")
     mesh = built.mesh

@@ -151,7 +151,7 @@ def _write_results(result: Compaction, folder: Path, figures: bool) -> list[str]
             writer.writerow([f"{v:.9g}" for v in row])
     files.append("force_displacement.csv")
     if figures:
-        from export.figure_kinds import draw_figures  # matplotlib only when drawing
+        from export.figure_kinds import draw_figures
 
         files += draw_figures("compaction", folder, result)
     return files

@@ -431,15 +431,11 @@ def _print_ensemble(path, manifest: dict, repeats: int) -> None:
 
         summary = json.loads((Path(path) / "ensemble.json").read_text())
         d = summary["descriptors"]
-        for section, key in (
-            ("contacts", "point_per_chip"),
-            ("contacts", "line_per_chip"),
-            ("contacts", "surface_per_chip"),
-            ("stack", "height_max_mm"),
-            ("stack", "volume_fraction"),
-            ("layers", "highest_layer"),
-        ):
-            if section in d:
+        from geometry.describe import DESCRIPTORS
+
+        shown = sorted((n for n in d if n in DESCRIPTORS), key=lambda n: DESCRIPTORS.get(n).order)
+        for section in shown:
+            for key in DESCRIPTORS.get(section).ensemble_scalars:
                 s = d[section]["scalars"][key]
                 print(
                     f"  {section}.{key}: {s['mean']:.4g} "

@@ -78,12 +78,13 @@ def stack_writers_markdown() -> str:
 
 
 def figures_markdown() -> str:
-    from export.figure_kinds import FIGURES, SUBJECTS
+    import meshing.files  # noqa: F401  (registers the mesh's figure)
+    from export.figure_kinds import FIGURES, SUBJECT_FOLDERS
 
     rows = []
     for name in FIGURES.in_order():
         kind = FIGURES.get(name)
-        where = SUBJECTS[kind.subject].rsplit("(", 1)[-1].rstrip(")")
+        where = SUBJECT_FOLDERS[kind.subject]
         rows.append((name, f"`{where}{kind.files}`, from {kind.subject}: {kind.doc}"))
     return _table(("figure", "what it draws"), rows)
 

@@ -192,9 +192,18 @@ def test_ensemble_and_comparison(tmp_path, small_scenario):
             seed,
             "--out",
             str(out),
-            "--quiet",
         )
         assert result.returncode == 0, result.stderr
+    # The summary printed: each descriptor's own scalars with their intervals.
+    printed = re.findall(r"^  (\w+\.\w+): ", result.stdout, re.MULTILINE)
+    assert printed == [
+        "contacts.point_per_chip",
+        "contacts.line_per_chip",
+        "contacts.surface_per_chip",
+        "stack.height_max_mm",
+        "stack.volume_fraction",
+        "layers.highest_layer",
+    ]
     summary = json.loads((a / "ensemble.json").read_text())
     manifest = json.loads((a / "manifest.json").read_text())
     assert summary["repeats"] == 3 and len(set(manifest["seeds"])) == 3
@@ -203,6 +212,7 @@ def test_ensemble_and_comparison(tmp_path, small_scenario):
     assert height["mean"] == pytest.approx(np.mean(height["values"]))
     assert (a / "repeat_0/geometry/descriptors.json").is_file()
     assert (a / "figures/layer_filling.png").is_file()
+    assert (a / "figures/contact_types.png").is_file()  # Fig. 7 with bands, the contacts' own
     result = run_cli("compare", str(a), str(b), "--out", str(cmp))
     assert result.returncode == 0, result.stderr
     assert "stack.height_max_mm" in result.stdout
