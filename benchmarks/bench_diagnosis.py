@@ -113,16 +113,13 @@ SWEEP_POINTS = 6
 # strength fitted on its discrepancy curve smoothed over 7 grid points (LOESS), not the
 # parabola through the lowest point and its neighbours (``smoothed_minimum``); an effect
 # leaves the tie set only if worse than the best at every strength it plausibly has.
-# 8: those strengths scored on each drop's score curve smoothed along the grid (the
-# parts whose tie sets it moves; the verdicts, the best effect and "where" are
-# unchanged, so the outside and seeds parts keep 7).
 METHOD = {
     "nulls": 2,
-    "effects": 8,
+    "effects": 7,
     "outside": 7,
     "seeds": 7,
-    "sweep": 8,
-    "ties": 8,
+    "sweep": 7,
+    "ties": 7,
     # Fitted tilt 2: its confidence set from 97.5 % intervals, clipped to its box.
     # 4 and 5: the calibrated adequacy. 6 (fitted tilt), 5 (100 drops): the smoothed fit.
     **{part + "-fitted-tilt": 6 for part in ("effects", "outside")},

@@ -164,18 +164,16 @@ def smoothed_minimum(
 
 
 @functools.lru_cache(maxsize=64)
-def _loess_matrix(
-    grid: tuple[float, ...], span: int, at: tuple[float, ...] | None = None
-) -> np.ndarray:
-    """The linear map from values on ``grid`` to their local-quadratic fit at the points
-    ``at`` (None: ``SMOOTHING_POINTS`` points across the grid), (len(at), len(grid)): row
-    i holds the weights of the intercept of the parabola fitted there. The bandwidth
-    reaches just past the ``span``-th nearest grid point (so that it weighs in;
-    ``span`` >= 3, as a parabola needs three)."""
+def _loess_matrix(grid: tuple[float, ...], span: int) -> np.ndarray:
+    """The linear map from values on ``grid`` to their local-quadratic fit at the
+    ``SMOOTHING_POINTS`` points across it (SMOOTHING_POINTS, len(grid)): row i holds the
+    weights of the intercept of the parabola fitted there. The bandwidth reaches just
+    past the ``span``-th nearest grid point (so that it weighs in; ``span`` >= 3, as a
+    parabola needs three)."""
     x = np.asarray(grid)
     step = np.min(np.diff(x))
     rows = []
-    for u in np.linspace(x[0], x[-1], SMOOTHING_POINTS) if at is None else at:
+    for u in np.linspace(x[0], x[-1], SMOOTHING_POINTS):
         d = np.abs(x - u)
         h = np.sort(d)[span - 1] + 0.5 * step
         w = np.clip(1 - (d / h) ** 3, 0.0, None) ** 3
@@ -434,7 +432,6 @@ class EffectRanking:
         effects, skipped = applicable_effects(self.x)
         points = self.x.settings.grid_points
         grids = StrengthGrids(self.sims, effects, self.conditions, points)
-        self.grids = grids
         # Three batches: every grid (tilts and strengths); every model fitted per fold,
         # at its held-out conditions; the second pools of the adequacy tests.
         grid = self.sims.tilt_grid
@@ -550,23 +547,18 @@ class EffectRanking:
         just at the one its folds fitted (an intersection-union test: the largest p-value
         of the fitted model and of every grid setting in a fold's confidence set, the
         neutral strength aside, which is the baseline; each fold's held-out drops judge
-        only the settings its own calibration found plausible). A weak effect's fit
-        follows the simulations' noise (air drag 1.33 fitted at 1.86 and 0.87 on the two
-        folds of a sweep case): scored only there it lost to an imitator, and
-        restitution was named alone for a gap air drag made.
-
-        The grid settings at the spec's tilt are scored on each drop's score curve over
-        the grid smoothed like the strength fit (``_smoothed_scores``): each grid point is
-        its own simulation of half a fitted model's drops, and the largest p-value over
-        many noisy settings picks the luckiest (method 7 scored them raw: 9 of the 35
-        effects cases ended in ties of more than two). The fitted model keeps its own
-        raw scores, so a sharp curve's smoothing bias cannot push it out."""
+        only the settings its own calibration found plausible). The settings are scored
+        on their grid simulations (half the drops of a fitted model's): their noise is
+        not in the paired test, which leans towards a tie. A weak effect's fit follows the
+        simulations' noise (air drag 1.33 fitted at 1.86 and 0.87 on the two folds of a
+        sweep case): scored only there it lost to an imitator, and restitution was named
+        alone for a gap air drag made."""
         best = ranked[0]
         others = ranked[1:]
         candidates = {e: self._candidates(e) for e in others}
         self.sims.ensure([key for c in candidates.values() for keys in c.values() for key in keys])
         raw = [
-            worse_everywhere_p(self._scored(e, held[e], candidates[e]), held[best].scores)
+            worse_everywhere_p(self._scored(held[e], candidates[e]), held[best].scores)
             for e in others
         ]
         adjusted = holm(raw) if raw else []
@@ -600,37 +592,15 @@ class EffectRanking:
             if abs(v - neutral) > 1e-12
         }
 
-    def _scored(self, effect: str, fitted: HeldOut, candidates: dict) -> list[np.ndarray]:
-        """Per-drop held-out scores of the fitted model, then of each candidate setting:
-        a grid setting at the spec's tilt from the smoothed score curve, any other (a
-        shifted tilt, a fold's fitted model standing in) from its own simulation."""
+    def _scored(self, fitted: HeldOut, candidates: dict) -> list[np.ndarray]:
+        """Per-drop held-out scores of the fitted model, then of each candidate setting."""
         pairs = self._held_pairs()
-        grid = self.grids.grids[effect]
-        smoothed = [self._smoothed_scores(ds, effect, grid) for _, ds in pairs]
-        scored = [fitted.scores]
-        for (v, o), keys in candidates.items():
-            parts = []
-            for (_, ds), key, curve in zip(pairs, keys, smoothed, strict=True):
-                on_grid = o == 0.0 and key == self.sims.grid_at_offset(ds.condition, 0.0, effect, v)
-                parts.append(curve[grid.index(v)] if on_grid else self.sims.scores(ds, key))
-            scored.append(np.concatenate(parts))
-        return scored
-
-    def _smoothed_scores(self, ds: Dataset, effect: str, grid: list[float]) -> np.ndarray:
-        """Each drop's score at every strength of the grid at the spec's tilt, (S, n),
-        smoothed along the grid by the strength fit's local quadratic regression
-        (``SMOOTHING_SPAN`` points): pooling neighbouring grid simulations divides their
-        noise's variance by about that many; a parabola is kept exactly."""
-        raw = np.array(
-            [
-                self.sims.scores(ds, self.sims.grid_setting(ds.condition, None, effect, v))
-                for v in grid
-            ]
-        )
-        if len(grid) <= 3:
-            return raw
-        span = max(3, min(SMOOTHING_SPAN, len(grid)))
-        return _loess_matrix(tuple(grid), span, tuple(grid)) @ raw
+        return [fitted.scores] + [
+            np.concatenate(
+                [self.sims.scores(ds, k) for (_, ds), k in zip(pairs, keys, strict=True)]
+            )
+            for keys in candidates.values()
+        ]
 
     def _baseline_refit(
         self, tilt_all: float, base: HeldOut, refit: HeldOut, best: HeldOut | None

@@ -178,42 +178,6 @@ def test_a_noisy_strength_curve_is_fitted_on_its_smoothed_shape_not_its_lowest_p
     assert smoothed_minimum(grid, outlier, 1e-3)[0] < 2.4
 
 
-def test_tie_candidates_scored_on_the_smoothed_curve_keep_the_level_and_gain_power():
-    """An effect's grid settings are scored on each drop's score curve smoothed along the
-    grid (each grid point is its own noisy simulation). The smoothing keeps a parabola
-    exactly; an effect as good as the best at its true strength is still called worse in
-    at most about 5 % of experiments (the intersection-union test's level); one truly
-    worse everywhere is found far more often than with the raw grid scores, whose largest
-    p-value picks the luckiest simulation."""
-    from diagnosis.drop_effects import _loess_matrix, worse_everywhere_p
-
-    grid = [0.0, 0.4, 0.8, 1.2, 1.6, 2.0, 2.4, 2.8, 3.2, 3.6, 4.0]
-    x = np.array(grid)
-    smoothing = _loess_matrix(tuple(grid), 7, tuple(grid))
-    assert np.allclose(smoothing @ (x - 1.3) ** 2, (x - 1.3) ** 2, atol=1e-12)
-    rng = np.random.default_rng(3)
-
-    def called_worse(gap: float, experiments: int = 400) -> tuple[float, float]:
-        raw_rate = smooth_rate = 0
-        for _ in range(experiments):
-            drops = rng.normal(0, 0.3, 150)  # the held-out drops' own scatter, shared
-            best = 1.0 + drops + rng.normal(0, 0.1, 150)
-            expected = 1.0 + gap + 0.05 * (x - 2.0) ** 2  # the effect's mean score
-            luck = rng.normal(0, 0.03, x.size)[:, None]  # each grid simulation's own
-            curves = expected[:, None] + luck + drops + rng.normal(0, 0.1, (x.size, 150))
-            fitted = 1.0 + gap + drops + rng.normal(0, 0.1, 150) + rng.normal(0, 0.02)
-            plausible = [3, 4, 5, 6, 7]
-            smooth = smoothing @ curves
-            raw_rate += worse_everywhere_p([fitted, *curves[plausible]], best) < 0.05
-            smooth_rate += worse_everywhere_p([fitted, *smooth[plausible]], best) < 0.05
-        return raw_rate / experiments, smooth_rate / experiments
-
-    # Measured (seed 3): 0.018 raw, 0.043 smoothed at no gap; 0.24 and 0.47 at 0.03.
-    assert called_worse(0.0)[1] < 0.075
-    raw, smooth = called_worse(0.03)
-    assert smooth > raw + 0.1
-
-
 def test_an_effect_leaves_the_tie_only_if_worse_at_every_plausible_strength():
     """The tie set's test: an effect scored worse than the best at the strength its folds
     fitted (on noise) but as well at another strength within its interval stays tied;
