@@ -167,6 +167,12 @@ class Descriptor:
 DESCRIPTORS: Registry[Descriptor] = Registry("descriptor", "chipstack.descriptors")
 
 
+def in_output_order(names) -> list[str]:
+    """The registered ones of descriptor ``names``, in the order their columns and their
+    parts of the reports come (``Descriptor.order``)."""
+    return sorted((n for n in names if n in DESCRIPTORS), key=lambda n: DESCRIPTORS.get(n).order)
+
+
 def _register(name: str, doc: str, **outputs: Any):
     def wrap(function):
         DESCRIPTORS.register(name, Descriptor(name, doc, function, **outputs))

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from geometry.describe import DESCRIPTORS, Description
+from geometry.describe import DESCRIPTORS, Description, in_output_order
 
 __all__ = ["write_description"]
 
@@ -70,7 +70,7 @@ def _write_chips(folder: Path, description: Description, arrangement) -> str:
         "inside_target": arrangement.inside_target().astype(int).tolist(),
     }
     # Each descriptor's own per-chip columns, in the order the descriptors declare.
-    for name in sorted(records, key=lambda n: DESCRIPTORS.get(n).order):
+    for name in in_output_order(records):
         for column, values in DESCRIPTORS.get(name).chip_columns(records[name]).items():
             if column in columns or len(values) != n:
                 problem = "is already a column" if column in columns else f"has not {n} values"

@@ -67,10 +67,10 @@ class GeometryStage(Stage):
         return json.loads((folder / "descriptors.json").read_text())
 
     def report(self, summary: Mapping[str, Any], folder: Path) -> list[str]:
-        from geometry.describe import DESCRIPTORS
+        from geometry.describe import DESCRIPTORS, in_output_order
 
         d = json.loads((folder / "descriptors.json").read_text())["descriptors"]
-        known = sorted((n for n in d if n in DESCRIPTORS), key=lambda n: DESCRIPTORS.get(n).order)
+        known = in_output_order(d)
         parts = [DESCRIPTORS.get(n).headline(d[n]) for n in known]
         seconds = summary["descriptor_time_s"]
         return [f"descriptors in {seconds:.2f} s: " + "; ".join(p for p in parts if p)]

@@ -431,9 +431,9 @@ def _print_ensemble(path, manifest: dict, repeats: int) -> None:
 
         summary = json.loads((Path(path) / "ensemble.json").read_text())
         d = summary["descriptors"]
-        from geometry.describe import DESCRIPTORS
+        from geometry.describe import DESCRIPTORS, in_output_order
 
-        shown = sorted((n for n in d if n in DESCRIPTORS), key=lambda n: DESCRIPTORS.get(n).order)
+        shown = in_output_order(d)
         for section in shown:
             for key in DESCRIPTORS.get(section).ensemble_scalars:
                 s = d[section]["scalars"][key]
