@@ -165,7 +165,7 @@ class AirDrag(Effect):
         normals = _face_normals(state.quaternions)
         v = state.velocities
         speed = np.linalg.norm(v, axis=1)
-        area = np.array([s.plan_area_mm2 for s in state.shapes])
+        area = _plan_areas(state.shapes)
         side = np.sqrt(area)
         vn = np.einsum("ij,ij->i", v, normals)
         sin_a = np.clip(np.abs(vn) / np.maximum(speed, 1e-12), 0.0, 1.0)
@@ -193,6 +193,15 @@ class AirDrag(Effect):
             (_DRAG_A + _DRAG_B) / 64.0 * rho * side**5 * np.linalg.norm(w_in_plane, axis=1)
         )[:, None] * w_in_plane
         return forces, torques
+
+
+def _plan_areas(shapes: tuple[ChipShape, ...]) -> np.ndarray:
+    """Each chip's outline area (mm^2): computed once when every chip is the same shape
+    object (a drop experiment's), as this runs every step in air."""
+    first = shapes[0] if shapes else None
+    if all(s is first for s in shapes):
+        return np.full(len(shapes), first.plan_area_mm2 if first is not None else 0.0)
+    return np.array([s.plan_area_mm2 for s in shapes])
 
 
 def _face_normals(quaternions: np.ndarray) -> np.ndarray:

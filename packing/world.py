@@ -197,8 +197,9 @@ class ChipWorld:
         )
 
     def step(self, n: int = 1) -> None:
+        step, client = pybullet.stepSimulation, self.client
         for _ in range(n):
-            pybullet.stepSimulation(physicsClientId=self.client)
+            step(client)  # the client positionally: a keyword's parsing costs per step
         self.time_s += n * self.time_step_s
 
     # -- chips -----------------------------------------------------------------------------

@@ -39,10 +39,12 @@ class ChipLoads:
         torques = (np.asarray(torques, dtype=float) / MM_PER_UNIT**2).tolist()
         positions = (np.asarray(positions_mm, dtype=float) / MM_PER_UNIT).tolist()
         frame = pybullet.WORLD_FRAME
+        ids = self._chips.body_ids
+        push, turn = pybullet.applyExternalForce, pybullet.applyExternalTorque
+        # The client id positionally: parsing it as a keyword costs a third of each call.
         for i, force, torque, at in zip(chips, forces, torques, positions, strict=False):
-            body = self._chips.body_ids[i]
-            pybullet.applyExternalForce(body, -1, force, at, frame, physicsClientId=c)
-            pybullet.applyExternalTorque(body, -1, torque, frame, physicsClientId=c)
+            push(ids[i], -1, force, at, frame, c)
+            turn(ids[i], -1, torque, frame, c)
 
     def pull_contacts(self, chips: list[int], force: float) -> None:
         """Pull each of ``chips`` towards every chip it touches with ``force`` (g mm/s^2)

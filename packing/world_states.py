@@ -83,15 +83,21 @@ class ChipStates:
         """Positions (k, 3) mm, quaternions (k, 4), and the velocities (k, 3) and angular
         velocities (k, 3) in engine units."""
         c = self._session.client
-        bodies = [self._chips.body_ids[i] for i in chips]
-        poses = [pybullet.getBasePositionAndOrientation(b, physicsClientId=c) for b in bodies]
-        velocities = [pybullet.getBaseVelocity(b, physicsClientId=c) for b in bodies]
-        return (
-            np.array([p[0] for p in poses], dtype=float).reshape(-1, 3) * MM_PER_UNIT,
-            np.array([p[1] for p in poses], dtype=float).reshape(-1, 4),
-            np.array([v[0] for v in velocities], dtype=float).reshape(-1, 3),
-            np.array([v[1] for v in velocities], dtype=float).reshape(-1, 3),
-        )
+        ids = self._chips.body_ids
+        pose, velocity = pybullet.getBasePositionAndOrientation, pybullet.getBaseVelocity
+        # One flat list and one array for all chips: this runs every step of a drop in
+        # air, where four nested-list conversions cost more than the reads themselves.
+        flat: list[float] = []
+        for i in chips:
+            # The client id positionally: the keyword's parsing costs a third of a read.
+            position, quaternion = pose(ids[i], c)
+            linear, angular = velocity(ids[i], c)
+            flat += position
+            flat += quaternion
+            flat += linear
+            flat += angular
+        state = np.array(flat, dtype=float).reshape(-1, 13)
+        return state[:, :3] * MM_PER_UNIT, state[:, 3:7], state[:, 7:10], state[:, 10:13]
 
     def _speed_bound(
         self, chips: list[int], linear: np.ndarray, angular: np.ndarray, local: np.ndarray | None
