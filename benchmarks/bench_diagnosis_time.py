@@ -1,0 +1,76 @@
+"""How long one drop diagnosis of 3 conditions x 50 drops takes (issue 35's target:
+<= 120 s on this 2-core machine), and whether it reproduces the calibration study.
+
+Reruns the first ``--cases`` cases of the study's ``effects`` part (one per drop effect
+for the default 7; same data, same diagnosis seed) on ``--workers`` local Dask workers,
+one after the other, and prints each diagnosis's wall time (the synthetic data's making
+excluded, as a user's data are read, not made), their median and longest against the
+target, and whether each result equals the one cached by
+``bench_diagnosis.py --part effects`` (verdict, best effect, tie set, fitted strengths
+and the tie test's p-values, to the last digit): a check that the diagnosis is
+reproducible across processes and code changes that claim to leave it alone. Run it on
+an otherwise idle machine; nothing is cached.
+
+Usage: ``python benchmarks/bench_diagnosis_time.py [--cases 7] [--workers 2]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+
+from bench_diagnosis import METHOD, RESULTS, _blind_data, _summary, case_plan
+
+from diagnosis.drops import diagnose_drops
+from pipeline.execution import Executor
+
+TARGET_S = 120.0
+# What must be equal to the cached study case for the rerun to count as reproducing it.
+COMPARED = ("verdict", "best", "tie_set", "ranking", "effects")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--cases", type=int, default=7)
+    parser.add_argument("--workers", type=int, default=2)
+    args = parser.parse_args()
+    times, same = [], 0
+    with Executor(workers=args.workers) as executor:
+        for index in range(args.cases):
+            plan = case_plan("effects", index)
+            _, experiment, data = _blind_data(plan, executor)
+            start = time.perf_counter()
+            result = diagnose_drops(experiment, data, executor.map, seed=plan["diagnosis_seeds"][0])
+            seconds = time.perf_counter() - start
+            times.append(seconds)
+            run = _summary(result, plan, seconds)
+            path = RESULTS / "effects" / f"case-{index:03d}.json"
+            cached = json.loads(path.read_text()) if path.exists() else None
+            if cached is None or cached.get("method") != METHOD["effects"]:
+                check = "no current cached case to compare"
+            elif all(run[k] == cached["runs"][0][k] for k in COMPARED):
+                same += 1
+                check = "identical to the cached study case"
+            else:
+                differ = [k for k in COMPARED if run[k] != cached["runs"][0][k]]
+                check = f"DIFFERS from the cached study case in {', '.join(differ)}"
+            truth = ", ".join(f"{k} {v:.3g}" for k, v in plan["truth"].items())
+            print(
+                f"effects case {index}: {truth}: {seconds:.1f} s, {run['verdict']}, "
+                f"best {run['best']}; {check}",
+                flush=True,
+            )
+    median, longest = statistics.median(times), max(times)
+    print(
+        f"{len(times)} diagnoses on {args.workers} workers: median {median:.1f} s, longest "
+        f"{longest:.1f} s; target {TARGET_S:.0f} s (median / target {median / TARGET_S:.2f}, "
+        f"longest / target {longest / TARGET_S:.2f}); {sum(t <= TARGET_S for t in times)} of "
+        f"{len(times)} within it; {same} of {len(times)} identical to the cached study"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
