@@ -86,7 +86,7 @@ class ChipStates:
         ids = self._chips.body_ids
         pose, velocity = pybullet.getBasePositionAndOrientation, pybullet.getBaseVelocity
         # One flat list and one array for all chips: this runs every step of a drop in
-        # air, where four nested-list conversions cost more than the reads themselves.
+        # air (four arrays from nested lists cost as much again as the reads).
         flat: list[float] = []
         for i in chips:
             # The client id positionally: the keyword's parsing costs a third of a read.
