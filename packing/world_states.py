@@ -85,8 +85,7 @@ class ChipStates:
         c = self._session.client
         ids = self._chips.body_ids
         pose, velocity = pybullet.getBasePositionAndOrientation, pybullet.getBaseVelocity
-        # One flat list and one array for all chips: this runs every step of a drop in
-        # air (four arrays from nested lists cost as much again as the reads).
+        # Runs every step of a drop in air: one flat list, one array.
         flat: list[float] = []
         for i in chips:
             # The client id positionally: the keyword's parsing costs a third of a read.
