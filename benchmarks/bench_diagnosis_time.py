@@ -11,7 +11,8 @@ and the tie test's p-values, to the last digit): a check that the diagnosis is
 reproducible across processes and code changes that claim to leave it alone. Run it on
 an otherwise idle machine; nothing is cached.
 
-Usage: ``python benchmarks/bench_diagnosis_time.py [--cases 7] [--workers 2]``.
+Usage: ``python benchmarks/bench_diagnosis_time.py [--cases 7 | --indices K ...]
+[--workers 2]``.
 """
 
 from __future__ import annotations
@@ -33,12 +34,13 @@ COMPARED = ("verdict", "best", "tie_set", "ranking", "effects")
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--cases", type=int, default=7)
+    parser.add_argument("--cases", type=int, default=7, help="the first N effects cases")
+    parser.add_argument("--indices", type=int, nargs="+", help="these effects cases instead")
     parser.add_argument("--workers", type=int, default=2)
     args = parser.parse_args()
     times, same = [], 0
     with Executor(workers=args.workers) as executor:
-        for index in range(args.cases):
+        for index in args.indices or range(args.cases):
             plan = case_plan("effects", index)
             _, experiment, data = _blind_data(plan, executor)
             start = time.perf_counter()
