@@ -23,6 +23,7 @@ import statistics
 import time
 
 from bench_diagnosis import METHOD, RESULTS, _blind_data, _summary, case_plan
+from calibration_study import current
 
 from diagnosis.drops import diagnose_drops
 from pipeline.execution import Executor
@@ -50,13 +51,15 @@ def main() -> int:
             run = _summary(result, plan, seconds)
             path = RESULTS / "effects" / f"case-{index:03d}.json"
             cached = json.loads(path.read_text()) if path.exists() else None
-            if cached is None or cached.get("method") != METHOD["effects"]:
+            differ = (
+                [] if cached is None else [k for k in COMPARED if run[k] != cached["runs"][0][k]]
+            )
+            if cached is None or not current(cached, METHOD):
                 check = "no current cached case to compare"
-            elif all(run[k] == cached["runs"][0][k] for k in COMPARED):
+            elif not differ:
                 same += 1
                 check = "identical to the cached study case"
             else:
-                differ = [k for k in COMPARED if run[k] != cached["runs"][0][k]]
                 check = f"DIFFERS from the cached study case in {', '.join(differ)}"
             truth = ", ".join(f"{k} {v:.3g}" for k, v in plan["truth"].items())
             print(
