@@ -43,6 +43,7 @@ __all__ = [
     "JointFit",
     "how_far_best",
     "quadratic_minimum",
+    "refined_minimum",
     "smoothed_minimum",
     "vertex",
     "within",
@@ -161,6 +162,39 @@ def smoothed_minimum(
         inner = np.flatnonzero((fine >= x[1]) & (fine <= x[-2]))
         k[astray] = inner[smooth[inner][:, astray].argmin(axis=0)]
     return snap(fine[k], resolution, x[0], x[-1])
+
+
+def refined_minimum(
+    grid: list[float], curve: np.ndarray, resolution: float, span: int = SMOOTHING_SPAN
+) -> np.ndarray:
+    """The minimum of a discrepancy curve (S, R) over ``grid`` (S,), per column: the
+    smoothed curve (``smoothed_minimum``) finds the valley, then the raw curve's own
+    vertex near it gives the strength (``vertex`` on the grid points up to two steps
+    either side of the grid point nearest the smoothed minimum), kept within one grid
+    step of that point; rounded to ``resolution``.
+
+    Why both: smoothing pools ``span`` grid points, which keeps a flat, noisy curve
+    (weak air drag) from following one lucky point, but on a curve that bends sharply
+    it leans on the far points and biases the minimum (restitution rises steeply at the
+    top of its prior: 7-point smoothing fitted 0.608 for data made at 0.688). The raw
+    vertex follows the sharp bend; the smoothed valley keeps it from a distant outlier.
+    Measured on the everything-fit curves of 21 study cases (restitution, compliant
+    floor, air drag): 95 % intervals holding the truth 19 of 21 (smoothing alone 15,
+    vertex alone 19), RMS error restitution 0.027 (smoothing 0.053), compliant floor
+    0.058 (0.152), air drag 0.69 (0.56; vertex 0.80)."""
+    x = np.asarray(grid, dtype=float)
+    curve = np.asarray(curve, dtype=float).reshape(len(x), -1)
+    smoothed = smoothed_minimum(grid, curve, resolution, span)
+    if len(x) <= 3:
+        return smoothed
+    nearest = np.abs(x[:, None] - smoothed[None, :]).argmin(axis=0)
+    out = np.empty_like(smoothed)
+    for k in np.unique(nearest):
+        cols = nearest == k
+        window = slice(max(k - 2, 0), min(k + 3, len(x)))
+        raw = vertex(list(x[window]), curve[window][:, cols], resolution)
+        out[cols] = np.clip(raw, x[max(k - 1, 0)], x[min(k + 1, len(x) - 1)])
+    return snap(out, resolution, x[0], x[-1])
 
 
 @functools.lru_cache(maxsize=64)
@@ -405,7 +439,7 @@ class StrengthGrids:
         simulated drops (1 + B,)."""
         lo, hi = EFFECTS.get(effect).prior
         curve = self.curve(datasets, tilt, effect)
-        return smoothed_minimum(self.grids[effect], curve, STRENGTH_RESOLUTION * (hi - lo))
+        return refined_minimum(self.grids[effect], curve, STRENGTH_RESOLUTION * (hi - lo))
 
 
 class EffectRanking:
@@ -470,6 +504,7 @@ class EffectRanking:
             self._tie_set(ranked, results, held)
         best = ranked[0] if ranked else None
         tied = [e for e in ranked if results[e]["indistinguishable_from_best"]]
+        apart, next_experiment = self._telling_apart(best, tied, results, held)
         return dict(
             baseline_refit=self._baseline_refit(tilt_all, base, refit, best and held[best]),
             ranking=[results[e] for e in ranked],
@@ -478,7 +513,9 @@ class EffectRanking:
             best=best,
             indistinguishable=tied,
             tie_set_size=len(tied),
-            telling_apart=self._telling_apart(best, tied, results),
+            telling_apart=apart,
+            # One new condition that would tell the best from every tied effect.
+            next_experiment=next_experiment,
         )
 
     def _refit_tilt(self) -> float:
@@ -661,20 +698,28 @@ class EffectRanking:
             tied_with_best_effect=bool(refit_worse >= self.alpha and effect_worse >= self.alpha),
         )
 
-    def _telling_apart(self, best: str | None, tied: list[str], results: dict) -> dict:
+    def _telling_apart(
+        self, best: str | None, tied: list[str], results: dict, held: dict[str, HeldOut]
+    ) -> tuple[dict, dict | None]:
         """For each effect tied with the best: the observable that separates their
         held-out predictions most, and the candidate release (height, yaw) that would
-        separate them with the fewest drops."""
+        separate them with the fewest drops by the tie test itself (the held-out drops'
+        paired score test, Holm over the tied effects); and the one release that would
+        separate the best from all of them (None without a tie)."""
         if len(tied) < 2:
-            return {}
+            return {}, None
         strengths = {e: results[e]["strength"] for e in tied}
         offsets = {e: results[e]["release_tilt_offset_deg"] for e in tied}
-        releases = separating_releases(self.sims, strengths, best, offsets)
-        return {
+        differences = {e: held[e].scores - held[best].scores for e in tied if e != best}
+        releases, joint = separating_releases(
+            self.sims, strengths, best, offsets, differences, self.alpha
+        )
+        apart = {
             e: {**self._separating_observation(best, e), "release": releases[e]}
             for e in tied
             if e != best
         }
+        return apart, joint
 
     def _separating_observation(self, best: str, other: str) -> dict:
         """Where the two effects' held-out predictions differ most, in units of the

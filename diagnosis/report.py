@@ -10,6 +10,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from diagnosis.drop_separation import MOST_DROPS
 from diagnosis.verdicts import percent
 
 __all__ = ["write_diagnosis", "report_markdown"]
@@ -290,6 +291,30 @@ def _telling_apart(which: dict) -> list[str]:
                 f"yaw {_fmt(release['yaw_deg'])} deg, tilt {_fmt(release['tilt_deg'])} deg: "
                 + (f"about {needed} drops." if needed else "no candidate release separates them.")
             )
+    joint = which.get("next_experiment")
+    if joint:
+        needed = joint["drops_needed_per_condition"]
+        where = (
+            f"{_fmt(joint['height_mm'])} mm, yaw {_fmt(joint['yaw_deg'])} deg, "
+            f"tilt {_fmt(joint['tilt_deg'])} deg"
+        )
+        lines += [
+            "",
+            (
+                f"Next experiment: one new condition at {where}, {needed} drops; with them "
+                f"the tie test (held-out paired scores, Holm over the tied effects) would "
+                f"tell {which['best']} from {', '.join(joint['separates'])} with probability "
+                f"about {percent(joint['power'])} if the effects keep their fitted strengths "
+                "(a lower bound on the drops: the strengths are refitted and an effect "
+                "must be worse at every strength it plausibly has)."
+            )
+            if needed
+            else (
+                f"Next experiment: no candidate release tells {which['best']} from "
+                f"{', '.join(joint['separates'])} within {MOST_DROPS} drops by the tie test; "
+                "closest at " + where + "."
+            ),
+        ]
     return lines
 
 
