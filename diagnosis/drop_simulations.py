@@ -5,6 +5,7 @@ them."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
@@ -53,7 +54,7 @@ class DropSimulations:
         self.names = names
         self.order = symmetry_order(experiment.scenario)
         self.simulate = simulate
-        self.run_many = run_many
+        self.run_many = _longest_first(run_many)
         self.seed = seed
         self.progress = progress
         self.index = {c.name: k for k, c in enumerate(experiment.conditions)}
@@ -248,3 +249,28 @@ class Dataset:
         weights = resample_weights(data.n, sims.x.settings.bootstrap, rng)
         within = mean_within(metric.distances(features).sum(axis=0), weights)
         return cls(condition, data, sims.observe(data, condition), features, weights, within)
+
+
+def _longest_first(run_many: Callable[[Callable, list[dict]], list]):
+    """``run_many`` with each batch's calls submitted longest first (and the results put
+    back in order): workers take calls in the order given, so a long call left to the end
+    of a batch keeps one worker busy while the other waits (longest processing time
+    first). Each call carries its own seed, so the order changes no result. The cost
+    estimate: drops, times the flight (the square root of the height) plus the bounces,
+    twice with air drag (its per-step loads)."""
+
+    def cost(call: dict) -> float:
+        protocol = call.get("protocol")
+        height = getattr(protocol, "height_mm", 0.0)
+        air = 2.0 if (call.get("strengths") or {}).get("air_drag") else 1.0
+        return call.get("n", 1) * (1.0 + math.sqrt(max(height, 0.0) / 200.0)) * air
+
+    def ordered(function: Callable, calls: list[dict]) -> list:
+        order = sorted(range(len(calls)), key=lambda k: -cost(calls[k]))
+        results = run_many(function, [calls[k] for k in order])
+        out: list = [None] * len(calls)
+        for k, result in zip(order, results, strict=True):
+            out[k] = result
+        return out
+
+    return ordered

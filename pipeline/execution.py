@@ -124,9 +124,16 @@ class Executor:
     def map(self, function: Callable[..., Any], calls: Sequence[dict]) -> list:
         """``[function(**kwargs) for kwargs in calls]`` on the cluster, in order; the first
         task error is raised here."""
+        # Run in the order given (a caller may order its calls longest first): equal
+        # priorities leave the order of calls submitted together to the scheduler.
         futures = [
             self._client.submit(
-                _call_with_kwargs, function, kwargs, pure=False, key=f"call-{k}-{uuid.uuid4().hex}"
+                _call_with_kwargs,
+                function,
+                kwargs,
+                pure=False,
+                key=f"call-{k}-{uuid.uuid4().hex}",
+                priority=len(calls) - k,
             )
             for k, kwargs in enumerate(calls)
         ]
