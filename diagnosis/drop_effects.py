@@ -43,7 +43,6 @@ __all__ = [
     "JointFit",
     "how_far_best",
     "quadratic_minimum",
-    "refined_minimum",
     "smoothed_minimum",
     "vertex",
     "within",
@@ -162,39 +161,6 @@ def smoothed_minimum(
         inner = np.flatnonzero((fine >= x[1]) & (fine <= x[-2]))
         k[astray] = inner[smooth[inner][:, astray].argmin(axis=0)]
     return snap(fine[k], resolution, x[0], x[-1])
-
-
-def refined_minimum(
-    grid: list[float], curve: np.ndarray, resolution: float, span: int = SMOOTHING_SPAN
-) -> np.ndarray:
-    """The minimum of a discrepancy curve (S, R) over ``grid`` (S,), per column: the
-    smoothed curve (``smoothed_minimum``) finds the valley, then the raw curve's own
-    vertex near it gives the strength (``vertex`` on the grid points up to two steps
-    either side of the grid point nearest the smoothed minimum), kept within one grid
-    step of that point; rounded to ``resolution``.
-
-    Why both: smoothing pools ``span`` grid points, which keeps a flat, noisy curve
-    (weak air drag) from following one lucky point, but on a curve that bends sharply
-    it leans on the far points and biases the minimum (restitution rises steeply at the
-    top of its prior: 7-point smoothing fitted 0.608 for data made at 0.688). The raw
-    vertex follows the sharp bend; the smoothed valley keeps it from a distant outlier.
-    Measured on the everything-fit curves of 21 study cases (restitution, compliant
-    floor, air drag): 95 % intervals holding the truth 19 of 21 (smoothing alone 15,
-    vertex alone 19), RMS error restitution 0.027 (smoothing 0.053), compliant floor
-    0.058 (0.152), air drag 0.69 (0.56; vertex 0.80)."""
-    x = np.asarray(grid, dtype=float)
-    curve = np.asarray(curve, dtype=float).reshape(len(x), -1)
-    smoothed = smoothed_minimum(grid, curve, resolution, span)
-    if len(x) <= 3:
-        return smoothed
-    nearest = np.abs(x[:, None] - smoothed[None, :]).argmin(axis=0)
-    out = np.empty_like(smoothed)
-    for k in np.unique(nearest):
-        cols = nearest == k
-        window = slice(max(k - 2, 0), min(k + 3, len(x)))
-        raw = vertex(list(x[window]), curve[window][:, cols], resolution)
-        out[cols] = np.clip(raw, x[max(k - 1, 0)], x[min(k + 1, len(x) - 1)])
-    return snap(out, resolution, x[0], x[-1])
 
 
 @functools.lru_cache(maxsize=64)
@@ -439,7 +405,7 @@ class StrengthGrids:
         simulated drops (1 + B,)."""
         lo, hi = EFFECTS.get(effect).prior
         curve = self.curve(datasets, tilt, effect)
-        return refined_minimum(self.grids[effect], curve, STRENGTH_RESOLUTION * (hi - lo))
+        return smoothed_minimum(self.grids[effect], curve, STRENGTH_RESOLUTION * (hi - lo))
 
 
 class EffectRanking:

@@ -178,34 +178,6 @@ def test_a_noisy_strength_curve_is_fitted_on_its_smoothed_shape_not_its_lowest_p
     assert smoothed_minimum(grid, outlier, 1e-3)[0] < 2.4
 
 
-def test_a_sharp_strength_curve_is_fitted_on_its_raw_vertex_near_the_smoothed_valley():
-    """The refined minimum: on a curve that rises steeply past its minimum (restitution
-    at the top of its prior) the smoothed curve's minimum leans on the far side and lands
-    low, the refined one follows the raw bend; a low outlier three grid steps from the
-    valley does not pull it (the raw vertex goes there); on noisy parabolas it misses the
-    truth by no more than the raw vertex does."""
-    from diagnosis.drop_effects import refined_minimum, smoothed_minimum, vertex
-
-    grid = [0.0, 0.08, 0.16, 0.24, 0.32, 0.4, 0.48, 0.56, 0.64, 0.72, 0.8]
-    x = np.array(grid)
-    sharp = np.where(x < 0.69, 0.5 * (0.69 - x) ** 2, 20.0 * (x - 0.69) ** 2)
-    refined = refined_minimum(grid, sharp, 1e-3)[0]
-    assert abs(refined - 0.69) < abs(smoothed_minimum(grid, sharp, 1e-3)[0] - 0.69) - 0.02
-    wide = [0.0, 0.4, 0.8, 1.2, 1.6, 2.0, 2.4, 2.8, 3.2, 3.6, 4.0]
-    bowl = 0.1 * (np.array(wide) - 2.0) ** 2
-    bowl[9] -= 0.5  # 3.6 looks lowest, by one point
-    assert vertex(wide, bowl, 1e-3)[0] > 3.2
-    assert refined_minimum(wide, bowl, 1e-3)[0] == pytest.approx(2.0, abs=0.05)
-    rng = np.random.default_rng(5)
-    truths = rng.uniform(0.5, 3.5, 2000)
-    curves = np.column_stack(
-        [0.1 * (np.array(wide) - t) ** 2 + rng.normal(0, 0.1, len(wide)) for t in truths]
-    )
-    refined_error = np.sqrt(np.mean((refined_minimum(wide, curves, 1e-3) - truths) ** 2))
-    vertex_error = np.sqrt(np.mean((vertex(wide, curves, 1e-3) - truths) ** 2))
-    assert refined_error <= vertex_error  # measured 0.488 against 0.505
-
-
 def test_an_effect_leaves_the_tie_only_if_worse_at_every_plausible_strength():
     """The tie set's test: an effect scored worse than the best at the strength its folds
     fitted (on noise) but as well at another strength within its interval stays tied;
