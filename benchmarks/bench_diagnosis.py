@@ -45,6 +45,7 @@ Usage: ``python benchmarks/bench_diagnosis.py --part nulls [--cases N] [--minute
 
 from __future__ import annotations
 
+import json
 import statistics
 import sys
 import tempfile
@@ -52,7 +53,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from calibration_study import cached, part_header, rate, strength_record, study_main
+from calibration_study import cached, current, part_header, rate, strength_record, study_main
 
 from diagnosis.drops import diagnose_drops
 from diagnosis.spec import DropData, load_experiment
@@ -81,6 +82,8 @@ DISTORTION_SHIFTS = {
     # An offset moves the whole scatter off the release point: the distances grow too.
     "offset_x_mm": [(n, 1) for n in ("mean_x", "r_q25", "r_q50", "r_q75", "r_q90", "r95")],
 }
+# What a diagnosis found, in a case's summary: equal fields, the same diagnosis.
+RESULT_FIELDS = ("verdict", "best", "tie_set", "ranking", "effects")
 TRUTH_DROPS = 400  # drops a condition simulated to find what an outside cause moves
 # The next experiment's drops: what the report names, within these bounds (a count named
 # above the upper one is followed with that many: the advice is then only partly taken,
@@ -286,10 +289,8 @@ def run_tie_case(plan: dict, executor: Executor) -> dict:
     start = time.perf_counter()
     before = None
     if effects_case.exists():
-        import json
-
         cached_case = json.loads(effects_case.read_text())
-        if cached_case.get("method") == METHOD["effects"]:
+        if current(cached_case, METHOD):
             before = cached_case["runs"][0]
             if not _tied(before, plan):
                 return dict(plan=plan, method=METHOD["ties"], tie=False, runs=[before], wall_s=0.0)
@@ -301,11 +302,10 @@ def run_tie_case(plan: dict, executor: Executor) -> dict:
     if before is None:  # diagnosed here: the same plan gives the same diagnosis
         result = diagnose_drops(experiment, data, executor.map, seed=seed)
         before = _summary(result, plan, time.perf_counter() - start)
-    same = ("verdict", "best", "tie_set", "ranking", "effects")
     release = before.get("next_experiment")
     record = dict(plan=plan, method=METHOD["ties"], tie=_tied(before, plan))
     if cached is not None:  # the diagnosis is reproducible: it must equal the cached one
-        record["reproduces_effects_case"] = all(before[k] == cached[k] for k in same)
+        record["reproduces_effects_case"] = all(before[k] == cached[k] for k in RESULT_FIELDS)
     if not record["tie"] or not release or release["drops_needed_per_condition"] is None:
         record.update(runs=[before], advice=release, wall_s=time.perf_counter() - start)
         return record

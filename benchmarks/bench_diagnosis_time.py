@@ -22,15 +22,13 @@ import json
 import statistics
 import time
 
-from bench_diagnosis import METHOD, RESULTS, _blind_data, _summary, case_plan
+from bench_diagnosis import METHOD, RESULT_FIELDS, RESULTS, _blind_data, _summary, case_plan
 from calibration_study import current
 
 from diagnosis.drops import diagnose_drops
 from pipeline.execution import Executor
 
 TARGET_S = 120.0
-# What must be equal to the cached study case for the rerun to count as reproducing it.
-COMPARED = ("verdict", "best", "tie_set", "ranking", "effects")
 
 
 def main() -> int:
@@ -52,7 +50,9 @@ def main() -> int:
             path = RESULTS / "effects" / f"case-{index:03d}.json"
             cached = json.loads(path.read_text()) if path.exists() else None
             differ = (
-                [] if cached is None else [k for k in COMPARED if run[k] != cached["runs"][0][k]]
+                []
+                if cached is None
+                else [k for k in RESULT_FIELDS if run[k] != cached["runs"][0][k]]
             )
             if cached is None or not current(cached, METHOD):
                 check = "no current cached case to compare"
