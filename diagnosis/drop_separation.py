@@ -163,12 +163,12 @@ def _score_differences(
     drops; ``cross``: true drops x other's."""
     k, m = len(own), len(other)
     other_within = other.sum() / (m * (m - 1))
-    # Leaving drop i out of its own sample changes its pairs too: the mean over the rest.
-    loo_within = (own.sum() - 2.0 * own.sum(axis=1)) / ((k - 1) * (k - 2))
-    under_own = own.sum(axis=1) / (k - 1) - 0.5 * loo_within
-    under_other = cross.mean(axis=1) - 0.5 * other_within
     # Each drop's distances to the other k - 1 of its own (the diagonal is 0).
     row_sum = own.sum(axis=1)
+    # Leaving drop i out of its own sample changes its pairs too: the mean over the rest.
+    loo_within = (own.sum() - 2.0 * row_sum) / ((k - 1) * (k - 2))
+    under_own = row_sum / (k - 1) - 0.5 * loo_within
+    under_other = cross.mean(axis=1) - 0.5 * other_within
     own_spread = ((own**2).sum(axis=1) - row_sum**2 / (k - 1)) / (k - 2)
     cross_spread = cross.var(axis=1, ddof=1)
     differences = under_other - under_own
