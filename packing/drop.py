@@ -108,6 +108,29 @@ def drop_chips(
 
 # Below this speed air loads are under 0.05 % of a chip's weight: stop stepping one by one.
 _FLIGHT_SPEED_MM_S = 100.0
+# Distance between neighbouring release points, in circumradii: a tilted chip's bounding
+# box is at most two circumradii wide, so released chips never share the broad phase.
+RELEASE_SPACING = 3.0
+
+
+def release_places(n: int, spacing_mm: float) -> np.ndarray:
+    """The release points (n, 2) mm of ``n`` drops sharing one world: a square spiral
+    from the origin, ``spacing_mm`` apart, drop k's place depending on k alone (so that a
+    drop lands where it lands whatever number of drops is simulated with it)."""
+    places = np.zeros((n, 2))
+    x = y = 0
+    dx, dy = 1, 0
+    leg, walked, turns = 1, 0, 0
+    for k in range(1, n):
+        x, y = x + dx, y + dy
+        places[k] = x, y
+        walked += 1
+        if walked == leg:
+            walked, turns = 0, turns + 1
+            dx, dy = -dy, dx
+            if turns % 2 == 0:
+                leg += 1
+    return places * spacing_mm
 
 
 @dataclass(frozen=True)
@@ -154,7 +177,8 @@ def simulate_drops(
     """``n`` drops of the scenario's chip under ``protocol`` with effects switched on.
 
     The drops share one world and touch only the floor, so they cost one world, not n;
-    each is independent of the others given the parameters: drop k's random draws (tilt
+    each falls at its own release point (``release_places``; positions are reported from
+    it) and is independent of the others given the parameters: drop k's random draws (tilt
     fractions, spin directions) come from its own stream (``seed`` and k), and the air's
     loads act on each drop until that drop has landed, whatever the others do. The draws
     depend on ``seed`` alone, not on the strengths, the tilt range or ``n``: two calls
@@ -177,9 +201,15 @@ def simulate_drops(
     s = scenario.settling
     check_steps = max(1, round(CHECK_INTERVAL_S / physics.time_step_s))
     hold_checks = max(1, int(np.ceil(s.hold_time_s / (check_steps * physics.time_step_s))))
+    # Each drop falls at its own place: drops released at one point overlap in Bullet's
+    # broad phase, which then tests every pair before the collision filter discards it
+    # (a cost growing as n^2: 60 drops from 1 m took 0.47 s together, 0.35 s spread out,
+    # 120 drops 1.39 s against 0.60 s). Positions are reported from each drop's own
+    # release point.
+    places = release_places(n, RELEASE_SPACING * shape.circumradius_mm)
     with ChipWorld(preset, physics, isolated=True) as world:
         chips = [
-            world.add_chip(shape, np.array([0.0, 0.0, protocol.height_mm]), rotations[k])
+            world.add_chip(shape, np.array([*places[k], protocol.height_mm]), rotations[k])
             for k in range(n)
         ]
         floor = setup.contact
@@ -215,7 +245,7 @@ def simulate_drops(
         raise SimulationError("a drop ended with a NaN position")
     yaw_deg, tilt_deg = final_angles(quaternions)
     return DropSample(
-        positions=positions[:, :2].copy(),
+        positions=positions[:, :2] - places,
         yaw_deg=yaw_deg,
         tilt_deg=tilt_deg,
         settled=settled,

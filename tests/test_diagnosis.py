@@ -424,6 +424,24 @@ def test_each_drop_is_independent_of_the_others_simulated_with_it():
     assert np.abs(six.positions[2:] - six.positions[0]).max() > 0.1  # not all the same drop
 
 
+def test_drops_sharing_a_world_fall_apart_each_at_a_place_of_its_own():
+    """Release points: a spiral whose k-th point depends on k alone, no two closer than
+    the spacing (so released chips never share Bullet's broad phase), and every drop's
+    landing reported from its own point (identical drops land at the same place)."""
+    from packing.drop import DropProtocol, release_places, simulate_drops
+    from pipeline.scenario_files import load_scenario
+
+    places = release_places(50, 42.0)
+    np.testing.assert_array_equal(places[:7], release_places(7, 42.0))
+    gaps = np.linalg.norm(places[:, None] - places[None], axis=2)[np.triu_indices(50, 1)]
+    assert gaps.min() == pytest.approx(42.0)
+    assert np.abs(places).max() <= 4 * 42.0  # a compact square, not a line
+
+    flat = simulate_drops(load_scenario("single-chip-drop"), DropProtocol(20.0, 0.0, 0.0), 5)
+    np.testing.assert_allclose(flat.positions - flat.positions[0], 0.0, atol=1e-6)
+    assert np.abs(flat.positions).max() < 5.0  # near its own release point
+
+
 def test_an_effect_that_leaves_a_significant_gap_is_only_partly_explained():
     """'Explained' needs the held-out data to be consistent with the best effect: a
     residual gap beyond the noise floor after it (Holm across held-out conditions) makes
