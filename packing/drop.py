@@ -30,7 +30,14 @@ from packing.effects import apply_effect_loads, release_spin, setup_effects, sha
 from packing.presets import PRESETS
 from packing.world import ChipWorld
 
-__all__ = ["DropProtocol", "DropResult", "DropSample", "drop_chips", "simulate_drops"]
+__all__ = [
+    "DropProtocol",
+    "DropResult",
+    "DropSample",
+    "drop_chips",
+    "release_places",
+    "simulate_drops",
+]
 
 log = logging.getLogger(__name__)
 
