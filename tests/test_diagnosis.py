@@ -780,11 +780,15 @@ def test_effects_that_cannot_act_on_the_chip_are_set_aside():
 
 
 @pytest.mark.slow
-def test_release_tilt_fitted_jointly_carries_its_uncertainty(tmp_path):
-    """Drops made with restitution 0.7 at a release tilt 2.5 deg above the spec's. With
-    the tilt known (the spec's, wrongly) the strength's interval is narrow and biased;
-    fitted jointly, the interval widens and holds the truth (both measured: known
-    0.52-0.66, fitted 0.49-0.71)."""
+def test_release_tilt_fitted_jointly_finds_the_tilt_that_made_the_data(tmp_path):
+    """Drops made with restitution 0.7 at a release tilt 2.5 deg above the spec's. Fitted
+    jointly, the release tilt's offset is found (+2.5 deg, its interval holding it) and
+    restitution is still named; with the tilt known the offset stays at 0. Measured with
+    seeds 11 to 14 (2026-11-27): the offset +2.5 in 4 of 4, restitution best in 8 of 8.
+    The strength is fitted low in every one (0.49 to 0.63 for 0.7, both ways; the joint
+    interval holds 0.7 in 2 of 4, the known one in 3 of 4), so no claim on the strength
+    interval is made here: an earlier version asserted that the joint interval widens and
+    holds the truth, which was one seed's luck."""
     spec = drop_spec(tmp_path, effects=("restitution", "friction"))
     text = spec.read_text()
     made = tmp_path / "made.toml"
@@ -809,10 +813,10 @@ def test_release_tilt_fitted_jointly_carries_its_uncertainty(tmp_path):
         assert report["which"]["best"] == "restitution"
         entries[name] = report["which"]["ranking"][0]
     known, joint = entries["known"], entries["fitted"]
-    width = {k: e["strength_ci95"][1] - e["strength_ci95"][0] for k, e in entries.items()}
-    assert width["fitted"] > width["known"]
-    assert not known["strength_ci95"][0] <= 0.7 <= known["strength_ci95"][1]
-    assert joint["strength_ci95"][0] <= 0.7 <= joint["strength_ci95"][1]
+    assert known["release_tilt_offset_deg"] == 0.0
+    assert joint["release_tilt_offset_deg"] == pytest.approx(2.5, abs=1.25)
+    low, high = joint["release_tilt_offset_ci95"]
+    assert low <= 2.5 <= high
 
 
 def test_simulation_batches_go_longest_first_and_come_back_in_order():
