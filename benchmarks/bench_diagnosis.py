@@ -123,8 +123,8 @@ SWEEP_POINTS = 6
 # (``diagnosis/drop_separation.py``), one release for every tied effect; the verdicts
 # of the other parts do not move (a strength from the raw curve's vertex near the
 # smoothed valley was tried as 9 for every part and reverted: on the sweep it named
-# restitution alone, "explained", for air drag 1.33). 10 (nulls, effects, seeds): the
-# part's method (nulls 2, the others 7) with the drops of one simulation released at
+# restitution alone, "explained", for air drag 1.33). 10 (nulls, effects, outside, seeds):
+# the part's method (nulls 2, the others 7) with the drops of one simulation released at
 # separate points (``packing.drop.release_places``, 2026-11-27): the same model and
 # random draws, landings that differ by rounding (most by under 0.01 mm, chaotic bounces
 # by more), a diagnosis about a sixth faster; the other parts' cases were simulated with
@@ -132,7 +132,7 @@ SWEEP_POINTS = 6
 METHOD = {
     "nulls": 10,
     "effects": 10,
-    "outside": 7,
+    "outside": 10,
     "seeds": 10,
     "sweep": 7,
     "ties": 9,
