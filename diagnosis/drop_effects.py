@@ -7,8 +7,9 @@ Each is fitted on a fold's calibration drops only, by the energy distance of the
 calibration drops to the simulated ones, and scored on the fold's held-out drops by
 their energy scores: a proper per-drop score, so models are compared drop by drop on
 data none of them was fitted to. The effects are ranked by the held-out gap (energy
-distance) they close; the ones not significantly worse than the best (one-sided paired
-tests on the per-drop scores, Holm-adjusted) are its tie set. The best effect's held-out
+distance) they close; the ones whose held-out gap is not significantly larger than the
+best's (a one-sided bootstrap test that resamples the held-out drops and both models'
+simulated drops: ``worse_than_best_p``) are its tie set. The best effect's held-out
 data are then tested against an independent simulation of it (the adequacy test that
 "explained" needs), and shown before and after, per observable.
 """
@@ -20,7 +21,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.stats import ttest_1samp
+from scipy.stats import norm, ttest_1samp
 
 from diagnosis.drop_separation import separating_releases
 from diagnosis.drop_simulations import (
@@ -46,7 +47,7 @@ __all__ = [
     "smoothed_minimum",
     "vertex",
     "within",
-    "worse_everywhere_p",
+    "worse_than_best_p",
 ]
 
 TILT_RESOLUTION_DEG = 0.1
@@ -542,68 +543,44 @@ class EffectRanking:
         return [(fold, ds) for fold in self.folds for ds in fold.held_out]
 
     def _tie_set(self, ranked: list[str], results: dict, held: dict[str, HeldOut]) -> None:
-        """Every effect's one-sided paired test of "worse than the best" on the per-drop
-        held-out scores, Holm-adjusted across the effects: those not significantly worse
-        are tied with the best.
+        """Every effect's one-sided test of "its held-out gap is larger than the best's"
+        (``worse_than_best_p``): those not significantly worse are tied with the best.
 
-        An effect is worse only if it is worse at every strength it plausibly has, not
-        just at the one its folds fitted (an intersection-union test: the largest p-value
-        of the fitted model and of every grid setting in a fold's confidence set, the
-        neutral strength aside, which is the baseline; each fold's held-out drops judge
-        only the settings its own calibration found plausible). The settings are scored
-        on their grid simulations (half the drops of a fitted model's): their noise is
-        not in the paired test, which leans towards a tie. A weak effect's fit follows the
-        simulations' noise (air drag 1.33 fitted at 1.86 and 0.87 on the two folds of a
-        sweep case): scored only there it lost to an imitator, and restitution was named
-        alone for a gap air drag made."""
+        The test's noise is the bootstrap's, which resamples the held-out drops and both
+        models' simulated drops (paired: settings of a condition share their release
+        draws and their resamples). A paired t-test on the per-drop scores treats the
+        simulations as exact; with 120 simulated drops a model their noise is as large as
+        the gap between two imitators, and the best, picked as the lowest of seven noisy
+        held-out gaps, is the one whose simulations were luckiest: the t-test then sent
+        the truth out of the tie for a lucky imitator (sweep case air drag 0.67: the
+        fitted air drag worse than restitution at p 0.003 by the t-test, 0.27 with the
+        simulations' noise). Method 7's remedy, the largest t-test p-value over every
+        plausible strength, took the luck of the best of up to ten 60-drop grid
+        simulations instead and kept clearly worse effects tied (a probe of 17 cases,
+        2026-11-27: a mean tie of 3.6 against 2.2). No adjustment across the effects: the
+        tie set is a confidence set for the true effect, and only the truth's own
+        comparison must hold its level (Holm's inflated the p-values of the clearly worse
+        effects, not the truth's, the largest)."""
         best = ranked[0]
-        others = ranked[1:]
-        candidates = {e: self._candidates(e) for e in others}
-        self.sims.ensure([key for c in candidates.values() for keys in c.values() for key in keys])
-        raw = [
-            worse_everywhere_p(self._scored(held[e], candidates[e]), held[best].scores)
-            for e in others
-        ]
-        adjusted = holm(raw) if raw else []
         results[best]["p_worse_than_best"] = 1.0
-        results[best]["strengths_compared_with_best"] = []
         results[best]["indistinguishable_from_best"] = True
-        for effect, p in zip(others, adjusted, strict=True):
-            results[effect]["p_worse_than_best"] = float(p)
-            results[effect]["strengths_compared_with_best"] = [
-                [float(v), float(o)] for v, o in candidates[effect]
-            ]
+        for effect in ranked[1:]:
+            if self._fitted_neutral(effect):
+                # Fitted to do nothing in every fold: the baseline, whose comparison with
+                # the best is the verdict's own test (the best closes a significant part
+                # of the gap or the verdict is "unexplained"), not a candidate of its own.
+                p = results[best]["p_better_than_baseline_holm"]
+            else:
+                p = worse_than_best_p(held[effect].energy - held[best].energy)
+            results[effect]["p_worse_than_best"] = p
             results[effect]["indistinguishable_from_best"] = bool(p >= self.alpha)
 
-    def _candidates(self, effect: str) -> dict[tuple[float, float], list[tuple]]:
-        """Each (strength, tilt offset) grid setting within any fold's confidence set of
-        the effect's fit (``StrengthGrids.plausible``), its neutral strength aside, with
-        the simulation each held-out dataset is scored against for it (``_held_pairs``
-        order): the setting where that fold's calibration found it plausible, else the
-        fold's fitted model (a setting only another fold found plausible was chosen with
-        these very drops, which would then judge it)."""
-        neutral = EFFECTS.get(effect).neutral(self.sims.contact)
-        settings = {s for fold in self.folds for s in fold.plausible.get(effect, [])}
-        return {
-            (v, o): [
-                self.sims.grid_at_offset(ds.condition, o, effect, v)
-                if (v, o) in fold.plausible.get(effect, [])
-                else fold.model(self.sims, ds.condition, effect)
-                for fold, ds in self._held_pairs()
-            ]
-            for v, o in sorted(settings)
-            if abs(v - neutral) > 1e-12
-        }
-
-    def _scored(self, fitted: HeldOut, candidates: dict) -> list[np.ndarray]:
-        """Per-drop held-out scores of the fitted model, then of each candidate setting."""
-        pairs = self._held_pairs()
-        return [fitted.scores] + [
-            np.concatenate(
-                [self.sims.scores(ds, k) for (_, ds), k in zip(pairs, keys, strict=True)]
-            )
-            for keys in candidates.values()
-        ]
+    def _fitted_neutral(self, effect: str) -> bool:
+        """Whether every fold's fitted model of ``effect`` is the baseline itself."""
+        return all(
+            fold.model(self.sims, ds.condition, effect) == self.sims.baseline(ds.condition, None)
+            for fold, ds in self._held_pairs()
+        )
 
     def _baseline_refit(
         self, tilt_all: float, base: HeldOut, refit: HeldOut, best: HeldOut | None
@@ -715,12 +692,16 @@ class EffectRanking:
         return self.sims.observables[fold.model(self.sims, ds.condition, effect)]
 
 
-def worse_everywhere_p(candidates: list[np.ndarray], best: np.ndarray) -> float:
-    """p-value of "every candidate scores worse than the best": the largest of the
-    one-sided paired tests of each candidate's per-drop scores against the best's (an
-    intersection-union test, exact at its level without adjustment over the candidates:
-    to reject, each must be rejected)."""
-    return max(_p_worse(scores - best) for scores in candidates)
+def worse_than_best_p(difference: np.ndarray) -> float:
+    """One-sided p-value of "the effect's held-out gap exceeds the best's", from the
+    difference of the two held-out energy distances (1 + B,): the estimate, then per
+    resample of the held-out drops and of both models' simulated drops. The estimate
+    over its bootstrap sd, against the normal; 1 when the resamples do not vary and the
+    estimate is not positive, 0 when they do not vary and it is."""
+    estimate, spread = float(difference[0]), float(np.std(difference[1:], ddof=1))
+    if spread == 0.0:
+        return 1.0 if estimate <= 0.0 else 0.0
+    return float(norm.sf(estimate / spread))
 
 
 def _p_worse(differences: np.ndarray) -> float:

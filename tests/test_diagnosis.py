@@ -178,22 +178,48 @@ def test_a_noisy_strength_curve_is_fitted_on_its_smoothed_shape_not_its_lowest_p
     assert smoothed_minimum(grid, outlier, 1e-3)[0] < 2.4
 
 
-def test_an_effect_leaves_the_tie_only_if_worse_at_every_plausible_strength():
-    """The tie set's test: an effect scored worse than the best at the strength its folds
-    fitted (on noise) but as well at another strength within its interval stays tied;
-    one worse at every strength it plausibly has is out; with one candidate the test is
-    the plain paired test."""
-    from diagnosis.drop_effects import _p_worse, worse_everywhere_p
+def test_the_tie_test_holds_its_level_with_the_simulations_noise_in_it():
+    """The tie set's test. Two models equally far from the data (drops shifted by half a
+    standard deviation from both), each known only through its own simulation of 120
+    drops, scored on 75 held-out drops, the one with the larger held-out gap tested
+    against the other: the per-drop paired t-test treats the simulations as exact and
+    finds the loser worse in about 70 % of repeats (measured here, two seeds: 68 and
+    71 %), though neither is; the bootstrap of the held-out gaps, which resamples the
+    simulated drops too, at about its level (3 to 5 %; at most 10 % as the loser is the
+    one of two that looks worse). A model twice as far leaves the tie (99 to 100 %)."""
+    from diagnosis.drop_effects import _p_worse, worse_than_best_p
+    from diagnosis.statistics import energy_distance, mean_cross, mean_within, resample_weights
 
-    rng = np.random.default_rng(8)
-    best = rng.normal(1.0, 0.3, 150)
-    misfitted = best + 0.15 + rng.normal(0, 0.1, 150)  # its fitted strength: clearly worse
-    as_good = best + rng.normal(0, 0.1, 150)  # a plausible strength: no worse
-    assert _p_worse(misfitted - best) < 1e-6
-    assert worse_everywhere_p([misfitted, as_good], best) > 0.05
-    worse_too = best + 0.1 + rng.normal(0, 0.1, 150)
-    assert worse_everywhere_p([misfitted, worse_too], best) < 1e-6
-    assert worse_everywhere_p([misfitted], best) == _p_worse(misfitted - best)
+    rng = np.random.default_rng(3)
+    n, m, resamples, repeats = 75, 120, 200, 300
+
+    def distances(a, b):
+        return np.linalg.norm(a[:, None] - b[None], axis=2)
+
+    out = dict(t_test=0, bootstrap=0, farther=0)
+    for _ in range(repeats):
+        x = rng.normal(size=(n, 2)) + [0.5, 0.0]
+        wx, wy = resample_weights(n, resamples, rng), resample_weights(m, resamples, rng)
+        within_x = mean_within(distances(x, x), wx)
+        gaps, scores = [], []
+        for centre in ([0.0, 0.0], [0.0, 0.0], [-0.5, 0.0]):
+            y = rng.normal(size=(m, 2)) + centre
+            cross = distances(x, y)
+            within_y = mean_within(distances(y, y), wy)
+            gaps.append(energy_distance(mean_cross(cross, wx, wy), within_x, within_y))
+            scores.append(cross.mean(axis=1) - 0.5 * within_y[0])
+        loser = int(gaps[1][0] > gaps[0][0])
+        best = 1 - loser
+        out["t_test"] += _p_worse(scores[loser] - scores[best]) < 0.05
+        out["bootstrap"] += worse_than_best_p(gaps[loser] - gaps[best]) < 0.05
+        out["farther"] += worse_than_best_p(gaps[2] - gaps[best]) < 0.05
+    assert out["t_test"] / repeats > 0.5
+    assert out["bootstrap"] / repeats < 0.1
+    assert out["farther"] / repeats > 0.9
+    # The p-value is the estimate over its bootstrap sd, against the normal.
+    draws = np.concatenate([[0.2], rng.normal(0.2, 0.1, 4000)])
+    assert worse_than_best_p(draws) == pytest.approx(0.0228, abs=0.002)
+    assert worse_than_best_p(np.zeros(5)) == 1.0 and worse_than_best_p(np.ones(5)) == 0.0
 
 
 def test_joint_fit_finds_the_minimum_of_a_tilted_bowl_between_grid_points():
