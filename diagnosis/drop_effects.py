@@ -553,14 +553,14 @@ class EffectRanking:
         the gap between two imitators, and the best, picked as the lowest of seven noisy
         held-out gaps, is the one whose simulations were luckiest: the t-test then sent
         the truth out of the tie for a lucky imitator (sweep case air drag 0.67: the
-        fitted air drag worse than restitution at p 0.003 by the t-test, 0.27 with the
+        fitted air drag worse than restitution at p 0.003 by the t-test, 0.11 with the
         simulations' noise). Method 7's remedy, the largest t-test p-value over every
         plausible strength, took the luck of the best of up to ten 60-drop grid
-        simulations instead and kept clearly worse effects tied (a probe of 17 cases,
-        2026-11-27: a mean tie of 3.6 against 2.2). No adjustment across the effects: the
-        tie set is a confidence set for the true effect, and only the truth's own
-        comparison must hold its level (Holm's inflated the p-values of the clearly worse
-        effects, not the truth's, the largest)."""
+        simulations instead and kept clearly worse effects tied (a probe of 18 study
+        cases, 2026-11-27: a mean tie of 3.9 against 2.3). No adjustment across the
+        effects: the tie set is a confidence set for the true effect, and only the
+        truth's own comparison must hold its level (Holm's inflated the p-values of the
+        clearly worse effects, not the truth's, the largest)."""
         best = ranked[0]
         results[best]["p_worse_than_best"] = 1.0
         results[best]["indistinguishable_from_best"] = True
