@@ -2,9 +2,11 @@
 
 Each model (an effect at the strength fitted on every condition) is simulated at every
 candidate release (heights and yaws around the spec's, at its release tilt). The count
-is the one the tie decision itself needs: an effect leaves the tie when the one-sided
-paired test on the held-out drops' energy scores, Holm-adjusted over the tied effects,
-finds it worse than the best (``EffectRanking._tie_set``). At each candidate release the
+is the one the paired score test needs (the tie decision of methods 7 to 10): an effect
+leaves the tie when the one-sided paired test on the held-out drops' energy scores,
+Holm-adjusted over the tied effects, finds it worse than the best. The tie decision
+(``EffectRanking._tie_set``) now also carries the simulations' noise, a floor that more
+observed drops do not lower: for it the count is a lower bound. At each candidate release the
 per-drop score difference between the two models is measured on drops of each model in
 turn (the one taken as true scored against a leave-one-out sample of itself and against
 the other's sample): its mean grows with the models' energy distance, its spread sets
@@ -16,9 +18,9 @@ models is true. A two-sample energy test (the previous rule) needs drops in prop
 models it named counts an order of magnitude too small (4 to 40 drops where following
 them with 50 resolved 2 of 18 ties in the calibration study).
 
-What the count leaves out: the effects are refitted on the new data, and the tie test
-asks an effect to be worse at every strength it plausibly has, not only at the fitted
-one; both favour the tie, so the count is a lower bound for the fitted strengths.
+What the count leaves out: the effects are refitted on the new data, and the simulations'
+noise in the tie test; both favour the tie, so the count is a lower bound for the
+fitted strengths.
 """
 
 from __future__ import annotations
