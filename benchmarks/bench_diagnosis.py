@@ -75,7 +75,7 @@ DROP_EFFECTS = (
     "restitution",
     "warp",
 )
-PLANNED = {"nulls": 100, "effects": 35, "outside": 19, "seeds": 5, "sweep": 12, "ties": 35}
+PLANNED = {"nulls": 200, "effects": 35, "outside": 19, "seeds": 5, "sweep": 12, "ties": 35}
 # What a measurement distortion moves (observable, direction of experiment - simulation).
 DISTORTION_SHIFTS = {
     "position_scale": [(n, 1) for n in ("r_q25", "r_q50", "r_q75", "r_q90", "r95")],
