@@ -29,7 +29,7 @@ Parts:
 * ``ties``: for each ``effects`` case whose diagnosis ends in a tie (the true effect
   among two or more indistinguishable), the next experiment the report names is made
   (the one release that would tell the best effect from every tied one with the fewest
-  drops by the tie test itself, at the drops it names, 50 to 600, the true effect at its
+  drops by the paired score test, at the drops it names, 50 to 600, the true effect at its
   true strength, a new seed) and the diagnosis rerun on the four conditions: the tie is
   resolved when the verdict is "explained" with the true effect alone. Target >= 70 %.
 * ``effects-fitted-tilt``, ``outside-fitted-tilt``: the same cases as ``effects`` and
@@ -129,8 +129,8 @@ SWEEP_POINTS = 6
 # random draws, landings that differ by rounding (most by under 0.01 mm, chaotic bounces
 # by more), a diagnosis about a sixth faster; the other parts' cases were simulated with
 # every drop released at one point. 11 (effects, sweep, ties): the tie set's test the
-# bootstrap of the held-out gaps, which carries the simulations' noise, instead of the
-# largest paired t-test p-value over the plausible strengths (``worse_than_best_p``); no
+# bootstrap of the held-out gaps (``worse_than_best_p``), which carries the simulations'
+# noise, instead of the largest paired t-test p-value over the plausible strengths; no
 # Holm across the effects; an effect fitted to its neutral strength in every fold is the
 # baseline. Only tie sets (and the next experiments named for them) move: the test draws
 # nothing from the random stream and simulates nothing, so verdicts, rankings, fits and

@@ -62,12 +62,13 @@ def separating_releases(
 ) -> tuple[dict[str, dict], dict]:
     """For every model of ``strengths`` (effect -> fitted strength) other than ``best``:
     the candidate release that separates it from ``best`` with the fewest drops, by the
-    tie decision's paired test (module docstring); and the one release that separates
+    paired score test (module docstring); and the one release that separates
     ``best`` from all of them with the fewest drops (the next experiment). Each model is
     released at the spec's tilt plus its fitted offset (``offsets``, deg); ``held_out``
     (effect -> per-drop held-out score of the effect minus the best's) are the drops the
-    tie was judged on, which the new condition's join; ``alpha`` is the tie test's level,
-    Holm-adjusted over the effects compared with the best."""
+    tie was judged on, which the new condition's join; ``alpha`` is the test's level,
+    Bonferroni-adjusted over the effects compared with the best (as the tie test of
+    methods 7 to 10 was, by Holm; a count that holds for the stricter test)."""
     spec = sims.x.conditions[0].protocol
     candidates = [
         replace(spec, height_mm=h, yaw_deg=y)

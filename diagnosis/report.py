@@ -302,11 +302,12 @@ def _telling_apart(which: dict) -> list[str]:
             "",
             (
                 f"Next experiment: one new condition at {where}, {needed} drops; with them "
-                f"the tie test (held-out paired scores, Holm over the tied effects) would "
+                f"the paired test on the held-out drops' scores (Bonferroni over the tied "
+                f"effects) would "
                 f"tell {which['best']} from {', '.join(joint['separates'])} with probability "
                 f"about {percent(joint['power'])} if the effects keep their fitted strengths "
-                "(a lower bound on the drops: the strengths are refitted and an effect "
-                "must be worse at every strength it plausibly has)."
+                "(a lower bound on the drops: the strengths are refitted, and the tie test "
+                "also carries the simulations' noise)."
             )
             if needed
             else (

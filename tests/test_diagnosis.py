@@ -297,7 +297,7 @@ def test_the_adequacy_calibrated_by_simulation_decides_over_fishers_combination(
 
 
 def test_drops_named_to_tell_two_models_apart_give_the_tie_test_its_power():
-    """The next experiment's drop count is the tie decision's: at the named count, drops of
+    """The next experiment's drop count is the paired score test's: at the named count, drops of
     one model scored against pools of each (the paired one-sided test on per-drop energy
     scores, 5 %) find the other worse in about 80 % of repeats (measured here; the pools'
     shared noise, which the t test does not see, keeps it a little below for close
