@@ -561,8 +561,8 @@ class EffectRanking:
         effects: the tie set is a confidence set for the true effect, which leaves it
         only when the best, picked among the others, beats it significantly; with one
         imitator as good as the truth that happens at the test's level, with several a
-        little more often (a review's probe of seven models equally far from the data: 7.3 % of
-        450 repeats), which the bootstrap's sd, somewhat wide, partly offsets. Holm's
+        little more often (a review's probe of seven models equally far from the data:
+        7.3 % of 450 repeats), which the bootstrap's sd, somewhat wide, partly offsets. Holm's
         adjustment raised the p-values of the clearly worse effects, not the truth's
         (the largest). An effect fitted exactly to its neutral strength in every fold is
         the baseline and takes the verdict's own test of the best against it (a paired
