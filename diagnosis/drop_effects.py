@@ -21,7 +21,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.stats import norm, ttest_1samp
+from scipy.stats import ttest_1samp
 
 from diagnosis.drop_separation import separating_releases
 from diagnosis.drop_simulations import (
@@ -33,7 +33,7 @@ from diagnosis.drop_simulations import (
 )
 from diagnosis.drop_where import energy_test
 from diagnosis.ranking import effect_entry, held_out_reduction
-from diagnosis.statistics import combined_p, holm, interval
+from diagnosis.statistics import bootstrap_z_p, combined_p, holm, interval
 from diagnosis.verdicts import applicable_effects, how_far
 from packing.effects import EFFECTS
 
@@ -704,15 +704,9 @@ class EffectRanking:
 def worse_than_best_p(difference: np.ndarray) -> float:
     """One-sided p-value of "the effect's held-out gap exceeds the best's", from the
     difference of the two held-out energy distances (1 + B,): the estimate, then per
-    resample of the held-out drops and of both models' simulated drops. The estimate
-    over its bootstrap sd, against the normal; 1 when the resamples do not vary and the
-    estimate is not positive, 0 when they do not vary and it is."""
-    estimate, spread = float(difference[0]), float(np.std(difference[1:], ddof=1))
-    if not (math.isfinite(estimate) and math.isfinite(spread)):
-        return 1.0  # no evidence either way: the effect stays tied (the safe side)
-    if spread == 0.0:
-        return 1.0 if estimate <= 0.0 else 0.0
-    return float(norm.sf(estimate / spread))
+    resample of the held-out drops and of both models' simulated drops
+    (``bootstrap_z_p``; a difference that is not finite keeps the effect tied)."""
+    return bootstrap_z_p(difference)
 
 
 def _p_worse(differences: np.ndarray) -> float:

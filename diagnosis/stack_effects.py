@@ -13,7 +13,7 @@ import numpy as np
 
 from diagnosis.drop_effects import STRENGTH_RESOLUTION, vertex, within
 from diagnosis.ranking import effect_entry, held_out_reduction
-from diagnosis.statistics import holm, interval
+from diagnosis.statistics import bootstrap_p, holm, interval
 from diagnosis.verdicts import how_far
 from packing.effects import EFFECTS
 
@@ -59,13 +59,6 @@ def strength_grid(effect: str, grid_points: int, contact) -> list[float]:
     values = set(np.round(np.linspace(lo, hi, points), 12).tolist())
     values.add(round(EFFECTS.get(effect).neutral(contact), 12))
     return sorted(values)
-
-
-def bootstrap_p(differences: np.ndarray) -> float:
-    """One-sided bootstrap p-value of "the difference is positive" from its resamples:
-    the share of resamples at or below 0, counted as (1 + k) / (1 + B), never 0."""
-    d = np.asarray(differences, dtype=float)
-    return float((1 + (d <= 0).sum()) / (1 + len(d)))
 
 
 class StackEffectRanking:

@@ -28,13 +28,17 @@ null is exact for any sample sizes, and it does not hinge on one pool of simulat
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
-from scipy.stats import combine_pvalues
+from scipy.stats import combine_pvalues, norm
 
 from geometry.stats import holm
 
 __all__ = [
     "PERMUTATIONS",
+    "bootstrap_p",
+    "bootstrap_z_p",
     "combined_p",
     "energy_distance",
     "energy_statistics",
@@ -156,6 +160,27 @@ def exceedance_p(null: np.ndarray, g: float) -> float:
     """The permutation-style p-value of ``g`` against the null sample: (1 + #{null >= g})
     / (1 + size), never 0."""
     return float((1 + (np.asarray(null) >= g).sum()) / (1 + len(null)))
+
+
+def bootstrap_p(differences: np.ndarray) -> float:
+    """One-sided bootstrap p-value of "the difference is positive" from its resamples:
+    the share of resamples at or below 0, counted as (1 + k) / (1 + B), never 0."""
+    d = np.asarray(differences, dtype=float)
+    return float((1 + (d <= 0).sum()) / (1 + len(d)))
+
+
+def bootstrap_z_p(difference: np.ndarray) -> float:
+    """One-sided p-value of "the difference is positive" from the estimate and its
+    resamples (1 + B,): the estimate over the resamples' sd, against the normal (unlike
+    ``bootstrap_p``, not bounded below by 1 / (1 + B)). 1 when the resamples do not vary
+    and the estimate is not positive, 0 when they do not vary and it is; 1 (no evidence
+    either way) when either is not finite."""
+    estimate, spread = float(difference[0]), float(np.std(difference[1:], ddof=1))
+    if not (math.isfinite(estimate) and math.isfinite(spread)):
+        return 1.0
+    if spread == 0.0:
+        return 1.0 if estimate <= 0.0 else 0.0
+    return float(norm.sf(estimate / spread))
 
 
 def interval(samples: np.ndarray, level: float = 0.95) -> tuple[float, float]:
