@@ -178,6 +178,35 @@ def test_a_noisy_strength_curve_is_fitted_on_its_smoothed_shape_not_its_lowest_p
     assert smoothed_minimum(grid, outlier, 1e-3)[0] < 2.4
 
 
+def test_a_narrow_valley_is_refined_and_fitted_on_its_own_points():
+    """A fold's coarse curve measured in a study case (compliant floor, truth 1.67: the
+    curve lowest at 1.6 alone, its neighbours far above): the smoothing over seven grid
+    points fits it far from the valley (0.48). Strengths near the curve's lowest point
+    and smoothed minimum are added; with the valley's values there, the fit lands in it.
+    A curve nowhere below its neutral strength adds nothing; no added strength is within
+    a sixth of a step of another; all are on the fits' rounding lattice."""
+    from diagnosis.drop_effects import refined_strengths, smoothed_minimum
+
+    grid = [0.0, 0.2, 0.4, 0.6, 0.8, 1.0, 1.2, 1.4, 1.6, 1.8, 2.0]
+    coarse = np.array([0.66, 0.36, 0.31, 0.43, 0.41, 0.45, 1.0, 0.88, 0.05, 0.51, 0.48])
+    assert smoothed_minimum(grid, coarse, 2e-3)[0] < 0.6
+
+    def valley(x):  # lowest at 1.65, rising to 0.5 a fifth of a unit away
+        return 0.05 + 0.45 * np.minimum(1.0, np.abs(np.asarray(x) - 1.65) / 0.2)
+
+    added = refined_strengths(grid, [coarse], 0.0, (0.0, 2.0), 11)
+    # Around both the smoothed minimum (0.48) and the lowest grid point (1.6).
+    assert [a for a in added if a < 1.0] == [0.35, 0.484, 0.55]
+    assert [a for a in added if a > 1.0] == [1.466, 1.534, 1.666, 1.734]
+    every = sorted([*grid, *added])
+    assert min(np.diff(every)) > 0.2 / 6
+    assert all(abs(a / 0.002 - round(a / 0.002)) < 1e-6 for a in added)
+    curve = np.array([coarse[grid.index(v)] if v in grid else valley(v) for v in every])
+    assert smoothed_minimum(every, curve, 2e-3)[0] == pytest.approx(1.65, abs=0.1)
+    rising = np.linspace(0.0, 1.0, 11)  # lowest at the neutral strength: nothing to refine
+    assert refined_strengths(grid, [rising], 0.0, (0.0, 2.0), 11) == []
+
+
 def test_the_tie_test_holds_its_level_with_the_simulations_noise_in_it():
     """The tie set's test. Two models equally far from the data (drops shifted by half a
     standard deviation from both), each known only through its own simulation of 120
