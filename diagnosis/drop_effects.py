@@ -71,10 +71,10 @@ CALIBRATION_POOL_FACTOR = 6  # a calibration pool holds this many times what its
 # then rounded to STRENGTH_RESOLUTION of the prior, finer than their spacing).
 SMOOTHING_SPAN = 7
 SMOOTHING_POINTS = 401
-# Where a coarse curve dips below the neutral strength, strengths this far (in coarse
-# grid steps) either side of its lowest point and of its smoothed minimum are simulated
-# too (``StrengthGrids.refine``); a new strength closer than a sixth of a step to one
-# already tried is not added.
+# Where the whole data's coarse curve dips below its value at the neutral strength, the
+# strengths this far (in coarse grid steps) from its lowest point and from its smoothed
+# minimum are simulated too (``StrengthGrids.refine``); a new strength closer than a
+# sixth of a step to one already tried is not added.
 REFINE_OFFSETS = (-2 / 3, -1 / 3, 0.0, 1 / 3, 2 / 3)
 
 
@@ -203,12 +203,14 @@ def refined_strengths(
     ``prior``, plus the ``neutral`` strength) near the minima of ``curves`` (each (S,),
     on ``grid``): for every curve lower somewhere than at the neutral strength, the
     strengths ``REFINE_OFFSETS`` coarse steps from its lowest grid point and from its
-    smoothed minimum, on the fits' rounding lattice, none closer than a sixth of a step
-    to a strength already there."""
+    smoothed minimum (the smoothed minimum itself among them), on the fits' rounding
+    lattice, none closer than a sixth of a step to a strength already there."""
     lo, hi = prior
     step = (hi - lo) / max(coarse_points - 1, 1)
     resolution = STRENGTH_RESOLUTION * (hi - lo)
-    at_neutral = grid.index(neutral)
+    at_neutral = int(np.argmin(np.abs(np.asarray(grid) - neutral)))
+    if abs(grid[at_neutral] - neutral) > 1e-9:
+        raise ValueError(f"the neutral strength {neutral} is not on the grid {grid}")
     centres = set()
     for curve in curves:
         curve = np.asarray(curve, dtype=float)
@@ -353,9 +355,11 @@ class StrengthGrids:
     def refine(self, datasets: list[Dataset]) -> list[tuple]:
         """Add strengths near the minimum of each effect's coarse curve on ``datasets`` to
         its fine grid, and return the new settings (every condition) to simulate: when
-        the curve dips below its value at the neutral strength, strengths a third and two
-        thirds of a coarse step either side of its lowest grid point and of its smoothed
-        minimum (``refined_strengths``).
+        the curve dips below its value at the neutral strength, its smoothed minimum and
+        strengths a third and two thirds of a coarse step either side of it and of the
+        curve's lowest grid point (``refined_strengths``). With the release tilt fitted
+        jointly nothing is added: that fit is the quadratic surface over three coarse
+        strengths, which refined points would not move.
 
         Why: the discrepancy is not smooth in the strength everywhere. Measured (five
         effects cases, 2026-11-27): at 200 mm, air drag 0.8 scored 0.28 to 0.89 where
@@ -372,6 +376,8 @@ class StrengthGrids:
         to the truth (95 % intervals holding it in 12 of 13 against 9), but a narrower
         smoothing on half the drops is a noisier fit, and the held-out ranking got worse
         (identified 5 of 13 against 7)."""
+        if self.joint:
+            return []
         new_keys = []
         for effect, grid in self.grids.items():
             e = EFFECTS.get(effect)
@@ -537,6 +543,8 @@ class EffectRanking:
                 results[effect] = effect_entry(
                     effect, fitted.strength.tolist(), reduction, closed, held[effect].rows
                 )
+                # The strengths the reported fit was made over (the refined grid).
+                results[effect]["strengths_tried"] = list(grids.fine[effect])
                 results[effect]["release_tilt_offset_deg"] = float(fitted.offset[0])
                 results[effect]["release_tilt_offset_ci95"] = list(interval(fitted.offset[1:]))
                 # Does the effect close a significant part of the gap? The paired per-drop

@@ -693,6 +693,12 @@ def test_diagnose_finds_a_withheld_effect_and_no_gap_without_one(tmp_path):
     top = {e["effect"]: e for e in report["which"]["ranking"]}["restitution"]
     assert top["held_out_reduction"] > 0.5
     assert 0.4 <= top["strength"] <= 0.8
+    # The reported strength is fitted on the coarse grid (4 points, a step of 0.267)
+    # refined near the whole data's minimum: strengths off the coarse grid within a step
+    # of the fit (the neutral strength, off it too, is at most one of them).
+    coarse = np.linspace(0.0, 0.8, 4)
+    added = [v for v in top["strengths_tried"] if np.abs(coarse - v).min() > 1e-9]
+    assert sum(abs(v - top["strength"]) < 0.267 for v in added) >= 3
     assert all(t["significant"] for t in report["where"]["tests"])
     for name in ("diagnosis.md", "fig_scatter.png", "fig_effects.png", "manifest.json"):
         assert (out / name).stat().st_size > 0
