@@ -136,7 +136,7 @@ SWEEP_POINTS = 6
 # nothing from the random stream and simulates nothing, so verdicts, rankings, fits and
 # adequacy tests are method 10's, and the nulls, outside and seeds parts, whose figures
 # are verdicts and best effects, keep method 10.
-# 12 (effects): the reported strength and its interval fitted on the coarse grid
+# 12 (effects, ties): the reported strength and its interval fitted on the coarse grid
 # with strengths added near the whole data's minimum (``StrengthGrids.refine``); the
 # folds' fits, and so verdicts, rankings and tie sets, are method 11's; the next
 # experiment's models are simulated at the refined strengths. The sweep, nulls, outside
@@ -148,7 +148,7 @@ METHOD = {
     "outside": 10,
     "seeds": 10,
     "sweep": 11,
-    "ties": 11,
+    "ties": 12,
     # Fitted tilt 2: its confidence set from 97.5 % intervals, clipped to its box.
     # 4 and 5: the calibrated adequacy. 6 (fitted tilt), 5 (100 drops): the smoothed fit.
     # 6 (100 drops): the refined reported strength (method 12).
