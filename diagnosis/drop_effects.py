@@ -194,14 +194,14 @@ def _loess_matrix(grid: tuple[float, ...], span: int) -> np.ndarray:
 
 def refined_strengths(
     grid: list[float],
-    curves: list[np.ndarray],
+    curve: np.ndarray,
     neutral: float,
     prior: tuple[float, float],
     coarse_points: int,
 ) -> list[float]:
     """The strengths to add to ``grid`` (a coarse grid of ``coarse_points`` over
-    ``prior``, plus the ``neutral`` strength) near the minima of ``curves`` (each (S,),
-    on ``grid``): for every curve lower somewhere than at the neutral strength, the
+    ``prior``, plus the ``neutral`` strength) near the minima of ``curve`` ((S,), on
+    ``grid``): when it is lower somewhere than at the neutral strength, the
     strengths ``REFINE_OFFSETS`` coarse steps from its lowest grid point and from its
     smoothed minimum (the smoothed minimum itself among them), on the fits' rounding
     lattice, none closer than a sixth of a step to a strength already there."""
@@ -211,15 +211,13 @@ def refined_strengths(
     at_neutral = int(np.argmin(np.abs(np.asarray(grid) - neutral)))
     if abs(grid[at_neutral] - neutral) > 1e-9:
         raise ValueError(f"the neutral strength {neutral} is not on the grid {grid}")
-    centres = set()
-    for curve in curves:
-        curve = np.asarray(curve, dtype=float)
-        if not curve.min() < curve[at_neutral]:
-            continue
-        centres.add(grid[int(np.argmin(curve))])
-        centres.add(float(smoothed_minimum(grid, curve[:, None], resolution)[0]))
+    curve = np.asarray(curve, dtype=float)
+    if not curve.min() < curve[at_neutral]:
+        return []
+    lowest = grid[int(np.argmin(curve))]
+    smoothed = float(smoothed_minimum(grid, curve[:, None], resolution)[0])
     added: list[float] = []
-    for centre in sorted(centres):
+    for centre in sorted({lowest, smoothed}):
         for offset in REFINE_OFFSETS:
             v = float(snap(np.array(centre + offset * step), resolution, lo, hi))
             if min(abs(v - g) for g in [*grid, *added]) > step / 6:
@@ -349,8 +347,11 @@ class StrengthGrids:
         e = EFFECTS.get(effect)
         lo, hi = e.prior
         values = set(np.round(np.linspace(lo, hi, points), 12).tolist())
-        values.add(round(e.neutral(self.sims.contact), 12))
+        values.add(self._neutral(effect))
         return sorted(values)
+
+    def _neutral(self, effect: str) -> float:
+        return round(EFFECTS.get(effect).neutral(self.sims.contact), 12)
 
     def refine(self, datasets: list[Dataset]) -> list[tuple]:
         """Add strengths near the minimum of each effect's coarse curve on ``datasets`` to
@@ -380,15 +381,13 @@ class StrengthGrids:
             return []
         new_keys = []
         for effect, grid in self.grids.items():
-            e = EFFECTS.get(effect)
             curve = self.curve(datasets, None, effect)[:, 0]
-            neutral = round(e.neutral(self.sims.contact), 12)
-            added = refined_strengths(grid, [curve], neutral, e.prior, self.points)
+            prior = EFFECTS.get(effect).prior
+            added = refined_strengths(grid, curve, self._neutral(effect), prior, self.points)
             self.fine[effect] = sorted(grid + added)
             new_keys += [
                 self.sims.grid_setting(c, None, effect, s) for s in added for c in self.conditions
             ]
-        self._fits.clear()
         return new_keys
 
     def keys(self) -> list[tuple]:
@@ -403,7 +402,8 @@ class StrengthGrids:
     def _along(self, datasets: list[Dataset], effect: str, fine: bool) -> np.ndarray:
         """``fit`` at the spec's tilt, once per datasets, effect and grid (the stencil's
         keys and the joint fit both start from it)."""
-        memo = (tuple(id(ds) for ds in datasets), effect, fine)
+        grid = self.fine[effect] if fine else self.grids[effect]
+        memo = (tuple(id(ds) for ds in datasets), effect, tuple(grid))
         if memo not in self._fits:
             self._fits[memo] = self.fit(datasets, None, effect, fine)
         return self._fits[memo]
@@ -415,12 +415,13 @@ class StrengthGrids:
         k = min(max(k, 1), len(grid) - 2)
         return grid[k - 1 : k + 2]
 
-    def stencil_keys(self, datasets: list[Dataset], effect: str, fine: bool = False) -> list:
+    def stencil_keys(self, datasets: list[Dataset], effect: str) -> list[tuple]:
         """The settings the joint fit on ``datasets`` needs beyond the grid: the three grid
-        strengths around the strength fitted at the spec's tilt, at the shifted tilts."""
+        strengths around the strength fitted at the spec's tilt, at the shifted tilts
+        (with the tilt fitted nothing is refined: the fine grid is the coarse one)."""
         if not self.joint:
             return []
-        around = self.stencil(effect, float(self._along(datasets, effect, fine)[0]))
+        around = self.stencil(effect, float(self._along(datasets, effect, False)[0]))
         return [
             self.sims.grid_at_offset(c, o, effect, v)
             for v in around
@@ -607,10 +608,9 @@ class EffectRanking:
         each fitted model at the fold's held-out conditions."""
         stencils = [
             key
-            for datasets, fine in [(f.calibration, False) for f in self.folds]
-            + [(self.everything, True)]
+            for datasets in [f.calibration for f in self.folds] + [self.everything]
             for effect in effects
-            for key in grids.stencil_keys(datasets, effect, fine)
+            for key in grids.stencil_keys(datasets, effect)
         ]
         self.sims.ensure(stencils)
         keys = []

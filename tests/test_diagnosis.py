@@ -194,7 +194,7 @@ def test_a_narrow_valley_is_refined_and_fitted_on_its_own_points():
     def valley(x):  # lowest at 1.65, rising to 0.5 a fifth of a unit away
         return 0.05 + 0.45 * np.minimum(1.0, np.abs(np.asarray(x) - 1.65) / 0.2)
 
-    added = refined_strengths(grid, [coarse], 0.0, (0.0, 2.0), 11)
+    added = refined_strengths(grid, coarse, 0.0, (0.0, 2.0), 11)
     # Around both the smoothed minimum (0.48) and the lowest grid point (1.6).
     assert [a for a in added if a < 1.0] == [0.35, 0.484, 0.55]
     assert [a for a in added if a > 1.0] == [1.466, 1.534, 1.666, 1.734]
@@ -204,7 +204,7 @@ def test_a_narrow_valley_is_refined_and_fitted_on_its_own_points():
     curve = np.array([coarse[grid.index(v)] if v in grid else valley(v) for v in every])
     assert smoothed_minimum(every, curve, 2e-3)[0] == pytest.approx(1.65, abs=0.1)
     rising = np.linspace(0.0, 1.0, 11)  # lowest at the neutral strength: nothing to refine
-    assert refined_strengths(grid, [rising], 0.0, (0.0, 2.0), 11) == []
+    assert refined_strengths(grid, rising, 0.0, (0.0, 2.0), 11) == []
 
 
 def test_the_tie_test_holds_its_level_with_the_simulations_noise_in_it():
