@@ -46,6 +46,7 @@ __all__ = [
     "quadratic_minimum",
     "refined_strengths",
     "smoothed_minimum",
+    "smoothed_minimum_value",
     "vertex",
     "within",
     "worse_than_best_p",
@@ -153,6 +154,27 @@ def smoothed_minimum(
     curve = np.asarray(curve, dtype=float).reshape(len(x), -1)
     if len(x) <= 3:
         return vertex(grid, curve, resolution)
+    fine, smooth, k = _smoothed(x, curve, span)
+    return snap(fine[k], resolution, x[0], x[-1])
+
+
+def smoothed_minimum_value(
+    grid: list[float], curve: np.ndarray, span: int = SMOOTHING_SPAN
+) -> np.ndarray:
+    """The value of the smoothed curve (S, R) at ``smoothed_minimum``'s point, per column
+    (R,): the discrepancy left at the fitted strength, read off the same local-quadratic
+    fit (on three grid points or fewer, the lowest grid value)."""
+    x = np.asarray(grid, dtype=float)
+    curve = np.asarray(curve, dtype=float).reshape(len(x), -1)
+    if len(x) <= 3:
+        return curve.min(axis=0)
+    _, smooth, k = _smoothed(x, curve, span)
+    return smooth[k, np.arange(curve.shape[1])]
+
+
+def _smoothed(x: np.ndarray, curve: np.ndarray, span: int) -> tuple:
+    """The fine grid (F,), the smoothed curve on it (F, R) and the index of each column's
+    minimum (R,), an end of the grid kept only where the raw curve is lowest there."""
     fine = np.linspace(x[0], x[-1], SMOOTHING_POINTS)
     # The same grid is fitted for every fold, dataset and resample: its map is built once.
     smooth = _loess_matrix(tuple(x.tolist()), max(3, min(span, len(x)))) @ curve  # (F, R)
@@ -167,7 +189,7 @@ def smoothed_minimum(
     if astray.any():
         inner = np.flatnonzero((fine >= x[1]) & (fine <= x[-2]))
         k[astray] = inner[smooth[inner][:, astray].argmin(axis=0)]
-    return snap(fine[k], resolution, x[0], x[-1])
+    return fine, smooth, k
 
 
 @functools.lru_cache(maxsize=64)
@@ -486,6 +508,14 @@ class StrengthGrids:
             ]
         )
 
+    def discrepancy(self, datasets: list[Dataset], effect: str) -> np.ndarray:
+        """The discrepancy left at the strength fitted on ``datasets`` over the fine grid
+        (the smoothed curve's value at its minimum, ``smoothed_minimum_value``): the
+        estimate, then one per resample of the observed and simulated drops (1 + B,),
+        each refitted."""
+        grid = self.fine[effect]
+        return smoothed_minimum_value(grid, self.curve(datasets, None, effect, grid))
+
     def fit(
         self, datasets: list[Dataset], tilt: float | None, effect: str, fine: bool = False
     ) -> np.ndarray:
@@ -560,8 +590,16 @@ class EffectRanking:
             raw = [results[e]["p_better_than_baseline"] for e in effects]
             for effect, p in zip(effects, holm(raw), strict=True):
                 results[effect]["p_better_than_baseline_holm"] = float(p)
-            ranked = sorted(effects, key=lambda e: -results[e]["gap_closed"])
-            self._tie_set(ranked, results, held)
+            if grids.joint:
+                ranked = sorted(effects, key=lambda e: -results[e]["gap_closed"])
+                self._tie_set(ranked, results, held)
+            else:
+                left = {e: grids.discrepancy(self.everything, e) for e in effects}
+                for effect in effects:
+                    results[effect]["discrepancy"] = float(left[effect][0])
+                    results[effect]["discrepancy_ci95"] = list(interval(left[effect][1:]))
+                ranked = sorted(effects, key=lambda e: left[e][0])
+                self._tie_set_in_sample(ranked, results, left)
         best = ranked[0] if ranked else None
         tied = [e for e in ranked if results[e]["indistinguishable_from_best"]]
         apart, next_experiment = self._telling_apart(best, tied, results, held)
@@ -673,6 +711,20 @@ class EffectRanking:
                 p = results[best]["p_better_than_baseline_holm"]
             else:
                 p = worse_than_best_p(held[effect].energy - held[best].energy)
+            results[effect]["p_worse_than_best"] = p
+            results[effect]["indistinguishable_from_best"] = bool(p >= self.alpha)
+
+    def _tie_set_in_sample(
+        self, ranked: list[str], results: dict, left: dict[str, np.ndarray]
+    ) -> None:
+        """Every effect's one-sided test of "the discrepancy left at its fitted strength
+        exceeds the best's" on the whole data (``worse_than_best_p`` on the difference,
+        each resample refitted): those not significantly worse are tied with the best."""
+        best = ranked[0]
+        results[best]["p_worse_than_best"] = 1.0
+        results[best]["indistinguishable_from_best"] = True
+        for effect in ranked[1:]:
+            p = worse_than_best_p(left[effect] - left[best])
             results[effect]["p_worse_than_best"] = p
             results[effect]["indistinguishable_from_best"] = bool(p >= self.alpha)
 

@@ -245,20 +245,38 @@ def _baseline_refit(refit: dict) -> list[str]:
 def _ranking_table(which: dict) -> list[str]:
     if not which["ranking"]:
         return ["", "No candidate effect can act on these chips: nothing is fitted or ranked."]
+    folds = ", ".join(which.get("folds", [])) or "leave one condition out"
+    in_sample = "discrepancy" in which["ranking"][0]
+    if in_sample:
+        about = (
+            "Effects fitted on all the drops and ranked by the discrepancy left at the "
+            "fitted strength (energy distance summed over the conditions, about 0 for the "
+            "right model); tied: not significantly worse than the best (bootstrap of the "
+            "drops, observed and simulated, each resample refitted). The held-out "
+            f"reduction is each effect fitted on calibration conditions and scored on "
+            f"held-out ones ({folds}): 1 - excess gap with the effect / without."
+        )
+    else:
+        about = (
+            f"Effects fitted on calibration conditions, scored on held-out ones ({folds}); "
+            "ranked by the held-out gap reduction (1 - excess gap with the effect / without)."
+        )
     lines = [
         "",
-        "Effects fitted on calibration conditions, scored on held-out ones "
-        f"({', '.join(which.get('folds', [])) or 'leave one condition out'}); ranked by the "
-        "held-out gap reduction (1 - excess gap with the effect / without).",
+        about,
         "",
-        "| rank | effect | fitted strength | 95 % interval | held-out reduction | 95 % "
-        "interval | indistinguishable from the best |",
-        "|---|---|---|---|---|---|---|",
+        "| rank | effect | fitted strength | 95 % interval | "
+        + ("discrepancy left | 95 % interval | " if in_sample else "")
+        + "held-out reduction | 95 % interval | indistinguishable from the best |",
+        "|---|---|---|---|" + ("---|---|" if in_sample else "") + "---|---|---|",
     ]
     for k, e in enumerate(which["ranking"], 1):
+        left = (
+            f"{_fmt(e['discrepancy'])} | {_interval(e['discrepancy_ci95'])} | " if in_sample else ""
+        )
         lines.append(
             f"| {k} | {e['effect']} | {_fmt(e['strength'])} {e['unit']} "
-            f"| {_interval(e['strength_ci95'])} | {percent(e['held_out_reduction'])} | "
+            f"| {_interval(e['strength_ci95'])} | {left}{percent(e['held_out_reduction'])} | "
             f"{_interval(e['held_out_reduction_ci95'], percent)} | "
             f"{'yes' if e['indistinguishable_from_best'] else 'no'} |"
         )
