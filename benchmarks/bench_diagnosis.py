@@ -457,6 +457,7 @@ def _summary(result: dict, plan: dict, seconds: float) -> dict:
             p_worse_than_best=e.get("p_worse_than_best"),
             p_better_than_baseline=e.get("p_better_than_baseline"),
             p_better_than_baseline_holm=e.get("p_better_than_baseline_holm"),
+            discrepancy=e.get("discrepancy"),
         )
         for e in ranking
     }
