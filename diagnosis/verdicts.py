@@ -56,12 +56,21 @@ def effect_verdict(
     lo, hi = top["held_out_reduction_ci95"]
     shown = f"{percent(top['held_out_reduction'])} [{percent(lo)}, {percent(hi)}]"
     if not _closes_significantly(top, alpha):
-        if top["gap_closed"] <= 0:
-            # The top of the ranking then closes nothing: usually an effect fitted to its
-            # neutral strength, the baseline itself, which is no candidate to name.
+        # The top of the ranking may be the best on the whole data (drops with the tilt
+        # known) while another effect closes a significant part of the held-out gap.
+        closing = [e["effect"] for e in which["ranking"] if _closes_significantly(e, alpha)]
+        if max(e["gap_closed"] for e in which["ranking"]) <= 0:
+            # Every effect then closes nothing: usually each fitted to its neutral
+            # strength, the baseline itself, which is no candidate to name.
             text = (
                 f"Gap in {gap}; no candidate effect closes any of it on held-out data "
                 "(each, at its fitted strength, leaves the held-out gap as large or larger)."
+            )
+        elif closing:
+            text = (
+                f"Gap in {gap}; {top['effect']} fits the data best but does not close a "
+                f"significant part of it on held-out data ({shown}), where "
+                f"{', '.join(closing)} does: the evidence does not single out one effect."
             )
         else:
             text = (
