@@ -147,8 +147,9 @@ SWEEP_POINTS = 6
 # smoothed minimum of its refined curve, ``StrengthGrids.discrepancy``), not on the
 # folds' held-out gaps (an effect fitted to its neutral strength takes the verdict's own
 # test); the verdict's tests (closes significantly, adequacy) stay held-out, on the new
-# best; the refitted baseline is judged against the effect best on held-out drops. The sweep and seeds parts keep methods 11 and 10 (not
-# rerun), the fitted-tilt parts are unchanged by it, the 100-drop parts not rerun.
+# best; the refitted baseline is judged against the effect best on held-out drops. The
+# sweep and seeds parts keep methods 11 and 10 (not rerun), the fitted-tilt parts are
+# unchanged by it, the 100-drop parts not rerun.
 METHOD = {
     "nulls": 10,
     "effects": 13,
