@@ -47,7 +47,7 @@ from meshing.checks import face_neighbours
 from meshing.conformal import MeshingError
 from meshing.mesh import PORE, VolumeMesh, check_voxel_below_thinnest, element_attributes
 
-__all__ = ["image_mesh", "image_voxel_mm", "tetra_sicn", "cgal_available"]
+__all__ = ["image_mesh", "image_voxel_mm", "tetra_sicn", "cgal_available", "require_cgal"]
 
 log = logging.getLogger(__name__)
 
@@ -70,6 +70,17 @@ MAX_LABELS = 65_534
 def cgal_available() -> bool:
     """True when ``pygalmesh`` (CGAL's Mesh_3) can be imported."""
     return importlib.util.find_spec("pygalmesh") is not None
+
+
+def require_cgal() -> None:
+    """Refuse the image route where ``pygalmesh`` is missing, naming the make target that
+    installs it (``make run`` does not: it compiles nothing)."""
+    if not cgal_available():
+        raise InputError(
+            "mesh.kind: 'image' needs pygalmesh (CGAL's Mesh_3), which is not installed: "
+            "run `make image` (it installs Debian's libcgal-dev and libeigen3-dev with "
+            "apt-get, then compiles pygalmesh, about 5 minutes)"
+        )
 
 
 def image_voxel_mm(arrangement: Arrangement, voxel_mm: float = 0.0) -> float:
@@ -135,12 +146,7 @@ def image_mesh(
     (measured: the same seed, nodes up to 20 mm apart in their order)."""
     if pore_space not in ("none", "box"):
         raise InputError(f"mesh.pore_space: must be 'none' or 'box', got {pore_space!r}")
-    if not cgal_available():
-        raise InputError(
-            "mesh.kind: 'image' needs pygalmesh (CGAL's Mesh_3), which is not installed: "
-            "install Debian's libcgal-dev and libeigen3-dev, then pip install pygalmesh "
-            "(make does both)"
-        )
+    require_cgal()
     start = time.perf_counter()
     voxel = image_voxel_mm(arrangement, voxel_mm)
     clusters, meshed_region = _clusters(arrangement, voxel, pore_space, region_mm)

@@ -69,6 +69,10 @@ class MeshKind:
     # message); with mesh.kind = "both" the other kind's mesh still stands.
     failures: tuple[type[Exception], ...] = ()
 
+    def check_available(self) -> None:
+        """Refuse, before any work, a kind whose mesher is not installed (``InputError``
+        naming what installs it)."""
+
     def build(self, arrangement: Arrangement, scenario: Scenario, scratch: Path) -> Built:
         raise NotImplementedError
 
@@ -354,6 +358,11 @@ class ImageKind(MeshKind):
         from meshing.conformal import MeshingError
 
         return (MeshingError,)
+
+    def check_available(self) -> None:
+        from meshing.image import require_cgal
+
+        require_cgal()
 
     def build(self, arrangement, scenario, scratch):
         from meshing.image import image_mesh

@@ -81,6 +81,12 @@ class MeshStage(Stage):
                 "that opposite sides are full faces whose nodes match"
             )
 
+    def check_run(self, scenario: Scenario) -> None:
+        """A mesher that is not installed (the image kind's pygalmesh) is refused before
+        the packing stage starts, not after it."""
+        for kind in mesh_kinds(scenario.mesh.kind):
+            kind.check_available()
+
     def key_extra(self, scenario: Scenario, options: StageOptions) -> dict[str, Any]:
         versions = {kind.name: kind.version for kind in mesh_kinds(scenario.mesh.kind)}
         return {"figures": options.figures, "algorithms": versions}

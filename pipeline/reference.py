@@ -176,6 +176,7 @@ LAYERS = (
     ("meshing", "voxel, conformal, image and contact meshes; the solve stage (CalculiX)"),
     ("diagnosis", "experiment specs, drop and stack diagnoses, the report"),
     ("pipeline", "command line, run directory, stage cache, sweeps, validation"),
+    ("chipstack", "the Python API: scenarios, runs and their results as arrays and tables"),
 )
 
 

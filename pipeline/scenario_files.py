@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import tomllib
+from collections.abc import Mapping
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -12,7 +13,7 @@ from core.errors import InputError
 from core.files import read_text
 from core.schema import Scenario, printable, scenario_from_dict, scenario_to_dict
 
-__all__ = ["BUILTIN", "builtin_names", "load_scenario", "dumps_toml"]
+__all__ = ["BUILTIN", "builtin_names", "load_scenario", "dumps_toml", "with_overrides"]
 
 BUILTIN = "paper-squares"
 MAX_SCENARIO_BYTES = 1_000_000
@@ -46,6 +47,26 @@ def load_scenario(source: str | Path | None) -> Scenario:
         )
     text = read_text(path, "scenario file", MAX_SCENARIO_BYTES)  # a scenario is a few kB
     return _parse(text, shown, str(path.resolve().parent))
+
+
+def with_overrides(scenario: Scenario, overrides: Mapping[str, Any]) -> Scenario:
+    """``scenario`` with the dotted keys of ``overrides`` changed (``{"deposition.chips":
+    60}``), every value checked as if written in the file; an unknown key is refused,
+    naming it."""
+    data = json.loads(json.dumps(scenario_to_dict(scenario)))  # a deep copy of plain values
+    for key, value in overrides.items():
+        section, _, name = str(key).rpartition(".")
+        table = data.get(section) if section else data
+        if not isinstance(table, dict) or name not in table:
+            raise InputError(f"{printable(key)}: no such scenario key (see docs/scenarios.md)")
+        if isinstance(table[name], float) and type(value) is int:
+            value = float(value)
+        table[name] = list(value) if isinstance(value, tuple) else value
+    if data.get("mix"):
+        data.pop("chip", None)
+    else:
+        data.pop("mix", None)
+    return scenario_from_dict(data)
 
 
 def _parse(text: str, origin: str, base_dir: str | None) -> Scenario:

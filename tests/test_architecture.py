@@ -17,7 +17,16 @@ from golden import result_hashes
 from core.stages import load_stages, stage_names
 
 ROOT = Path(__file__).resolve().parent.parent
-PACKAGES = ("core", "packing", "geometry", "meshing", "export", "diagnosis", "pipeline")
+PACKAGES = (
+    "core",
+    "packing",
+    "geometry",
+    "meshing",
+    "export",
+    "diagnosis",
+    "pipeline",
+    "chipstack",
+)
 
 
 def _module_name(path: Path) -> str:
@@ -102,8 +111,8 @@ def test_core_imports_no_stage():
 
 # The layers, lowest first: a module imports its own layer and those below, never one
 # above (the data and the generic writers under the stages, each stage under the ones
-# that read its results, the command line on top).
-LAYERS = ("core", "export", "packing", "geometry", "meshing", "diagnosis", "pipeline")
+# that read its results, the command line and the Python API on top).
+LAYERS = ("core", "export", "packing", "geometry", "meshing", "diagnosis", "pipeline", "chipstack")
 
 
 def test_the_docs_picture_of_the_layers_has_these_layers():

@@ -4,6 +4,7 @@ the same criteria as the other meshes, on arrangements whose answers are known."
 from __future__ import annotations
 
 import json
+import logging
 import os
 import shutil
 
@@ -55,8 +56,32 @@ def test_without_cgal_the_image_kind_says_what_to_install(monkeypatch):
     import meshing.image
 
     monkeypatch.setattr(meshing.image, "cgal_available", lambda: False)
-    with pytest.raises(InputError, match=r"^mesh.kind: 'image' needs pygalmesh .*libcgal-dev"):
+    with pytest.raises(InputError, match=r"^mesh.kind: 'image' needs pygalmesh .*`make image`"):
         image_mesh(arrange(PILE_AND_LONE_CHIP), 0.5)
+
+
+def test_without_cgal_an_image_run_is_refused_before_the_deposition(
+    monkeypatch, capsys, small_scenario, tmp_path
+):
+    """One line naming `make image`, exit 2 and nothing written: not after minutes of
+    packing (``make run`` installs no CGAL)."""
+    import meshing.image
+    from pipeline.cli import main
+
+    monkeypatch.setattr(meshing.image, "cgal_available", lambda: False)
+    # main() configures the root logger: give it a list of handlers of its own.
+    monkeypatch.setattr(logging.root, "handlers", [])
+    monkeypatch.setattr(logging.root, "level", logging.root.level)
+    scenario = small_scenario.read_text() + '\n[mesh]\nkind = "image"\n'
+    small_scenario.write_text(scenario)
+    out = tmp_path / "run"
+    code = main(["run", str(small_scenario), "--to", "mesh", "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert len(err) == 1 and "`make image`" in err[0], err
+    assert not out.exists() and not list(tmp_path.glob(".run*"))
+    # The stages before the mesh do not need it.
+    assert main(["run", str(small_scenario), "--to", "packing", "--out", str(out), "--quiet"]) == 0
 
 
 @needs_cgal
