@@ -58,9 +58,11 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_geometry.py
 	$(BIN)/python benchmarks/bench_meshing.py
 
-# The reference tables in docs/ that the code generates (a test checks they are current).
+# What the code generates in docs/: the reference tables, and docs/measured.md from the
+# figures recorded under benchmarks/results/ (a test checks both are current).
 docs: $(STAMP)
 	$(BIN)/python -m pipeline.reference
+	$(BIN)/python -m pipeline.measured
 
 clean:
 	rm -rf $(VENV) runs

@@ -6,13 +6,16 @@
 2. 200 single-chip drops on 1 worker: wall time of the batch against the sum of the runs'
    own compute time (measured inside each task): the layer's overhead (target < 10 %).
 
-Cluster start-up is timed separately and not counted in either figure.
+Cluster start-up is timed separately and not counted in either figure. Both figures are
+recorded as data (``pipeline.measured.record``, area ``ensembles``; ``--no-record`` for a
+trial) and shown in docs/measured.md after ``make docs``.
 
     .venv/bin/python benchmarks/bench_ensembles.py
 """
 
 from __future__ import annotations
 
+import argparse
 import tempfile
 import time
 from pathlib import Path
@@ -20,6 +23,7 @@ from pathlib import Path
 from packing import scenario_from_dict
 from pipeline.ensemble import run_ensemble
 from pipeline.execution import Executor
+from pipeline.measured import record
 from pipeline.run import compute_run, derive_seed
 
 
@@ -56,6 +60,9 @@ def drops() -> tuple[float, float, float]:
 
 
 def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--no-record", action="store_true", help="do not record the figures")
+    args = parser.parse_args()
     one_total, one = ensemble_seconds(1)
     two_total, two = ensemble_seconds(2)
     print(f"10 reference stacks, 1 worker: {one:.1f} s ({one_total:.1f} s with cluster start-up)")
@@ -66,6 +73,27 @@ def main() -> None:
         f"200 single-chip drops on 1 worker: {wall:.2f} s wall, {compute:.2f} s of compute in "
         f"the runs; overhead {100 * (wall / compute - 1):.1f} % (target < 10 %); "
         f"cluster start-up {startup:.1f} s"
+    )
+    if args.no_record:
+        return
+    command = "python benchmarks/bench_ensembles.py"
+    record(
+        "ensembles",
+        "10 reference stacks, speed-up on 2 workers against 1",
+        round(one / two, 2),
+        "x",
+        target=">= 1.8",
+        command=command,
+        note=f"{two:.1f} s against {one:.1f} s",
+    )
+    record(
+        "ensembles",
+        "overhead of the Dask layer, 200 single-chip drops on 1 worker",
+        round(100 * (wall / compute - 1), 1),
+        "%",
+        target="< 10",
+        command=command,
+        note=f"{wall:.2f} s wall for {compute:.2f} s of compute",
     )
 
 

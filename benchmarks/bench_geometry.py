@@ -4,6 +4,8 @@ Deposits the reference stack (seed 0) and a 2,700-chip stack (5 batches of 540 o
 475 mm target, the same depth), then times ``geometry.describe`` on each (all
 descriptors, the contact types after every batch, the voxel image at the scenario's
 voxel size). Targets: <= 1 s at 270 chips (the paper needed 210 s), <= 10 s at 2,700.
+The figures are recorded as data (``pipeline.measured.record``, area ``geometry``;
+``--no-record`` for a trial) and shown in docs/measured.md after ``make docs``.
 
     .venv/bin/python benchmarks/bench_geometry.py [--repeats 5] [--skip-large]
 """
@@ -16,6 +18,7 @@ import time
 
 from geometry import arrangements_from_stack, describe
 from packing import deposit, scenario_from_dict
+from pipeline.measured import record
 
 PAPER_S = 210.0
 
@@ -34,6 +37,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--skip-large", action="store_true")
+    parser.add_argument("--no-record", action="store_true", help="do not record the figures")
     args = parser.parse_args()
 
     cases = [("270 chips", {"seed": 0})]
@@ -66,6 +70,29 @@ def main() -> None:
         print(
             f"2700 chips: {large:.3f} s (target <= 10 s); "
             f"{large / small:.1f}x the time for 10x the chips"
+        )
+    if args.no_record:
+        return
+    command = "python benchmarks/bench_geometry.py" + (" --skip-large" if args.skip_large else "")
+    record(
+        "geometry",
+        "all descriptors, 270-chip reference stack",
+        round(small, 3),
+        "s",
+        target="<= 1",
+        command=command,
+        note=f"median of {args.repeats}; the paper: 210 s",
+        headline=True,
+    )
+    if "2700 chips" in results:
+        record(
+            "geometry",
+            "all descriptors, 2,700-chip stack",
+            round(results["2700 chips"], 2),
+            "s",
+            target="<= 10",
+            command=command,
+            note=f"median of {args.repeats}",
         )
 
 

@@ -23,6 +23,9 @@ the resolution are compared pair by pair (the geometry stage's classification).
 The image route (``--image``, CGAL's Mesh_3 on the labelled voxel image, default voxel an
 eighth of the chip's thickness) is checked with volumes within 4 %, no inverted element
 and every surface contact sharing faces; its peak memory includes the Mesh_3 process.
+
+The times are recorded as data (``pipeline.measured.record``, area ``meshing``;
+``--no-record`` for a trial) and shown in docs/measured.md after ``make docs``.
 """
 
 from __future__ import annotations
@@ -253,6 +256,7 @@ def main() -> None:
     parser.add_argument(
         "--scenario", default=None, help="a built-in scenario or TOML file (default: the reference)"
     )
+    parser.add_argument("--no-record", action="store_true", help="do not record the figures")
     args = parser.parse_args()
     from geometry import arrangements_from_stack
     from packing import deposit, scenario_from_dict
@@ -263,6 +267,7 @@ def main() -> None:
     scenario = load_scenario(args.scenario) if args.scenario else scenario_from_dict({})
 
     conformal: list[dict] = []
+    measured: list[tuple[int, dict]] = []
     with tempfile.TemporaryDirectory() as folder:
         for seed in args.seeds:
             stack = deposit(scenario.with_seed(seed))
@@ -277,6 +282,7 @@ def main() -> None:
             for kind, pore in kinds:
                 r = run_child(path, kind, pore, *extra)
                 print(describe(seed, r), flush=True)
+                measured.append((seed, r))
                 if kind == "conformal":
                     conformal.append(r)
     for pore in args.pore_space:
@@ -295,6 +301,59 @@ def main() -> None:
     print(
         f"(this process: peak {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB)"
     )
+    if not args.no_record:
+        record_figures(args, measured)
+
+
+def record_figures(args, measured: list[tuple[int, dict]]) -> None:
+    """The voxel mesh's time, the conformal route's worst time over the seeds and each
+    valid image mesh's time, as data (pipeline.measured)."""
+    from pipeline.measured import record
+
+    command = "python " + " ".join(["benchmarks/bench_meshing.py", *sys.argv[1:]])
+    stack = f"the {args.scenario} stack" if args.scenario else "the reference stack"
+    seeds = sorted({seed for seed, _ in measured})
+    for seed, r in measured:
+        if r["kind"] == "voxel" and "error" not in r and seed == seeds[0]:
+            record(
+                "meshing",
+                f"voxel mesh of {stack} at 0.5 mm",
+                round(r["seconds"], 2),
+                "s",
+                target="<= 10",
+                command=command,
+                note=f"seed {seed}, {r['elements']:,} elements, peak {r['peak_mb']:.0f} MB",
+            )
+        if r["kind"] == "image" and r.get("valid"):
+            where = f"'s middle {2 * args.crop:g} mm" if args.crop else ""
+            record(
+                "meshing",
+                f"image mesh of {stack}{where} at {r['voxel_mm']:g} mm voxels, "
+                f"pore space {r['pore_space']}",
+                round(r["mesh_s"], 1),
+                "s",
+                command=command,
+                note=f"seed {seed}, {r['elements']:,} tetrahedra, largest chip volume error "
+                f"{100 * r['volume_error_max']:.1f} %",
+            )
+    for pore in args.pore_space:
+        runs = [r for _, r in measured if r["kind"] == "conformal" and r["pore_space"] == pore]
+        if not runs:
+            continue
+        valid = sum(1 for r in runs if r.get("valid"))
+        seconds = [r["seconds"] for r in runs]
+        what = "chips only" if pore == "none" else "with the pore space"
+        crop = f", middle {2 * args.crop:g} x {2 * args.crop:g} mm" if args.crop else ""
+        record(
+            "meshing",
+            f"conformal mesh of {stack} (resolution + mesh, {what}{crop}), worst seed",
+            round(max(seconds), 1),
+            "s",
+            target="<= 60",
+            command=command,
+            note=f"{valid} of {len(runs)} seeds valid, {min(seconds):.1f} to {max(seconds):.1f} s",
+            headline=pore == "none" and not args.crop and not args.scenario,
+        )
 
 
 if __name__ == "__main__":

@@ -13,6 +13,10 @@ smallest N (targets: 3,000 chips <= 60 s; ms per chip at 30,000 within 1.2 x tha
 300; memory growing no faster than the mat). Each mat's figures are kept in
 benchmarks/results/conveyor/<N>.json, so a long study resumes (``--fresh`` remeasures).
 
+The figures against their targets are recorded as data (``pipeline.measured.record``,
+area ``packing``; ``--no-record`` for a trial) and shown in docs/measured.md after
+``make docs``.
+
     .venv/bin/python benchmarks/bench_packing.py [--repeats 5] [--large-seeds 1]
     .venv/bin/python benchmarks/bench_packing.py --conveyor 300 3000 30000
 """
@@ -29,6 +33,9 @@ import time
 from pathlib import Path
 
 from packing import deposit, scenario_from_dict
+from pipeline.measured import record
+
+COMMAND = "python benchmarks/bench_packing.py"
 
 
 def timed(scenario) -> tuple[float, object]:
@@ -44,12 +51,13 @@ def main() -> None:
     parser.add_argument("--conveyor", type=int, nargs="+", default=None, metavar="N")
     parser.add_argument("--fresh", action="store_true", help="remeasure cached mats")
     parser.add_argument("--one-mat", type=int, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--no-record", action="store_true", help="do not record the figures")
     args = parser.parse_args()
     if args.one_mat is not None:
         print(json.dumps(one_mat(args.one_mat)))
         return
     if args.conveyor:
-        conveyor_study(args.conveyor, args.fresh)
+        conveyor_study(args.conveyor, args.fresh, not args.no_record)
         return
 
     small = []
@@ -102,6 +110,37 @@ def main() -> None:
         f"{per_chip_large * 1e3:.2f} ms at 2700; ratio {per_chip_large / per_chip_small:.2f} "
         f"(target <= 1.5)"
     )
+    if args.no_record:
+        return
+    spread = f"{min(small):.2f} to {max(small):.2f} s"
+    record(
+        "packing",
+        "270-chip reference deposition",
+        round(median_small, 2),
+        "s",
+        target="<= 4",
+        command=COMMAND,
+        note=f"median of {len(small)}, {spread}; the paper: 150 s on an i9",
+        headline=True,
+    )
+    record(
+        "packing",
+        "peak memory after the 270-chip runs",
+        round(peak_small_mb),
+        "MB",
+        target="<= 500",
+        command=COMMAND,
+        note=f"{peak_mb:.0f} MB with the 2,700-chip run",
+    )
+    record(
+        "packing",
+        "cost per chip, 2,700 against 270 chips",
+        round(per_chip_large / per_chip_small, 2),
+        "x",
+        target="<= 1.5",
+        command=COMMAND,
+        note=f"{per_chip_large * 1e3:.1f} against {per_chip_small * 1e3:.1f} ms per chip",
+    )
 
 
 RESULTS = Path(__file__).parent / "results" / "conveyor"
@@ -148,7 +187,7 @@ def one_mat(chips: int) -> dict:
     }
 
 
-def conveyor_study(sizes: list[int], fresh: bool) -> None:
+def conveyor_study(sizes: list[int], fresh: bool, keep: bool = True) -> None:
     RESULTS.mkdir(parents=True, exist_ok=True)
     rows = []
     for chips in sorted(sizes):
@@ -176,6 +215,33 @@ def conveyor_study(sizes: list[int], fresh: bool) -> None:
             f"{row['ms_per_chip'] / first['ms_per_chip']:.2f}, peak memory x "
             f"{row['peak_mb'] / first['peak_mb']:.2f} for x "
             f"{row['chips'] / first['chips']:.0f} the chips"
+        )
+    if not keep or not fresh:
+        return  # figures read back from the cache were recorded when they were measured
+    command = f"{COMMAND} --conveyor {' '.join(str(n) for n in sorted(sizes))} --fresh"
+    by_chips = {row["chips"]: row for row in rows}
+    if 3000 in by_chips:
+        row = by_chips[3000]
+        record(
+            "packing",
+            "conveyor line, 3,000 chips",
+            row["wall_s"],
+            "s",
+            target="<= 60",
+            command=command,
+            note=f"a 440 x 540 mm panel's line; peak {row['peak_mb']:.0f} MB",
+            headline=True,
+        )
+    if 300 in by_chips and 30000 in by_chips:
+        small, large = by_chips[300], by_chips[30000]
+        record(
+            "packing",
+            "conveyor line, cost per chip, 30,000 against 300 chips",
+            round(large["ms_per_chip"] / small["ms_per_chip"], 2),
+            "x",
+            target="<= 1.2",
+            command=command,
+            note=f"{large['ms_per_chip']:.1f} against {small['ms_per_chip']:.1f} ms per chip",
         )
 
 

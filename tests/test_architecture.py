@@ -327,11 +327,14 @@ def test_unknown_stage_lists_the_registered_ones(tmp_path):
 
 def test_docs_hold_the_tables_the_code_generates():
     """Scenario keys, stages, shapes, descriptors, formats, effects and presets in docs/
-    are the code's own (refresh them with ``python -m pipeline.reference``)."""
+    are the code's own, and docs/measured.md is the rendering of the figures recorded
+    under benchmarks/results/ (refresh both with ``make docs``)."""
     from core.schema import key_table_markdown
+    from pipeline.measured import PAGE, render
     from pipeline.reference import GENERATED, stale_blocks
 
     assert stale_blocks() == []
+    assert PAGE.read_text() == render(), "docs/measured.md is stale: run `make docs`"
     pages = "".join(p.read_text() for p in (ROOT / "docs").glob("*.md"))
     for name in GENERATED:
         assert f"<!-- BEGIN generated:{name} -->" in pages, f"no docs page holds {name}"
