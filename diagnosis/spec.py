@@ -349,18 +349,29 @@ def _float(cell: str, shown: str, line: int, column: str) -> float:
 
 
 def _condition_of(row: dict, known: set[str], shown: str, line: int) -> str:
+    """The spec's name of a row's condition: the same name, or the one name that differs
+    from it only in case (a spreadsheet's "H200" for the spec's "h200"); a name that
+    matches two of the spec's up to case, or none, is refused."""
     name = row["condition"]
-    if name not in known:
+    if name in known:
+        return name
+    folded = sorted(k for k in known if k.casefold() == name.casefold())
+    if len(folded) == 1:
+        return folded[0]
+    if folded:
         raise InputError(
-            f"{shown}, line {line}: condition {printable(name)!r} is not defined in the spec "
-            f"(defined: {', '.join(sorted(known))})"
+            f"{shown}, line {line}, column condition: {printable(name)!r} matches the spec's "
+            f"conditions {', '.join(map(repr, folded))} only up to case; write one exactly"
         )
-    return name
+    raise InputError(
+        f"{shown}, line {line}: condition {printable(name)!r} is not defined in the spec "
+        f"(defined: {', '.join(sorted(known))})"
+    )
 
 
 def read_drop_observations(experiment: Experiment) -> dict[str, DropData]:
     """Drops by condition, checked against the spec (every condition, at least
-    ``MIN_DROPS`` drops each, unique drop ids)."""
+    ``MIN_DROPS`` drops each, unique drop ids), keyed by the spec's condition names."""
     shown, header, records = _read_rows(experiment.observations, DROP_COLUMNS, DROP_OPTIONAL)
     known = {c.name for c in experiment.conditions}
     by_condition: dict[str, dict[str, list]] = {}

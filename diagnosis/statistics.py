@@ -60,8 +60,18 @@ PERMUTATIONS = 999
 
 def resample_weights(n: int, resamples: int, rng: np.random.Generator) -> np.ndarray:
     """(1 + resamples, n) bootstrap counts: row 0 is the sample itself (all ones), each
-    further row how often each of the n items is drawn in one resample of size n."""
+    further row how often each of the n items is drawn in one resample of size n.
+
+    A resample that draws one item n times (of n >= 2) is drawn again: it holds no pair of
+    distinct items, so its within-sample mean distance (``mean_within``) is undefined. That
+    happens to one resample in n**(n - 1) (1 in 625 of five drops, half of two); runs
+    without one draw exactly what they drew before."""
     draws = rng.integers(0, n, size=(resamples, n))
+    if n >= 2:
+        single = (draws == draws[:, :1]).all(axis=1)
+        while single.any():
+            draws[single] = rng.integers(0, n, size=(int(single.sum()), n))
+            single = (draws == draws[:, :1]).all(axis=1)
     counts = np.zeros((resamples, n))
     np.add.at(counts, (np.repeat(np.arange(resamples), n), draws.ravel()), 1.0)
     return np.vstack([np.ones((1, n)), counts])
@@ -77,8 +87,17 @@ def mean_cross(distances: np.ndarray, weights_a: np.ndarray, weights_b: np.ndarr
 def mean_within(distances: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """Mean distance between distinct drops of one sample (U-statistic) under rows of
     bootstrap weights (R, n): (R,). A resample's copies of one drop are not a pair (their
-    distance, 0, would bias the resamples' within-sample distance down)."""
+    distance, 0, would bias the resamples' within-sample distance down). A sample or
+    resample without a pair of distinct drops (fewer than two) is refused (ValueError):
+    its mean is 0 / 0, never returned as NaN."""
+    weights = np.asarray(weights, dtype=float)
     pairs = weights.sum(axis=1) ** 2 - (weights**2).sum(axis=1)
+    if not (pairs > 0).all():
+        rows = np.flatnonzero(~(pairs > 0))
+        raise ValueError(
+            f"mean_within: {len(rows)} of {len(pairs)} weight rows (first: row {rows[0]}) "
+            "hold fewer than two distinct drops; there is no pair to average over"
+        )
     return ((weights @ distances) * weights).sum(axis=1) / pairs
 
 
