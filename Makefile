@@ -58,11 +58,14 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_geometry.py
 	$(BIN)/python benchmarks/bench_meshing.py
 
-# What the code generates in docs/: the reference tables, and docs/measured.md from the
-# figures recorded under benchmarks/results/ (a test checks both are current).
+# What the code generates in docs/: the reference tables, docs/measured.md from the
+# figures recorded under benchmarks/results/ (a test checks both are current), and the
+# README's picture of the reference stack and its mesh (docs/stack-and-mesh.png, from
+# runs/paper-squares: run as `make run` runs it if missing, else reused).
 docs: $(STAMP)
 	$(BIN)/python -m pipeline.reference
 	$(BIN)/python -m pipeline.measured
+	$(BIN)/python -m pipeline.picture
 
 clean:
 	rm -rf $(VENV) runs
