@@ -366,3 +366,44 @@ def test_reference_run_is_byte_identical_to_the_recorded_one(tmp_path):
     assert sorted(produced) == sorted(recorded)
     changed = [name for name in recorded if produced[name] != recorded[name]]
     assert not changed, f"result files changed: {changed}"
+
+
+def _slug(heading: str) -> str:
+    """GitHub's anchor of a Markdown heading."""
+    return re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+
+
+def _prose(path: Path) -> str:
+    return re.sub(r"```.*?```", "", path.read_text(), flags=re.DOTALL)
+
+
+def test_every_link_of_the_readme_and_the_docs_leads_somewhere():
+    """A clone has only the repository: every relative link names a file in it, and every
+    #anchor a heading of that page."""
+    pages = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+    broken = []
+    for page in pages:
+        for target in re.findall(r"\]\(([^)\s]+)\)", _prose(page)):
+            if re.match(r"[a-z]+:", target):
+                continue
+            path, _, anchor = target.partition("#")
+            dest = (page.parent / path).resolve() if path else page
+            if not dest.exists():
+                broken.append(f"{page.name}: {target}")
+            elif anchor and dest.suffix == ".md":
+                headings = re.findall(r"^#+ (.*)$", _prose(dest), re.MULTILINE)
+                if anchor not in {_slug(h) for h in headings}:
+                    broken.append(f"{page.name}: {target}")
+    assert broken == []
+    assert _slug("The sim-to-real diagnosis, measured") == "the-sim-to-real-diagnosis-measured"
+
+
+def test_the_readme_is_one_screen_of_what_and_how():
+    """The front door: short, no dates, method numbers or measurement logs (figures live
+    in docs/measured.md, which the README links)."""
+    readme = (ROOT / "README.md").read_text()
+    assert len(readme.splitlines()) <= 120
+    assert not re.search(r"\b20\d\d-\d\d-\d\d\b", readme)
+    assert not re.search(r"\bmethods? \d", readme)
+    assert "docs/measured.md" in readme
+    assert re.findall(r"^make \w+", readme, re.MULTILINE) == ["make run", "make test"]
