@@ -27,7 +27,9 @@ $(IMAGE): $(STAMP)
 		fi; \
 		SUDO=; [ "$$(id -u)" -eq 0 ] || SUDO=sudo; \
 		echo "make image: running '$${SUDO:+sudo }apt-get install libcgal-dev libeigen3-dev' (CGAL and Eigen headers for pygalmesh)"; \
-		$$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq --no-install-recommends libcgal-dev libeigen3-dev; \
+		$$SUDO apt-get update -qq && \
+		$$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
+			libcgal-dev libeigen3-dev >/dev/null || exit 2; \
 	fi
 	@echo "make image: compiling pygalmesh against CGAL (5 to 9 minutes, peak 4.4 GB)"
 	@$(BIN)/pip install --quiet -e '.[image]'
