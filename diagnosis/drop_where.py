@@ -57,19 +57,27 @@ FAMILY_PARTS = ("energy", "across conditions", "per condition", "regions")
 
 
 def locate_gap(
-    full: dict[str, Dataset], sims: DropSimulations, rng: np.random.Generator, alpha: float
+    full: dict[str, Dataset],
+    sims: DropSimulations,
+    rng: np.random.Generator,
+    alpha: float,
+    keys: dict[str, tuple] | None = None,
 ) -> dict:
     """The "where" section: the overall test (the detection), per condition its test and
     the observables beyond the noise in it; every observable and region of every
-    condition, and every observable across the conditions, with its adjusted p-value."""
+    condition, and every observable across the conditions, with its adjusted p-value.
+    Against the baseline simulation, or with ``keys`` (condition -> simulation key)
+    against those simulations (a posterior-predictive check of a fitted model)."""
     perms, tests, rows, regions = [], [], [], []
     for c, ds in full.items():
-        perm = _ConditionPermutations(ds, sims, sims.baseline(c, None), rng)
+        key = keys[c] if keys else sims.baseline(c, None)
+        perm = _ConditionPermutations(ds, sims, key, rng)
         perms.append(perm)
         tests.append(perm.test())
         rows.append(perm.observable_rows(rng))
         regions.append(perm.region_rows())
-        sims.observable_sd[c] = perm.observable_sd
+        if not keys:
+            sims.observable_sd[c] = perm.observable_sd
     adjust_tests(tests, alpha)
     # Each block's energy statistic summed over conditions under the same permutations.
     total = sum(perm.standardised for perm in perms)

@@ -36,12 +36,14 @@ from collections.abc import Callable
 import numpy as np
 
 from core.schema import Scenario
+from diagnosis.drop_choice import choose_effect
 from diagnosis.drop_effects import TILT_GRID_DEG, EffectRanking, Fold, how_far_best
 from diagnosis.drop_simulations import Dataset, DropSimulations
 from diagnosis.drop_where import locate_gap
 from diagnosis.model import DropData, Experiment
 from diagnosis.observables import DROP_OBSERVABLES, observable_names
-from diagnosis.verdicts import effect_verdict, off_text
+from diagnosis.reference_table import NO_EFFECT, MemoryStore, TableStore
+from diagnosis.verdicts import applicable_effects, effect_verdict, off_text
 from packing.drop import DropProtocol, simulate_drops
 
 __all__ = ["diagnose_drops", "simulate_condition", "TILT_GRID_DEG"]
@@ -78,11 +80,22 @@ class _DropDiagnosis:
     """One drop diagnosis: its observed datasets and folds, the three questions in order
     (they share one random stream, so the order fixes the draws), and the report."""
 
-    def __init__(self, experiment: Experiment, data: dict[str, DropData], run_many, seed, progress):
+    def __init__(
+        self,
+        experiment: Experiment,
+        data: dict[str, DropData],
+        run_many,
+        seed,
+        progress,
+        tables: TableStore | None = None,
+    ):
         self.x = experiment
         self.settings = experiment.settings
         self.data = data
         self.seed = seed
+        self.tables = tables if tables is not None else MemoryStore()
+        self.run_many = run_many or _sequential
+        self.progress = progress or (lambda message: None)
         first = next(iter(data.values()))
         names = observable_names(first.yaw_deg is not None, first.tilt_deg is not None)
         self.sims = DropSimulations(
@@ -122,12 +135,49 @@ class _DropDiagnosis:
                     f"conditions, by max-T) gives p = {p:.3g} >= {self.settings.alpha}.",
                 )
             return self._report(where, [], full, None, {}, verdict)
+        if self.settings.method == "amortised":
+            return self._amortised(where, full)
         folds = self._folds(full)
         which = EffectRanking(self.sims, folds, full, self.rng).run()
         how_far = how_far_best(which, folds, self.sims, self.rng)
         return self._report(
             where, folds, full, which, how_far, self._verdict(where, which, how_far)
         )
+
+    def _amortised(self, where: dict, full: dict[str, Dataset]) -> dict:
+        """Which effect by the amortised model choice, judged by its predictive check."""
+        effects, skipped = applicable_effects(self.x)
+        section, verdict = choose_effect(
+            self.sims,
+            self.data,
+            full,
+            where,
+            [NO_EFFECT, *effects],
+            self.tables,
+            self.run_many,
+            self.progress,
+            self.rng,
+            self.seed,
+        )
+        section["not_applicable"] = skipped
+        gap = [t["condition"] for t in where["tests"] if t["significant"]]
+        verdict["text"] = (
+            f"Gap in {', '.join(gap) or 'the conditions taken together'}. " + (verdict["text"])
+        )
+        report = self._report(where, [], full, None, {}, verdict)
+        check = section.get("predictive_check")
+        if check:
+            for c in full:
+                key = self.sims.setting(
+                    c,
+                    (section["release_tilts"].get(check["effect"]) or {}).get("tilt_deg"),
+                    check["effect"],
+                    check["strength"],
+                )
+                positions = self.sims.drops[key].positions
+                report["scatter"][c]["best_effect"] = np.round(positions, 2).tolist()
+        report["model_choice"] = section
+        return report
 
     def _report(self, where, folds, full, which, how_far, verdict) -> dict:
         best = which["best"] if which else None
@@ -248,8 +298,11 @@ def diagnose_drops(
     seed: int = 0,
     progress: Callable[[str], None] | None = None,
     detect_only: bool = False,
+    tables: TableStore | None = None,
 ) -> dict:
     """The whole diagnosis of a drop experiment as a JSON-ready dict; with
     ``detect_only``, only the detection and "where" (verdict "gap detected" when there is
-    a gap: nothing is fitted)."""
-    return _DropDiagnosis(experiment, data, run_many, seed, progress).run(detect_only)
+    a gap: nothing is fitted). ``tables`` keeps the amortised model choice's reference
+    tables and trained models (default: in memory, for this call only)."""
+    diagnosis = _DropDiagnosis(experiment, data, run_many, seed, progress, tables)
+    return diagnosis.run(detect_only)

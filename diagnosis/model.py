@@ -44,6 +44,12 @@ class DiagnosisSettings:
     release_tilt: str = "known"
     effects: tuple[str, ...] = ()  # candidates; () = every effect for this kind
     alpha: float = 0.05
+    # Drop experiments: "which" by the amortised model choice ("amortised", the default:
+    # a classifier trained on a reference table of simulated datasets of the design) or
+    # by refitting every effect to the data ("refit", the earlier method, kept as a
+    # cross-check). ``table_pools``: the most pools per effect the reference table grows to.
+    method: str = "amortised"
+    table_pools: int = 48
 
 
 @dataclass(frozen=True)

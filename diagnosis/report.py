@@ -31,9 +31,12 @@ def report_markdown(result: dict) -> str:
     lines = _summary(result)
     drop = result["kind"] == "drop"
     lines += _where_section(result["where"], drop)
-    lines += _which_section(
-        result["which"], no_gap=result["verdict"]["kind"] == "no significant gap"
-    )
+    if result.get("model_choice"):
+        lines += _model_choice_section(result["model_choice"])
+    else:
+        lines += _which_section(
+            result["which"], no_gap=result["verdict"]["kind"] == "no significant gap"
+        )
     lines += _how_far_section(result.get("how_far") or {}, drop)
     return "\n".join(lines) + "\n"
 
@@ -203,6 +206,49 @@ def _regions(regions: list[dict] | None) -> list[str]:
 
 
 # -- 2. which --------------------------------------------------------------------------
+def _model_choice_section(choice: dict) -> list[str]:
+    """The amortised model choice: probabilities, strengths, the design's ceiling, the
+    predictive check and the next experiment."""
+    lines = ["", "## 2. Which effect", ""]
+    lines += [
+        "A classifier trained on simulated datasets of this experiment's design (every "
+        "candidate effect with strengths drawn over its prior, and no effect) gives each "
+        "its posterior probability; the 95 % set is the fewest that hold 95 % of it.",
+        "",
+        choice["design_text"],
+        "",
+        "| model | probability | strength | 95 % interval |",
+        "|---|---|---|---|",
+    ]
+    strengths = choice["strengths"]
+    for name, p in sorted(choice["probabilities"].items(), key=lambda item: -item[1]):
+        s = strengths.get(name)
+        shown = (_fmt(s["strength"]), _interval(s["strength_ci95"])) if s else ("-", "-")
+        lines.append(f"| {name} | {percent(p)} | {shown[0]} | {shown[1]} |")
+    lines += ["", f"95 % set: {', '.join(choice['credible_set'])}."]
+    ood = choice["out_of_distribution"]
+    lines.append(
+        f"Out-of-distribution p = {_fmt(ood['p_value'])} (the share of simulated datasets "
+        "lying at least as far from the rest of the table as the observed one)."
+    )
+    check = choice.get("predictive_check")
+    if check:
+        closed = check["gap_closed_ci95"]
+        lines += [
+            "",
+            f"Posterior-predictive check of {check['effect']} at {_fmt(check['strength'])}: "
+            f"the observed drops against it simulated afresh, the detection's max-T test "
+            f"p = {_fmt(check['p_value'])}; it closes {percent(check['gap_closed'])} "
+            f"{_interval(closed, percent)} of the baseline's energy gap.",
+        ]
+    nxt = choice.get("next_experiment")
+    if nxt:
+        lines += ["", nxt["text"]]
+    for name, why in choice.get("not_applicable", {}).items():
+        lines.append(f"\n{name}: not applicable ({why}).")
+    return lines
+
+
 def _which_section(which: dict, no_gap: bool) -> list[str]:
     lines = ["", "## 2. Which effect", ""]
     if which is None:

@@ -216,6 +216,15 @@ def _settings(data: dict, kind: str) -> DiagnosisSettings:
         values["release_tilt"] = _release_tilt(data["release_tilt"], kind)
     if "alpha" in data:
         values["alpha"] = _number(data["alpha"], "diagnosis.alpha", 1e-6, 0.5)
+    if "method" in data:
+        if data["method"] not in METHODS:
+            raise InputError(
+                f"diagnosis.method: {data['method']!r} is not one of "
+                f"{', '.join(map(repr, METHODS))}"
+            )
+        values["method"] = data["method"]
+    if "table_pools" in data:
+        values["table_pools"] = _integer(data["table_pools"], "diagnosis.table_pools", 4, 400)
     if "effects" in data:
         effects = data["effects"]
         if not isinstance(effects, list) or not all(isinstance(e, str) for e in effects):
@@ -231,6 +240,7 @@ def _settings(data: dict, kind: str) -> DiagnosisSettings:
 
 
 HELD_OUT = ("halves", "conditions")
+METHODS = ("amortised", "refit")
 
 
 def _held_out(value, kind: str) -> str:
@@ -477,7 +487,11 @@ class ExperimentKind:
         run_many,
         seed: int,
         progress: Callable[[str], None] | None = None,
+        tables=None,
     ) -> dict:
+        """The diagnosis as a JSON-ready dict; ``tables`` (a
+        :class:`diagnosis.reference_table.TableStore`) keeps what a kind amortises over
+        diagnoses of one design."""
         raise NotImplementedError
 
     def synthesize(
@@ -507,10 +521,10 @@ class DropExperiment(ExperimentKind):
     def read_observations(self, experiment):
         return read_drop_observations(experiment)
 
-    def diagnose(self, experiment, data, run_many, seed, progress=None):
+    def diagnose(self, experiment, data, run_many, seed, progress=None, tables=None):
         from diagnosis.drops import diagnose_drops
 
-        return diagnose_drops(experiment, data, run_many, seed, progress)
+        return diagnose_drops(experiment, data, run_many, seed, progress, tables=tables)
 
     def synthesize(self, experiment, strengths, seed, run_many, drops, measurements):
         from diagnosis.synth import synthesize_drops
@@ -532,7 +546,10 @@ class QuantityExperiment(ExperimentKind):
 
         return read_quantity_observations(experiment, tuple(QUANTITIES))
 
-    def diagnose(self, experiment, data, run_many, seed, progress=None):
+    def diagnose(self, experiment, data, run_many, seed, progress=None, tables=None):
+        # A stack or container simulation costs seconds to minutes where a drop costs
+        # milliseconds: a reference table of thousands of them is out of reach, so stacks
+        # keep the refit method (``tables`` is not used).
         from diagnosis.stacks import diagnose_stacks
 
         return diagnose_stacks(experiment, data, run_many, seed, progress)

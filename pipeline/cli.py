@@ -214,6 +214,12 @@ def _add_diagnose(commands) -> None:
     )
     diagnose.add_argument("--seed", type=SEED, default=0, help=SEED_HELP)
     _add_dask_flags(diagnose)
+    diagnose.add_argument(
+        "--tables",
+        default=None,
+        help="where the reference tables of simulated datasets are kept and reused "
+        "(default: $XDG_CACHE_HOME/chipstack/tables or ~/.cache/chipstack/tables)",
+    )
     diagnose.add_argument("--overwrite", action="store_true", help="replace an earlier diagnosis")
     diagnose.add_argument("--quiet", action="store_true", help="no verdict on stdout")
     diagnose.add_argument("-v", "--verbose", action="store_true", help="log progress details")
@@ -524,7 +530,9 @@ def _diagnose(args: argparse.Namespace) -> None:
     out = args.out or f"runs/diagnose-{Path(args.spec).stem}"
 
     def progress(message: str) -> None:
-        if args.verbose:
+        # The reference table's build takes minutes the first time: always shown.
+        long_work = message.startswith(("reference table", "model choice"))
+        if args.verbose or (long_work and not args.quiet):
             sys.stderr.write(f"pipeline: {message}\n")
 
     path, result = diagnose(
@@ -536,6 +544,7 @@ def _diagnose(args: argparse.Namespace) -> None:
         overwrite=args.overwrite,
         progress=progress,
         command=sys.argv,
+        tables=args.tables,
     )
     if not args.quiet:
         print(f"{result['verdict']['kind']}: {result['verdict']['text']}")

@@ -17,6 +17,7 @@ from packing.effects import EFFECTS, check_effects
 from pipeline.execution import Executor
 from pipeline.rundir import RunDirectory, check_output_file, write_atomically
 from pipeline.scenario_files import load_scenario
+from pipeline.tables import DirectoryStore, default_tables_dir
 
 __all__ = ["diagnose", "synth", "parse_effects"]
 
@@ -50,10 +51,14 @@ def diagnose(
     overwrite: bool = False,
     progress: Callable[[str], None] | None = None,
     command: list[str] | None = None,
+    tables: str | Path | None = None,
 ) -> tuple[Path, dict]:
-    """Read and check everything, run the diagnosis on Dask, write the report."""
+    """Read and check everything, run the diagnosis on Dask, write the report. The
+    reference tables of the amortised model choice are kept in ``tables`` (default: the
+    user's cache directory), so a second diagnosis of a design reuses them."""
     if seed < 0:
         raise InputError("--seed: must not be negative")
+    store = DirectoryStore(tables if tables is not None else default_tables_dir())
     experiment = load_experiment(spec, load_scenario)
     data = _observations(experiment)
     run_dir = RunDirectory(out, overwrite=overwrite)
@@ -65,7 +70,7 @@ def diagnose(
     with run_dir as run:  # locked from here: a second diagnosis into it is refused
         with Executor(workers=workers, scheduler=scheduler) as executor:
             kind = EXPERIMENT_KINDS.get(experiment.kind)
-            result = kind.diagnose(experiment, data, executor.map, seed, progress)
+            result = kind.diagnose(experiment, data, executor.map, seed, progress, tables=store)
         result["wall_time_s"] = time.perf_counter() - start
         result["command"] = list(command or [])
         result["spec"] = str(Path(spec).resolve())

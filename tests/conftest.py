@@ -35,6 +35,7 @@ sim_drops = {sim_drops}
 bootstrap = 100
 grid_points = 4
 effects = {effects}
+method = "{method}"
 [[condition]]
 name = "low"
 height_mm = 200
@@ -45,11 +46,18 @@ yaw_deg = 30
 """
 
 
-def drop_spec(folder: Path, effects=("restitution", "friction", "compliant_floor"), sim=60):
-    """A two-condition drop experiment spec in ``folder`` (its data: ``data.csv``)."""
+def drop_spec(
+    folder: Path,
+    effects=("restitution", "friction", "compliant_floor"),
+    sim=60,
+    method="refit",
+):
+    """A two-condition drop experiment spec in ``folder`` (its data: ``data.csv``); by
+    default "which" by the refit method (the amortised model choice builds a reference
+    table: ``method = "amortised"`` with a small ``table_pools`` in its own tests)."""
     spec = folder / "spec.toml"
     listed = "[" + ", ".join(f'"{e}"' for e in effects) + "]"
-    spec.write_text(DROP_SPEC.format(sim_drops=sim, effects=listed))
+    spec.write_text(DROP_SPEC.format(sim_drops=sim, effects=listed, method=method))
     return spec
 
 

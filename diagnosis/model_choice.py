@@ -1,0 +1,715 @@
+"""Which effect: amortised simulation-based model choice (ABC random forests).
+
+For an experiment's design (its conditions, drops per condition, the angles it records,
+its measurement noise, the chip) a reference table of simulated datasets is built
+(``diagnosis.reference_table``): "no effect" and every candidate effect, strengths drawn
+over each prior, the release tilt a nuisance when it is not known. Each dataset is
+summarised (``diagnosis.summaries``, every condition's summaries side by side) and a
+random forest learns the model from the summaries (Pudlo et al., Bioinformatics 32, 2016:
+reliable ABC model choice via random forests). Its votes are turned into posterior
+probabilities by a multinomial logistic map fitted on out-of-fold votes (Dirichlet
+calibration, Kull et al., NeurIPS 2019), and everything is checked on itself by
+cross-validation grouped by pool (datasets cut from one pool share a strength; splitting
+them would flatter the accuracy): the design's accuracy, its confusion, which pairs it
+cannot tell apart, the expected calibration error. Each effect's strength has a
+quantile-regression interval (gradient boosting, conformalised on out-of-fold residuals
+so that 95 % intervals hold 95 % of the table's strengths; Romano et al., NeurIPS 2019),
+the release tilt marginalised by being drawn in the table. An out-of-distribution score
+says when the data look like none of the simulated datasets: the distance to the nearest
+table datasets in whitened summary space, against the same distance of held-out table
+datasets.
+
+Training takes seconds to a minute; the trained models are kept in the table store by a
+key of the design and the code, so a second diagnosis of the design reuses them.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import pickle
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import sklearn
+from scipy.optimize import minimize
+from scipy.stats import binomtest
+from sklearn.decomposition import PCA
+from sklearn.ensemble import RandomForestClassifier, RandomForestRegressor
+from sklearn.model_selection import StratifiedGroupKFold
+from sklearn.neighbors import NearestNeighbors
+from sklearn.preprocessing import StandardScaler
+
+from diagnosis.model import DropData, Experiment
+from diagnosis.reference_table import (
+    DEFAULT_POOL_DROPS,
+    NO_EFFECT,
+    ReferenceTable,
+    TableDataset,
+    TableStore,
+)
+from diagnosis.summaries import condition_summaries, summary_names
+from packing.effects import EFFECTS
+
+__all__ = [
+    "ModelChoice",
+    "build_model_choice",
+    "design_summaries",
+    "expected_calibration_error",
+    "smallest_credible_set",
+]
+
+log = logging.getLogger(__name__)
+
+MODEL_CHOICE_VERSION = 2
+TREES = 300
+FOLDS = 5
+CREDIBLE = 0.95
+# The table grows in rounds of pools per effect until the cross-validated accuracy levels
+# off (a gain under LEVEL_OFF from one round to the next), within these bounds.
+POOL_ROUNDS = (8, 16, 24, 32, 40, 48)
+LEVEL_OFF = 0.01
+# Datasets cut from each pool: its disjoint slices, then random subsets of its drops (each
+# with its own measurement noise). They share the pool's strength, so they add sampling
+# noise for the forest to learn, not settings; folds keep a pool's datasets together.
+DATASETS_PER_POOL = 12
+OOD_NEIGHBOURS = 10
+OOD_COMPONENTS = 20
+
+
+def design_summaries(
+    drops: dict[str, np.ndarray] | dict[str, DropData],
+    experiment: Experiment,
+    order: int,
+    has_yaw: bool,
+    has_tilt: bool,
+) -> np.ndarray:
+    """One dataset's summary vector: every condition's :func:`condition_summaries`, in
+    the spec's order. ``drops`` per condition: (n, 4) arrays (x, y mm, yaw, tilt deg) or
+    :class:`DropData`."""
+    parts = []
+    for c in experiment.conditions:
+        d = drops[c.name]
+        if isinstance(d, DropData):
+            positions, yaw, tilt = d.positions, d.yaw_deg, d.tilt_deg
+        else:
+            positions, yaw, tilt = d[:, :2], d[:, 2], d[:, 3]
+        parts.append(
+            condition_summaries(
+                positions,
+                yaw if has_yaw else None,
+                tilt if has_tilt else None,
+                c.protocol.yaw_deg,
+                order,
+            )
+        )
+    return np.concatenate(parts)
+
+
+def expected_calibration_error(probabilities: np.ndarray, truth: np.ndarray, bins: int = 15):
+    """Top-label expected calibration error: the mean, weighted by bin size, of
+    |accuracy - confidence| over equal-width bins of the highest probability (0 for
+    perfectly calibrated probabilities)."""
+    confidence = probabilities.max(axis=1)
+    correct = probabilities.argmax(axis=1) == truth
+    edges = np.linspace(0.0, 1.0, bins + 1)
+    which = np.clip(np.digitize(confidence, edges[1:-1]), 0, bins - 1)
+    total = 0.0
+    for b in range(bins):
+        mine = which == b
+        if mine.any():
+            total += mine.mean() * abs(correct[mine].mean() - confidence[mine].mean())
+    return float(total)
+
+
+def smallest_credible_set(probabilities: dict[str, float], level: float = CREDIBLE) -> list[str]:
+    """The fewest models whose probabilities add up to ``level``, most probable first."""
+    chosen, total = [], 0.0
+    for name, p in sorted(probabilities.items(), key=lambda item: -item[1]):
+        chosen.append(name)
+        total += p
+        if total >= level - 1e-12:
+            break
+    return chosen
+
+
+def _clopper_pearson(successes: int, trials: int) -> list[float]:
+    if trials == 0:
+        return [math.nan, math.nan]
+    ci = binomtest(successes, trials).proportion_ci(0.95, method="exact")
+    return [float(ci.low), float(ci.high)]
+
+
+@dataclass
+class _Calibrator:
+    """Votes to probabilities by temperature scaling (Guo et al., ICML 2017): p is
+    proportional to (votes + smoothing) ** power, the two fitted by the log loss of
+    out-of-fold votes. A forest's votes are shrunk towards each other (every tree votes
+    for a class however sure the split); the power sharpens them, the smoothing keeps a
+    class no tree voted for possible. The map is the same for every class and
+    increasing, so the most probable model is the most voted one."""
+
+    power: float = 1.0
+    smoothing: float = 1e-3
+
+    def apply(self, votes: np.ndarray, classes: int | None = None) -> np.ndarray:
+        logits = self.power * np.log(votes + max(self.smoothing, 1e-6))
+        logits -= logits.max(axis=1, keepdims=True)
+        p = np.exp(logits)
+        return p / p.sum(axis=1, keepdims=True)
+
+    @classmethod
+    def fit(cls, votes: np.ndarray, truth: np.ndarray) -> _Calibrator:
+        rows = np.arange(len(truth))
+
+        def loss(params: np.ndarray) -> float:
+            p = cls(float(np.exp(params[0])), float(np.exp(params[1]))).apply(votes)
+            return float(-np.mean(np.log(np.clip(p[rows, truth], 1e-300, 1.0))))
+
+        best = minimize(loss, x0=np.log([1.0, 1e-2]), method="Nelder-Mead")
+        power, smoothing = np.exp(best.x)
+        return cls(float(np.clip(power, 0.05, 50.0)), float(np.clip(smoothing, 1e-6, 1.0)))
+
+
+class _QuantileForest:
+    """A quantile regression forest (Meinshausen, JMLR 7, 2006): a random forest whose
+    leaves keep their training targets, so that a new point's conditional distribution
+    is the training targets weighted by how often they share its leaf."""
+
+    def __init__(self, seed: int) -> None:
+        self.forest = RandomForestRegressor(
+            n_estimators=200, min_samples_leaf=5, max_features=0.33, random_state=seed, n_jobs=-1
+        )
+
+    def fit(self, X: np.ndarray, y: np.ndarray) -> _QuantileForest:
+        self.forest.fit(X, y)
+        self.leaves = self.forest.apply(X)  # (n, trees)
+        self.y = np.asarray(y, dtype=float)
+        return self
+
+    def quantiles(self, X: np.ndarray, levels: tuple[float, ...]) -> np.ndarray:
+        """(m, len(levels)) conditional quantiles."""
+        leaves = self.forest.apply(X)  # (m, trees)
+        weights = np.zeros((len(X), len(self.y)))
+        for t in range(leaves.shape[1]):
+            same = self.leaves[:, t][None, :] == leaves[:, t][:, None]
+            weights += same / same.sum(axis=1, keepdims=True)
+        order = np.argsort(self.y)
+        cumulative = np.cumsum(weights[:, order], axis=1) / leaves.shape[1]
+        out = np.empty((len(X), len(levels)))
+        for k, q in enumerate(levels):
+            index = np.minimum((cumulative < q).sum(axis=1), len(self.y) - 1)
+            out[:, k] = self.y[order][index]
+        return out
+
+
+_LEVELS = (0.025, 0.5, 0.975)
+# Where the posterior-predictive check looks for the strength that fits best.
+SPREAD_LEVELS = (0.1, 0.3, 0.5, 0.7, 0.9)
+
+
+@dataclass
+class _IntervalModel:
+    """A parameter's median and conformalised 95 % interval from the summaries."""
+
+    forest: _QuantileForest
+    margin: float
+    bounds: tuple[float, float]
+    coverage_out_of_fold: float
+
+    def predict(self, x: np.ndarray) -> tuple[float, float, float]:
+        lo_b, hi_b = self.bounds
+        low, median, high = self.forest.quantiles(x[None], _LEVELS)[0]
+        median = float(np.clip(median, lo_b, hi_b))
+        low = float(np.clip(low - self.margin, lo_b, hi_b))
+        high = float(np.clip(high + self.margin, lo_b, hi_b))
+        return median, min(low, median), max(high, median)
+
+
+def _fit_interval(X, y, groups, bounds, seed) -> _IntervalModel:
+    """A quantile regression forest's 2.5 and 97.5 % quantiles, widened (or narrowed) by
+    the conformal margin that makes the out-of-fold intervals hold 95 % of the truths
+    (conformalised quantile regression, folds grouped by pool)."""
+    scores = np.zeros(len(y))
+    for train, test in _group_folds(np.zeros(len(y), dtype=int), groups, seed):
+        q = _QuantileForest(seed).fit(X[train], y[train]).quantiles(X[test], (0.025, 0.975))
+        scores[test] = np.maximum(q[:, 0] - y[test], y[test] - q[:, 1])
+    n = len(y)
+    level = min(1.0, math.ceil((n + 1) * CREDIBLE) / n)
+    margin = float(np.quantile(scores, level))
+    return _IntervalModel(
+        forest=_QuantileForest(seed).fit(X, y),
+        margin=margin,
+        bounds=bounds,
+        coverage_out_of_fold=float(np.mean(scores <= margin)),
+    )
+
+
+def _group_folds(labels, groups, seed, folds=FOLDS):
+    splits = min(folds, len(np.unique(groups)))
+    splitter = StratifiedGroupKFold(n_splits=splits, shuffle=True, random_state=seed)
+    return list(splitter.split(np.zeros(len(labels)), labels, groups))
+
+
+@dataclass
+class _OutOfDistribution:
+    """How far a dataset lies from the table: the mean distance to its nearest table
+    datasets in whitened principal components of the summaries, and the same distance of
+    every table dataset to the table without its own pool (the null)."""
+
+    scaler: StandardScaler
+    pca: PCA
+    neighbours: NearestNeighbors
+    null: np.ndarray
+
+    @classmethod
+    def fit(cls, X: np.ndarray, groups: np.ndarray, seed: int) -> _OutOfDistribution:
+        scaler = StandardScaler().fit(X)
+        components = max(1, min(OOD_COMPONENTS, X.shape[1], len(X) - 1))
+        pca = PCA(n_components=components, whiten=True, random_state=seed)
+        Z = pca.fit_transform(scaler.transform(X))
+        per_pool = int(np.max(np.unique(groups, return_counts=True)[1]))
+        k = min(OOD_NEIGHBOURS, len(X) - per_pool)
+        neighbours = NearestNeighbors(n_neighbors=min(len(X), k + per_pool)).fit(Z)
+        distance, index = neighbours.kneighbors(Z)
+        null = np.empty(len(X))
+        for i in range(len(X)):
+            other = groups[index[i]] != groups[i]
+            null[i] = distance[i][other][:k].mean()
+        return cls(scaler, pca, NearestNeighbors(n_neighbors=k).fit(Z), null)
+
+    def p_value(self, x: np.ndarray) -> tuple[float, float]:
+        z = self.pca.transform(self.scaler.transform(x[None]))
+        distance = float(self.neighbours.kneighbors(z)[0].mean())
+        p = (1 + np.sum(self.null >= distance)) / (1 + len(self.null))
+        return float(p), distance
+
+
+@dataclass
+class ModelChoice:
+    """The trained model choice of one design: ask it with :meth:`choose`."""
+
+    models: list[str]
+    feature_names: list[str]
+    classifier: RandomForestClassifier
+    calibrator: _Calibrator
+    strengths: dict[str, _IntervalModel]
+    tilts: dict[str, _IntervalModel]
+    ood: _OutOfDistribution
+    checks: dict = field(default_factory=dict)
+
+    def probabilities(self, x: np.ndarray) -> np.ndarray:
+        votes = _votes(self.classifier, x[None], len(self.models))
+        return self.calibrator.apply(votes, len(self.models))[0]
+
+    def choose(self, x: np.ndarray) -> dict:
+        """Posterior probabilities, the best effect, the 95 % set, strengths with
+        intervals, and the out-of-distribution p-value of one summary vector."""
+        if not np.isfinite(x).all():
+            raise ValueError("a summary of the observations is not finite")
+        p = self.probabilities(x)
+        probabilities = {m: float(v) for m, v in zip(self.models, p, strict=True)}
+        effects = {m: v for m, v in probabilities.items() if m != NO_EFFECT}
+        best = max(effects, key=effects.get) if effects else None
+        strengths = {}
+        for effect, model in self.strengths.items():
+            median, low, high = model.predict(x)
+            spread = model.forest.quantiles(x[None], SPREAD_LEVELS)[0]
+            strengths[effect] = dict(
+                strength=median,
+                strength_ci95=[low, high],
+                posterior_quantiles={
+                    f"{q:g}": float(np.clip(v, *model.bounds))
+                    for q, v in zip(SPREAD_LEVELS, spread, strict=True)
+                },
+            )
+        tilts = {}
+        for name, model in self.tilts.items():
+            median, low, high = model.predict(x)
+            tilts[name] = dict(tilt_deg=median, tilt_ci95_deg=[low, high])
+        ood_p, distance = self.ood.p_value(x)
+        return dict(
+            probabilities=probabilities,
+            most_probable=max(probabilities, key=probabilities.get),
+            best_effect=best,
+            credible_set=smallest_credible_set(probabilities),
+            strengths=strengths,
+            release_tilts=tilts,
+            out_of_distribution=dict(p_value=ood_p, distance=distance),
+        )
+
+
+def _votes(classifier: RandomForestClassifier, X: np.ndarray, classes: int) -> np.ndarray:
+    out = np.zeros((len(X), classes))
+    out[:, classifier.classes_] = classifier.predict_proba(X)
+    return out
+
+
+def _forest(seed: int, trees: int = TREES) -> RandomForestClassifier:
+    return RandomForestClassifier(
+        n_estimators=trees, min_samples_leaf=1, max_features="sqrt", n_jobs=-1, random_state=seed
+    )
+
+
+def _cross_validated(X, y, groups, classes, seed, trees=TREES):
+    """Out-of-fold votes (n, classes) of forests trained on the other folds' pools."""
+    votes = np.zeros((len(y), classes))
+    for train, test in _group_folds(y, groups, seed):
+        forest = _forest(seed, trees).fit(X[train], y[train])
+        votes[test] = _votes(forest, X[test], classes)
+    return votes
+
+
+class _Design:
+    """The datasets of one design cut from its reference table, summarised."""
+
+    def __init__(self, experiment, table: ReferenceTable, drops, order, has_yaw, has_tilt):
+        self.x = experiment
+        self.table = table
+        self.drops = drops
+        self.order = order
+        self.has_yaw, self.has_tilt = has_yaw, has_tilt
+        self.feature_names = [
+            f"{c.name}:{n}" for c in experiment.conditions for n in summary_names(has_yaw, has_tilt)
+        ]
+
+    def key(self, counts: dict[str, int]) -> str:
+        text = json.dumps(
+            dict(
+                version=MODEL_CHOICE_VERSION,
+                sklearn=sklearn.__version__,
+                table=self.table.simulation_key,
+                pool_drops=self.table.pool_drops,
+                conditions=[
+                    [c.protocol.height_mm, c.protocol.yaw_deg, c.protocol.tilt_deg]
+                    for c in self.x.conditions
+                ],
+                release_tilt=self.table.release_tilt,
+                drops=[self.drops[c.name] for c in self.x.conditions],
+                noise=[self.x.position_sd_mm, self.x.angle_sd_deg],
+                angles=[self.has_yaw, self.has_tilt],
+                counts=sorted(counts.items()),
+                per_pool=DATASETS_PER_POOL,
+            ),
+            sort_keys=True,
+        )
+        return hashlib.sha256(text.encode()).hexdigest()[:20]
+
+    def arrays(self, counts: dict[str, int]):
+        rng = np.random.default_rng(int(self.key(counts)[:8], 16))
+        sets: list[TableDataset] = self.table.datasets(counts, self.drops, rng, DATASETS_PER_POOL)
+        models = list(counts)
+        X = np.array(
+            [
+                design_summaries(d.drops, self.x, self.order, self.has_yaw, self.has_tilt)
+                for d in sets
+            ]
+        )
+        y = np.array([models.index(d.setting.model) for d in sets])
+        groups = np.array([models.index(d.setting.model) * 10_000 + d.setting.index for d in sets])
+        strength = np.array([d.setting.strength for d in sets])
+        tilt = np.array([d.setting.tilt_deg for d in sets])
+        return X, y, groups, strength, tilt
+
+
+def build_model_choice(
+    experiment: Experiment,
+    drops: dict[str, int],
+    models: list[str],
+    order: int,
+    has_yaw: bool,
+    has_tilt: bool,
+    store: TableStore,
+    run_many: Callable[[Callable, list[dict]], list],
+    progress: Callable[[str], None],
+    max_pools: int = POOL_ROUNDS[-1],
+    seed: int = 0,
+    pool_drops: int | None = None,
+) -> ModelChoice:
+    """The trained model choice of the design: from the store when it was trained
+    before, else the table grown until the cross-validated accuracy levels off (its
+    pools simulated through ``run_many``, kept in ``store``), then trained and checked."""
+    pool_drops = max(pool_drops or DEFAULT_POOL_DROPS, max(drops.values()))
+    table = ReferenceTable(experiment, models, store, pool_drops)
+    design = _Design(experiment, table, drops, order, has_yaw, has_tilt)
+    table.load()
+    rounds = [j for j in POOL_ROUNDS if j < max_pools] + [max_pools]
+    existing = min(table.count(m) for m in models)
+    curve = []
+    chosen = None
+    for j in rounds:
+        counts = _counts(models, max(j, min(existing, max_pools)))
+        blob = store.load(f"choice-{design.key(counts)}.pkl")
+        if blob is not None and chosen is None and j >= existing:
+            trained = pickle.loads(blob)
+            progress(f"model choice: trained before ({trained.checks['datasets']} datasets)")
+            return trained
+        table.ensure(counts, run_many, progress)
+        X, y, groups, _, _ = design.arrays(counts)
+        votes = _cross_validated(X, y, groups, len(models), seed, trees=100)
+        accuracy = float(np.mean(votes.argmax(axis=1) == y))
+        curve.append(dict(pools_per_effect=counts[models[-1]], datasets=len(y), accuracy=accuracy))
+        progress(
+            f"model choice: {counts[models[-1]]} pools per effect, {len(y)} datasets, "
+            f"cross-validated accuracy {100 * accuracy:.1f} %"
+        )
+        chosen = counts
+        if len(curve) >= 2 and curve[-1]["accuracy"] - curve[-2]["accuracy"] < LEVEL_OFF:
+            break
+        if counts[models[-1]] >= max_pools:
+            break
+    trained = _train(design, chosen, models, seed, curve, progress)
+    store.save(f"choice-{design.key(chosen)}.pkl", pickle.dumps(trained))
+    return trained
+
+
+def _counts(models: list[str], pools: int) -> dict[str, int]:
+    # "No effect" has no strength to cover: half the pools (its datasets differ by noise
+    # and, with the tilt a nuisance, by the tilt).
+    return {m: (max(4, pools // 2) if m == NO_EFFECT else pools) for m in models}
+
+
+def _train(design: _Design, counts, models, seed, curve, progress) -> ModelChoice:
+    progress("model choice: training and cross-validating the classifier")
+    X, y, groups, strength, tilt = design.arrays(counts)
+    classes = len(models)
+    votes = _cross_validated(X, y, groups, classes, seed)
+    # The calibration map's own check: fitted on some folds' out-of-fold votes, applied to
+    # the others (so the reported calibration error is out of sample twice over).
+    calibrated = np.zeros_like(votes)
+    for train, test in _group_folds(y, groups, seed + 1):
+        calibrated[test] = _Calibrator.fit(votes[train], y[train]).apply(votes[test], classes)
+    calibrator = _Calibrator.fit(votes, y)
+    forest = _forest(seed).fit(X, y)
+    strengths = {}
+    for k, m in enumerate(models):
+        if m == NO_EFFECT:
+            continue
+        mine = y == k
+        progress(f"model choice: strength intervals of {m}")
+        strengths[m] = _fit_interval(
+            X[mine], strength[mine], groups[mine], tuple(EFFECTS.get(m).prior), seed
+        )
+    tilts = {}
+    if design.table.release_tilt == "fitted":
+        from diagnosis.reference_table import NUISANCE_TILT_DEG
+
+        for k, m in enumerate(models):
+            mine = y == k
+            tilts[m] = _fit_interval(X[mine], tilt[mine], groups[mine], NUISANCE_TILT_DEG, seed)
+    ood = _OutOfDistribution.fit(X, groups, seed)
+    checks = _checks(models, y, groups, strength, votes, calibrated, curve, strengths)
+    checks["datasets"] = len(y)
+    checks["pools"] = {m: int(c) for m, c in counts.items()}
+    checks["features"] = len(design.feature_names)
+    return ModelChoice(
+        models, design.feature_names, forest, calibrator, strengths, tilts, ood, checks
+    )
+
+
+def _checks(models, y, groups, strength, votes, calibrated, curve, strengths) -> dict:
+    """The design's ceiling and calibration, from the out-of-fold predictions."""
+    classes = len(models)
+    predicted = calibrated.argmax(axis=1)
+    correct = predicted == y
+    pools = len(np.unique(groups))
+    confusion = np.zeros((classes, classes), dtype=int)
+    np.add.at(confusion, (y, predicted), 1)
+    upper = np.array(
+        [
+            m == NO_EFFECT or s >= np.mean(EFFECTS.get(m).prior)
+            for m, s in zip((models[k] for k in y), strength, strict=True)
+        ]
+    )
+    in_set = np.array(
+        [
+            k in _set_indices(p) and len(_set_indices(p)) <= 2
+            for k, p in zip(y, calibrated, strict=True)
+        ]
+    )
+    effects_upper = upper & (y != models.index(NO_EFFECT)) if NO_EFFECT in models else upper
+    separations = []
+    for a in range(classes):
+        for b in range(a + 1, classes):
+            both = (y == a) | (y == b)
+            mixed = confusion[a, b] + confusion[b, a]
+            separations.append(
+                dict(
+                    pair=[models[a], models[b]],
+                    told_apart=float(1 - mixed / max(both.sum(), 1)),
+                )
+            )
+    separations.sort(key=lambda s: s["told_apart"])
+    return dict(
+        accuracy=float(correct.mean()),
+        accuracy_ci95_pools=_clopper_pearson(round(correct.mean() * pools), pools),
+        accuracy_upper_half=float(correct[upper].mean()) if upper.any() else math.nan,
+        identified_upper_half=float(in_set[effects_upper].mean())
+        if effects_upper.any()
+        else math.nan,
+        identified_upper_half_ci95_pools=_clopper_pearson(
+            round(in_set[effects_upper].mean() * pools * effects_upper.mean()),
+            round(pools * effects_upper.mean()),
+        )
+        if effects_upper.any()
+        else [math.nan, math.nan],
+        confusion=dict(models=models, counts=confusion.tolist()),
+        hardest_pairs=separations[:5],
+        expected_calibration_error=expected_calibration_error(calibrated, y),
+        expected_calibration_error_votes=expected_calibration_error(votes, y),
+        log_loss=float(-np.mean(np.log(np.clip(calibrated[np.arange(len(y)), y], 1e-12, 1)))),
+        credible_set_coverage=float(
+            np.mean([k in _set_indices(p) for k, p in zip(y, calibrated, strict=True)])
+        ),
+        strength_interval_coverage={m: s.coverage_out_of_fold for m, s in strengths.items()},
+        size_curve=curve,
+    )
+
+
+def _set_indices(p: np.ndarray) -> list[int]:
+    order = np.argsort(-p)
+    total, out = 0.0, []
+    for k in order:
+        out.append(int(k))
+        total += p[k]
+        if total >= CREDIBLE - 1e-12:
+            break
+    return out
+
+
+# -- the next experiment ---------------------------------------------------------------------
+# Releases a next experiment may add (height mm, yaw deg), tried in this order; the design's
+# own releases are skipped. Three are scored (each costs the tied models' pools there).
+NEXT_RELEASES = ((1000.0, 0.0), (150.0, 0.0), (700.0, 45.0), (300.0, 15.0), (500.0, 30.0))
+NEXT_CANDIDATES = 3
+NEXT_TREES = 150
+NEXT_MIN_GAIN = 0.03  # below this gain in accuracy no next experiment is named
+
+
+def next_experiment(
+    experiment: Experiment,
+    drops: dict[str, int],
+    tied: list[str],
+    counts: dict[str, int],
+    order: int,
+    has_yaw: bool,
+    has_tilt: bool,
+    store: TableStore,
+    run_many: Callable[[Callable, list[dict]], list],
+    progress: Callable[[str], None],
+    seed: int = 0,
+) -> dict:
+    """Which extra condition would tell the ``tied`` models apart best: for each candidate
+    release (and for twice the drops in every condition) the cross-validated accuracy
+    among the tied models on simulated datasets of the design with it, against the
+    design as it is. The candidates' pools share the tied models' strengths pool by pool
+    (the same Halton draws), so a dataset of the design and one of the extra condition
+    come from one setting."""
+    from dataclasses import replace as _replace
+
+    from diagnosis.model import Condition
+    from packing.drop import DropProtocol
+
+    n = int(np.median(list(drops.values())))
+    pool_drops = max(DEFAULT_POOL_DROPS, max(drops.values()))
+    tied_counts = {m: counts[m] for m in tied}
+    base = ReferenceTable(experiment, tied, store, pool_drops)
+    base.load()
+    base.ensure(tied_counts, run_many, progress)
+    rng = np.random.default_rng([seed, 61])
+
+    def features(table, x, want) -> dict[tuple, np.ndarray]:
+        out = {}
+        for d in table.datasets(tied_counts, want, rng):
+            if d.part >= 0:
+                key = (d.setting.model, d.setting.index, d.part)
+                out[key] = design_summaries(d.drops, x, order, has_yaw, has_tilt)
+        return out
+
+    def accuracy(keys: list[tuple], blocks: list[dict]) -> float:
+        X = np.array([np.concatenate([b[k] for b in blocks]) for k in keys])
+        y = np.array([tied.index(k[0]) for k in keys])
+        groups = np.array([tied.index(k[0]) * 10_000 + k[1] for k in keys])
+        votes = _cross_validated(X, y, groups, len(tied), seed, trees=NEXT_TREES)
+        return float(np.mean(votes.argmax(axis=1) == y))
+
+    now = features(base, experiment, drops)
+    options = []
+    # Twice the drops in every condition, from the same pools.
+    if 2 * max(drops.values()) <= pool_drops:
+        doubled = features(base, experiment, {c: 2 * d for c, d in drops.items()})
+        keys = sorted(set(doubled))
+        options.append(
+            dict(
+                kind="more drops",
+                drops_per_condition=2 * n,
+                accuracy_after=accuracy(keys, [doubled]),
+                accuracy_now=accuracy(keys, [{k: now[k] for k in keys}]),
+            )
+        )
+    have = {(c.protocol.height_mm, c.protocol.yaw_deg) for c in experiment.conditions}
+    releases = [r for r in NEXT_RELEASES if r not in have][:NEXT_CANDIDATES]
+    tilt = experiment.conditions[0].protocol.tilt_deg
+    for height, yaw in releases:
+        name = f"next-h{height:g}-yaw{yaw:g}"
+        condition = Condition(name, DropProtocol(height_mm=height, yaw_deg=yaw, tilt_deg=tilt))
+        extra_x = _replace(experiment, conditions=(condition,))
+        extra = ReferenceTable(extra_x, tied, store, max(DEFAULT_POOL_DROPS // 2, 2 * n))
+        extra.load()
+        progress(f"model choice: scoring a next experiment at {height:g} mm, yaw {yaw:g} deg")
+        extra.ensure(tied_counts, run_many, progress)
+        added = features(extra, extra_x, {name: n})
+        keys = sorted(set(added) & set(now))
+        options.append(
+            dict(
+                kind="extra condition",
+                height_mm=height,
+                yaw_deg=yaw,
+                drops_per_condition=n,
+                accuracy_after=accuracy(keys, [{k: now[k] for k in keys}, added]),
+                accuracy_now=accuracy(keys, [{k: now[k] for k in keys}]),
+            )
+        )
+    best = max(options, key=lambda o: o["accuracy_after"] - o["accuracy_now"])
+    gain = best["accuracy_after"] - best["accuracy_now"]
+    release = dict(height_mm=None, yaw_deg=None)
+    if gain < NEXT_MIN_GAIN:
+        heights = ", ".join(f"{o['height_mm']:g} mm" for o in options if "height_mm" in o)
+        text = (
+            f"Next experiment: none of the {len(options)} scored (twice the drops, or a "
+            f"condition at {heights}) "
+            f"tells {', '.join(tied)} apart better than the design does now "
+            f"({100 * best['accuracy_now']:.0f} % on simulated datasets)."
+        )
+        return dict(
+            separates=list(tied),
+            options=options,
+            chosen=None,
+            drops_needed_per_condition=None,
+            text=text,
+            **release,
+        )
+    if best["kind"] == "more drops":
+        what = f"{best['drops_per_condition']} drops in every condition instead of {n}"
+    else:
+        what = (
+            f"a condition released at {best['height_mm']:g} mm, yaw {best['yaw_deg']:g} deg, "
+            f"with {n} drops"
+        )
+        release = dict(height_mm=best["height_mm"], yaw_deg=best["yaw_deg"])
+    text = (
+        f"Next experiment: {what}. Among {', '.join(tied)}, simulated datasets of the design "
+        f"are then given the right model {100 * best['accuracy_after']:.0f} % of the time, "
+        f"against {100 * best['accuracy_now']:.0f} % now."
+    )
+    return dict(
+        separates=list(tied),
+        options=options,
+        chosen=best,
+        drops_needed_per_condition=best["drops_per_condition"],
+        text=text,
+        **release,
+    )

@@ -1,0 +1,160 @@
+"""The amortised model choice of the drop diagnosis (issue 54): its summaries, its
+reference table, its probabilities and their checks, on analytic cases and on a small
+real design simulated with PyBullet."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from diagnosis.model import Condition, DiagnosisSettings, DropData, Experiment
+from diagnosis.model_choice import (
+    build_model_choice,
+    design_summaries,
+    expected_calibration_error,
+    smallest_credible_set,
+)
+from diagnosis.reference_table import NO_EFFECT, MemoryStore, ReferenceTable
+from diagnosis.summaries import condition_summaries, summary_names
+from diagnosis.synth import synthesize_drops
+from packing.drop import DropProtocol
+from pipeline.scenario_files import load_scenario
+
+
+def test_expected_calibration_error_of_known_cases():
+    rng = np.random.default_rng(0)
+    n = 20_000
+    # Calibrated: the top class holds 0.8 and is right 80 % of the time.
+    truth = np.where(rng.random(n) < 0.8, 0, 1)
+    calibrated = np.tile([0.8, 0.2], (n, 1))
+    assert expected_calibration_error(calibrated, truth) < 0.01
+    # Overconfident: certainty, right half the time.
+    coin = rng.integers(0, 2, n)
+    assert expected_calibration_error(np.tile([1.0, 0.0], (n, 1)), coin) == pytest.approx(
+        0.5, abs=0.02
+    )
+
+
+def test_the_credible_set_is_the_fewest_models_holding_the_level():
+    assert smallest_credible_set({"a": 0.96, "b": 0.03, "c": 0.01}) == ["a"]
+    assert smallest_credible_set({"a": 0.6, "b": 0.36, "c": 0.04}) == ["a", "b"]
+    assert smallest_credible_set({"a": 0.6, "b": 0.3, "c": 0.1}) == ["a", "b", "c"]
+    assert smallest_credible_set({"b": 0.3, "a": 0.7}, level=0.5) == ["a"]
+
+
+def test_summaries_of_a_known_scatter():
+    # Four drops on the axes at 10 mm, turned 0 deg, lying flat: an X of order 4 along the
+    # release yaw (aniso4_c = 1), no order-2 or -8 sine, zero mean, tilts 0.
+    positions = np.array([[10.0, 0.0], [0.0, 10.0], [-10.0, 0.0], [0.0, -10.0]])
+    yaw = np.zeros(4)
+    tilt = np.zeros(4)
+    names = summary_names(True, True)
+    values = dict(zip(names, condition_summaries(positions, yaw, tilt, 0.0, 4), strict=True))
+    assert len(values) == len(names)
+    assert values["r_q50"] == pytest.approx(10.0)
+    assert values["aniso4_c"] == pytest.approx(1.0)
+    assert values["aniso4_s"] == pytest.approx(0.0, abs=1e-12)
+    assert values["aniso2_c"] == pytest.approx(0.0, abs=1e-12)
+    assert values["mean_x"] == pytest.approx(0.0) and values["mean_y"] == pytest.approx(0.0)
+    assert values["yaw_spread"] == pytest.approx(0.0) and values["tilt_q90"] == 0.0
+    assert values["tilt_over_2"] == 0.0
+    # Turned by the release yaw, the same scatter reads the same.
+    turned = positions @ np.array([[0.0, 1.0], [-1.0, 0.0]]).T * 1.0
+    again = condition_summaries(turned, yaw + 90.0, tilt, 90.0, 4)
+    assert np.allclose(again[:8], condition_summaries(positions, yaw, tilt, 0.0, 4)[:8])
+    # Without angles their columns are left out.
+    assert len(condition_summaries(positions, None, None, 0.0, 4)) == len(
+        summary_names(False, False)
+    )
+
+
+def _experiment(conditions=((200.0, 0.0), (600.0, 30.0)), effects=(), release_tilt="known"):
+    return Experiment(
+        name="small",
+        kind="drop",
+        scenario=load_scenario("single-chip-drop"),
+        conditions=tuple(
+            Condition(f"h{h:g}", protocol=DropProtocol(height_mm=h, yaw_deg=y))
+            for h, y in conditions
+        ),
+        observations=Path("data.csv"),
+        position_sd_mm=0.5,
+        angle_sd_deg=0.5,
+        settings=DiagnosisSettings(effects=tuple(effects), release_tilt=release_tilt),
+    )
+
+
+def _serial(function, calls):
+    return [function(**c) for c in calls]
+
+
+def test_pools_grow_without_moving_and_round_trip_through_the_store():
+    x = _experiment(conditions=((150.0, 0.0),))
+    store = MemoryStore()
+    table = ReferenceTable(x, [NO_EFFECT, "restitution"], store, pool_drops=6)
+    first = table.settings("restitution", 3)
+    assert table.settings("restitution", 5)[:3] == first  # more pools move none
+    lo, hi = (0.0, 0.8)
+    strengths = [s.strength for s in table.settings("restitution", 16)]
+    assert all(lo <= v <= hi for v in strengths) and np.ptp(strengths) > 0.6 * (hi - lo)
+    assert all(math.isnan(s.strength) for s in table.settings(NO_EFFECT, 2))
+    simulated = table.ensure({NO_EFFECT: 1, "restitution": 2}, _serial, lambda m: None)
+    assert simulated == 3 * 6
+    again = ReferenceTable(x, [NO_EFFECT, "restitution"], store, pool_drops=6)
+    again.load()
+    assert again.count("restitution") == 2 and again.count(NO_EFFECT) == 1
+    assert np.array_equal(again.pools["h150", "restitution"], table.pools["h150", "restitution"])
+    assert again.ensure({NO_EFFECT: 1, "restitution": 2}, _serial, lambda m: None) == 0
+    # The datasets carry the experiment's measurement noise, drawn per dataset.
+    sets = again.datasets({NO_EFFECT: 1}, {"h150": 6}, np.random.default_rng(1))
+    noise = sets[0].drops["h150"][:, :2] - again.pools["h150", NO_EFFECT][0][:, :2]
+    assert 0.1 < noise.std() < 1.5 and len(sets) == 4  # random subsets of a small pool
+
+
+@pytest.mark.slow
+def test_the_model_choice_names_a_withheld_effect_and_is_reused(tmp_path):
+    """Two conditions x 20 drops, no effect against restitution and friction: the
+    design's own cross-validation tells them apart well above chance (1 in 3; a friction
+    near the baseline's own is no effect, so a small table's ceiling is about 0.7), the
+    probabilities are calibrated,
+    synthetic drops made with restitution 0.7 are given restitution with its strength
+    in the interval, and a second call trains nothing and simulates nothing."""
+    x = _experiment(effects=("restitution", "friction"))
+    store = MemoryStore()
+    models = [NO_EFFECT, "restitution", "friction"]
+    args = (x, {"h200": 20, "h600": 20}, models, 4, True, True, store)
+    choice = build_model_choice(*args, _serial, lambda m: None, max_pools=8, seed=0, pool_drops=80)
+    checks = choice.checks
+    assert checks["accuracy"] > 0.55, checks
+    assert checks["expected_calibration_error"] < 0.15, checks
+    assert set(checks["strength_interval_coverage"]) == {"restitution", "friction"}
+    assert checks["confusion"]["models"] == models
+    rows = synthesize_drops(x, {"restitution": 0.7}, seed=3, drops=20)
+    data = {
+        c.name: DropData(
+            np.array([[r["x_mm"], r["y_mm"]] for r in rows if r["condition"] == c.name]),
+            np.array([r["yaw_deg"] for r in rows if r["condition"] == c.name]),
+            np.array([r["tilt_deg"] for r in rows if r["condition"] == c.name]),
+        )
+        for c in x.conditions
+    }
+    chosen = choice.choose(design_summaries(data, x, 4, True, True))
+    assert sum(chosen["probabilities"].values()) == pytest.approx(1.0)
+    assert chosen["best_effect"] == "restitution", chosen["probabilities"]
+    assert "restitution" in chosen["credible_set"]
+    low, high = chosen["strengths"]["restitution"]["strength_ci95"]
+    assert low <= 0.7 <= high
+    assert chosen["out_of_distribution"]["p_value"] > 0.01
+    # Drops a camera scaled by 3 look like nothing in the table.
+    scaled = {c: DropData(3.0 * d.positions + 20.0, d.yaw_deg, d.tilt_deg) for c, d in data.items()}
+    far = choice.choose(design_summaries(scaled, x, 4, True, True))
+    assert far["out_of_distribution"]["p_value"] < 0.01
+
+    def refuse(function, calls):
+        raise AssertionError("a second diagnosis of the design simulated again")
+
+    again = build_model_choice(*args, refuse, lambda m: None, max_pools=8, seed=0, pool_drops=80)
+    assert again.checks == checks
