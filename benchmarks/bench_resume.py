@@ -5,7 +5,9 @@
 
 Prints, per attempt, when the kill fell (the journal's state at that moment), how many
 starts the run took, and whether every file matched; then the totals and the time an
-uninterrupted run takes beside the total time of the interrupted ones.
+uninterrupted run takes beside the total time of the interrupted ones. The share of runs
+that matched is recorded as data (``pipeline.measured.record``, area ``reliability``;
+``--no-record`` for a trial) and shown in docs/measured.md after ``make docs``.
 """
 
 from __future__ import annotations
@@ -68,6 +70,7 @@ def main() -> None:
     parser.add_argument("--kills", type=int, default=10)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--scenario", type=Path, default=None)
+    parser.add_argument("--no-record", action="store_true", help="do not record the figure")
     args = parser.parse_args()
     rng = np.random.default_rng(args.seed)
     root = Path(tempfile.mkdtemp(prefix="chipstack-resume-"))
@@ -112,6 +115,18 @@ def main() -> None:
         shutil.rmtree(out)
     print(f"{matched} of {args.kills} interrupted runs matched the uninterrupted one bit for bit")
     shutil.rmtree(root)
+    if not args.no_record and args.kills:
+        from pipeline.measured import record
+
+        record(
+            "reliability",
+            "killed and resumed runs identical to an uninterrupted run",
+            round(100 * matched / args.kills, 1),
+            "%",
+            target="== 100",
+            command="python " + " ".join(["benchmarks/bench_resume.py", *sys.argv[1:]]),
+            note=f"{matched} of {args.kills} runs, each killed up to twice with SIGKILL",
+        )
 
 
 if __name__ == "__main__":
