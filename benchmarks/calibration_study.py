@@ -72,6 +72,7 @@ def study_main(
     case_plan: Callable[[str, int], dict],
     run_case: Callable[[dict, Executor], dict],
     report: Callable[[str], None],
+    record_figures: Callable[[str], None] | None = None,
 ) -> int:
     """The command line of a study: run the parts' missing cases (``--cases``,
     ``--minutes``, ``--workers``), then print every part's tables; ``--report`` prints
@@ -84,6 +85,11 @@ def study_main(
     parser.add_argument("--minutes", type=float, default=None, help="stop after this long")
     parser.add_argument("--workers", type=int, default=None)
     parser.add_argument("--report", action="store_true", help="tables from the cache only")
+    parser.add_argument(
+        "--record",
+        action="store_true",
+        help="also record the parts' headline figures under benchmarks/results (measured.md)",
+    )
     args = parser.parse_args()
     parts = args.part or sorted(planned)
     if not args.report:
@@ -111,4 +117,6 @@ def study_main(
                     )
     for part in parts:
         report(part)
+        if args.record and record_figures is not None:
+            record_figures(part)
     return 0

@@ -167,13 +167,9 @@ class _DropDiagnosis:
         report = self._report(where, [], full, None, {}, verdict)
         check = section.get("predictive_check")
         if check:
+            keys = check.pop("keys")
             for c in full:
-                key = self.sims.setting(
-                    c,
-                    (section["release_tilts"].get(check["effect"]) or {}).get("tilt_deg"),
-                    check["effect"],
-                    check["strength"],
-                )
+                key = keys[c]
                 positions = self.sims.drops[key].positions
                 report["scatter"][c]["best_effect"] = np.round(positions, 2).tolist()
         report["model_choice"] = section

@@ -64,8 +64,9 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-MODEL_CHOICE_VERSION = 2
+MODEL_CHOICE_VERSION = 4
 TREES = 300
+CURVE_TREES = 60  # the size curve's forests (a comparison between sizes, not the figure)
 FOLDS = 5
 CREDIBLE = 0.95
 # The table grows in rounds of pools per effect until the cross-validated accuracy levels
@@ -181,7 +182,7 @@ class _QuantileForest:
 
     def __init__(self, seed: int) -> None:
         self.forest = RandomForestRegressor(
-            n_estimators=200, min_samples_leaf=5, max_features=0.33, random_state=seed, n_jobs=-1
+            n_estimators=120, min_samples_leaf=5, max_features=0.33, random_state=seed, n_jobs=-1
         )
 
     def fit(self, X: np.ndarray, y: np.ndarray) -> _QuantileForest:
@@ -234,7 +235,7 @@ def _fit_interval(X, y, groups, bounds, seed) -> _IntervalModel:
     the conformal margin that makes the out-of-fold intervals hold 95 % of the truths
     (conformalised quantile regression, folds grouped by pool)."""
     scores = np.zeros(len(y))
-    for train, test in _group_folds(np.zeros(len(y), dtype=int), groups, seed):
+    for train, test in _group_folds(np.zeros(len(y), dtype=int), groups, seed, folds=3):
         q = _QuantileForest(seed).fit(X[train], y[train]).quantiles(X[test], (0.025, 0.975))
         scores[test] = np.maximum(q[:, 0] - y[test], y[test] - q[:, 1])
     n = len(y)
@@ -300,6 +301,7 @@ class ModelChoice:
     tilts: dict[str, _IntervalModel]
     ood: _OutOfDistribution
     checks: dict = field(default_factory=dict)
+    key: str = ""  # the design's key in the table store
 
     def probabilities(self, x: np.ndarray) -> np.ndarray:
         votes = _votes(self.classifier, x[None], len(self.models))
@@ -436,33 +438,41 @@ def build_model_choice(
     table = ReferenceTable(experiment, models, store, pool_drops)
     design = _Design(experiment, table, drops, order, has_yaw, has_tilt)
     table.load()
-    rounds = [j for j in POOL_ROUNDS if j < max_pools] + [max_pools]
-    existing = min(table.count(m) for m in models)
-    curve = []
-    chosen = None
-    for j in rounds:
-        counts = _counts(models, max(j, min(existing, max_pools)))
-        blob = store.load(f"choice-{design.key(counts)}.pkl")
-        if blob is not None and chosen is None and j >= existing:
+    plan_name = f"choice-plan-{design.key({'table_pools': max_pools})}.json"
+    plan = store.load(plan_name)
+    if plan is not None:  # trained before: the size it chose, and the trained models
+        blob = store.load(f"choice-{design.key(json.loads(plan))}.pkl")
+        if blob is not None:
             trained = pickle.loads(blob)
             progress(f"model choice: trained before ({trained.checks['datasets']} datasets)")
             return trained
+    effects = [m for m in models if m != NO_EFFECT] or models
+    existing = min(table.count(m) for m in effects)
+    # The sizes tried: the rounds up to what the table holds (no simulation), then each
+    # further round simulated only while the accuracy still gains.
+    sizes = sorted({j for j in POOL_ROUNDS if j < max_pools} | {max_pools})
+    held = [j for j in sizes if j <= existing]
+    sizes = held[-2:] + [j for j in sizes if j > existing]
+    curve: list[dict] = []
+    chosen = None
+    for j in sizes:
+        counts = _counts(models, j)
         table.ensure(counts, run_many, progress)
         X, y, groups, _, _ = design.arrays(counts)
-        votes = _cross_validated(X, y, groups, len(models), seed, trees=100)
+        votes = _cross_validated(X, y, groups, len(models), seed, trees=CURVE_TREES)
         accuracy = float(np.mean(votes.argmax(axis=1) == y))
-        curve.append(dict(pools_per_effect=counts[models[-1]], datasets=len(y), accuracy=accuracy))
+        curve.append(dict(pools_per_effect=j, datasets=len(y), accuracy=accuracy))
         progress(
-            f"model choice: {counts[models[-1]]} pools per effect, {len(y)} datasets, "
+            f"model choice: {j} pools per effect, {len(y)} datasets, "
             f"cross-validated accuracy {100 * accuracy:.1f} %"
         )
         chosen = counts
         if len(curve) >= 2 and curve[-1]["accuracy"] - curve[-2]["accuracy"] < LEVEL_OFF:
             break
-        if counts[models[-1]] >= max_pools:
-            break
     trained = _train(design, chosen, models, seed, curve, progress)
+    trained.key = design.key(chosen)
     store.save(f"choice-{design.key(chosen)}.pkl", pickle.dumps(trained))
+    store.save(plan_name, json.dumps(chosen).encode())
     return trained
 
 
@@ -585,7 +595,7 @@ def _set_indices(p: np.ndarray) -> list[int]:
 # own releases are skipped. Three are scored (each costs the tied models' pools there).
 NEXT_RELEASES = ((1000.0, 0.0), (150.0, 0.0), (700.0, 45.0), (300.0, 15.0), (500.0, 30.0))
 NEXT_CANDIDATES = 3
-NEXT_TREES = 150
+NEXT_TREES = 100
 NEXT_MIN_GAIN = 0.03  # below this gain in accuracy no next experiment is named
 
 

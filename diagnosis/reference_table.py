@@ -259,11 +259,11 @@ class ReferenceTable:
                             index = np.arange(k * n, (k + 1) * n)
                         else:  # a small pool: further datasets are random subsets of it
                             index = np.sort(rng.choice(len(pool), size=n, replace=False))
-                        data[c] = self._noisy(pool[index], rng)
+                        data[c] = self.noisy(pool[index], rng)
                     out.append(TableDataset(s, data, k if k < per_pool else -1))
         return out
 
-    def _noisy(self, drops: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    def noisy(self, drops: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """The experiment's measurement noise on noise-free drops (as ``synth`` adds it)."""
         n = len(drops)
         out = drops.astype(float)

@@ -236,10 +236,14 @@ def _model_choice_section(choice: dict) -> list[str]:
         closed = check["gap_closed_ci95"]
         lines += [
             "",
-            f"Posterior-predictive check of {check['effect']} at {_fmt(check['strength'])}: "
-            f"the observed drops against it simulated afresh, the detection's max-T test "
-            f"p = {_fmt(check['p_value'])}; it closes {percent(check['gap_closed'])} "
-            f"{_interval(closed, percent)} of the baseline's energy gap.",
+            f"Posterior-predictive check of {check['effect']} (best-fitting strength "
+            f"{_fmt(check['strength'])}): the drops' lack of fit to its posterior "
+            f"predictive sample, against that of {check['reference_datasets']} datasets it "
+            f"made itself, calibrated p = {_fmt(check['calibrated_p_value'])}; the "
+            f"detection's exact max-T test against the same sample p = "
+            f"{_fmt(check['p_value'])} (not calibrated for the strength's uncertainty); the "
+            f"sample closes {percent(check['gap_closed'])} {_interval(closed, percent)} of "
+            "the baseline's energy gap.",
         ]
     nxt = choice.get("next_experiment")
     if nxt:

@@ -158,3 +158,64 @@ def test_the_model_choice_names_a_withheld_effect_and_is_reused(tmp_path):
 
     again = build_model_choice(*args, refuse, lambda m: None, max_pools=8, seed=0, pool_drops=80)
     assert again.checks == checks
+
+
+@pytest.mark.slow
+def test_pipeline_diagnose_names_the_effect_by_model_choice_and_reuses_the_table(tmp_path):
+    """``pipeline diagnose`` end to end with the amortised model choice on drops made with
+    restitution 0.7: the report names restitution with its probability, the design's
+    ceiling in words, and a predictive check; a second diagnosis of the design reuses
+    the reference table (nothing simulated for it) and gives the same answer."""
+    import json
+
+    from conftest import drop_spec, run_cli
+
+    spec = drop_spec(tmp_path, effects=("restitution", "friction"), method="amortised")
+    spec.write_text(
+        spec.read_text().replace('method = "amortised"', 'method = "amortised"\ntable_pools = 8')
+    )
+    made = run_cli(
+        "synth",
+        str(spec),
+        "--effect",
+        "restitution=0.7",
+        "--seed",
+        "11",
+        "-o",
+        str(tmp_path / "data.csv"),
+        "--workers",
+        "2",
+    )
+    assert made.returncode == 0, made.stderr
+    tables = tmp_path / "tables"
+    reports = []
+    for name in ("first", "second"):
+        out = tmp_path / name
+        result = run_cli(
+            "diagnose",
+            str(spec),
+            "--out",
+            str(out),
+            "--tables",
+            str(tables),
+            "--workers",
+            "2",
+            "-v",
+        )
+        assert result.returncode == 0, result.stderr
+        assert "Warning" not in result.stderr
+        reports.append(json.loads((out / "diagnosis.json").read_text()))
+        simulated_table = "reference table: simulating" in result.stderr
+        assert simulated_table == (name == "first"), result.stderr
+    first, second = reports
+    choice = first["model_choice"]
+    assert first["verdict"]["kind"] in ("explained", "partly explained"), first["verdict"]
+    assert choice["best_effect"] == "restitution"
+    assert sum(choice["probabilities"].values()) == pytest.approx(1.0)
+    assert "restitution" in choice["credible_set"]
+    assert choice["design"]["confusion"]["models"] == ["no effect", "restitution", "friction"]
+    text = (tmp_path / "first" / "diagnosis.md").read_text()
+    assert "## 2. Which effect" in text and "of the time" in text and "nan" not in text
+    assert second["model_choice"]["probabilities"] == choice["probabilities"]
+    assert second["verdict"] == first["verdict"]
+    assert any(p.name.startswith("choice-") for p in tables.iterdir())
