@@ -69,7 +69,7 @@ RESULTS = Path(__file__).resolve().parent / "results" / "diagnosis"
 # The most pools per effect the study's reference table grows to (the table under
 # benchmarks/cache holds them; a case's diagnosis chooses its size within it by how the
 # cross-validated accuracy levels off).
-STUDY_TABLE_POOLS = 24
+STUDY_TABLE_POOLS = 16
 TABLES = DirectoryStore(Path(__file__).resolve().parent / "cache" / "tables")
 # The study's design, not a copy of the effect registry: the cases are fixed by their
 # index over this tuple, so an effect registered later (or by a plugin) moves no cached

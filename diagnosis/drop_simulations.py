@@ -148,6 +148,13 @@ class DropSimulations:
         pool_offset = {NOISE_POOL: 2, CALIBRATION_POOL: 3}.get(pool, 1)
         return int(self.seed) * 1000 + 10 * self.index[condition] + pool_offset
 
+    def forget(self, key: tuple) -> None:
+        """Drop every result cached for the simulation ``key`` (before it is replaced)."""
+        for cache in (self.drops, self.observables, self._features, self._within):
+            cache.pop(key, None)
+        for cached in [k for k in self._cross if k[1] == key]:
+            del self._cross[cached]
+
     def observe(self, d: DropData, condition: str) -> np.ndarray:
         yaw0 = self.x.condition(condition).protocol.yaw_deg
         return drop_observables(d.positions, d.yaw_deg, d.tilt_deg, yaw0, self.order, self.names)

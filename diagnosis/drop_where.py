@@ -62,19 +62,23 @@ def locate_gap(
     rng: np.random.Generator,
     alpha: float,
     keys: dict[str, tuple] | None = None,
+    permutations: int = PERMUTATIONS,
+    intervals: bool = True,
 ) -> dict:
     """The "where" section: the overall test (the detection), per condition its test and
     the observables beyond the noise in it; every observable and region of every
     condition, and every observable across the conditions, with its adjusted p-value.
     Against the baseline simulation, or with ``keys`` (condition -> simulation key)
-    against those simulations (a posterior-predictive check of a fitted model)."""
+    against those simulations (a posterior-predictive check of a fitted model).
+    ``permutations`` and ``intervals`` (the observables' bootstrap intervals) trade
+    detail for time where only the overall p-value is wanted."""
     perms, tests, rows, regions = [], [], [], []
     for c, ds in full.items():
         key = keys[c] if keys else sims.baseline(c, None)
-        perm = _ConditionPermutations(ds, sims, key, rng)
+        perm = _ConditionPermutations(ds, sims, key, rng, permutations)
         perms.append(perm)
         tests.append(perm.test())
-        rows.append(perm.observable_rows(rng))
+        rows.append(perm.observable_rows(rng, intervals))
         regions.append(perm.region_rows())
         if not keys:
             sims.observable_sd[c] = perm.observable_sd
@@ -237,7 +241,14 @@ class _ConditionPermutations:
     """One condition's experiment pooled with its baseline simulation, and every
     statistic of it under the observed labelling and the same label permutations."""
 
-    def __init__(self, ds: Dataset, sims: DropSimulations, key: tuple, rng: np.random.Generator):
+    def __init__(
+        self,
+        ds: Dataset,
+        sims: DropSimulations,
+        key: tuple,
+        rng: np.random.Generator,
+        permutations: int = PERMUTATIONS,
+    ):
         self.ds, self.sims, self.key = ds, sims, key
         self.sim = sims.drops[key]
         self.yaw0 = sims.x.condition(ds.condition).protocol.yaw_deg
@@ -248,7 +259,7 @@ class _ConditionPermutations:
             _joined(ds.data.tilt_deg, self.sim.tilt_deg),
         )
         pooled_features = np.vstack([ds.features, sims.features(key)])
-        self.masks = permutation_masks(n, m, PERMUTATIONS, rng)
+        self.masks = permutation_masks(n, m, permutations, rng)
         metric = sims.metric[ds.condition]
         self.statistic_names = [*metric.blocks, "all"]
         stats = block_statistics(metric.distances(pooled_features), self.masks)
@@ -291,10 +302,14 @@ class _ConditionPermutations:
             anisotropy_simulation=dict(strength=sim_aniso[0], axis_deg=sim_aniso[1]),
         )
 
-    def observable_rows(self, rng: np.random.Generator) -> list[dict]:
+    def observable_rows(self, rng: np.random.Generator, intervals: bool = True) -> list[dict]:
         ds, sims = self.ds, self.sims
         sim = sims.observables[self.key]
-        boot = _bootstrap_differences(ds, self.sim, sims, rng)
+        boot = (
+            _bootstrap_differences(ds, self.sim, sims, rng)
+            if intervals
+            else np.full((2, len(sims.names)), np.nan)
+        )
         rows = []
         for k, name in enumerate(sims.names):
             d = float(self.differences[0, k])
