@@ -219,3 +219,28 @@ def test_pipeline_diagnose_names_the_effect_by_model_choice_and_reuses_the_table
     assert second["model_choice"]["probabilities"] == choice["probabilities"]
     assert second["verdict"] == first["verdict"]
     assert any(p.name.startswith("choice-") for p in tables.iterdir())
+
+
+def test_bad_table_settings_are_refused_in_one_line(tmp_path):
+    """A ``--tables`` that is a file, and a ``[diagnosis]`` method or table size out of
+    range: exit 2, one line naming it, nothing written."""
+    from conftest import assert_refused, drop_spec, run_cli, tree
+
+    spec = drop_spec(tmp_path, effects=("friction",), method="amortised")
+    (tmp_path / "data.csv").write_text("condition,drop,x_mm,y_mm\n")
+    (tmp_path / "a-file").write_text("")
+    before = tree(tmp_path)
+    result = run_cli(
+        "diagnose", str(spec), "--out", str(tmp_path / "o"), "--tables", str(tmp_path / "a-file")
+    )
+    assert_refused(result, "--tables", tmp_path, before)
+    for text, named in (
+        ('method = "amortised"', 'method = "guess"'),
+        ('method = "amortised"', 'method = "amortised"\ntable_pools = 2'),
+    ):
+        spec.write_text(spec.read_text().replace(*((text, named))))
+        before = tree(tmp_path)
+        result = run_cli("diagnose", str(spec), "--out", str(tmp_path / "o"))
+        key = "diagnosis.method" if "guess" in named else "diagnosis.table_pools"
+        assert_refused(result, key, tmp_path, before)
+        spec.write_text(spec.read_text().replace(named, text))
