@@ -195,7 +195,7 @@ def _mixture(sims, settings: dict, best: str, median: float, tag: str = "TM") ->
     keys = {}
     for c in sims.x.conditions:
         parts = [sims.drops[k[c.name]] for k in settings.values()]
-        per = max(1, MIXTURE_DROPS // len(parts))
+        per = max(1, min(MIXTURE_DROPS // len(parts), *(d.n for d in parts)))
         index = np.arange(per)
         data = DropData(
             np.vstack([d.positions[index] for d in parts]),
