@@ -112,6 +112,7 @@ def small_scenario(tmp_path: Path) -> Path:
 # of one worker, measured on 2026-11-26 (pytest 852 s on 2 cores).
 _LONGEST_FIRST = (
     "test_diagnosis.py",  # 262
+    "test_model_choice.py",  # about 200 (2026-11-28, beside a study)
     "test_freezing.py",  # 179
     "test_conveyor.py",  # 178
     "test_paper_descriptors.py",  # 150
