@@ -171,6 +171,16 @@ class ReferenceTable:
         text = f"{setting.model}|{setting.index}|{p.height_mm:g}|{p.yaw_deg:g}"
         return _SEED_BASE + zlib.crc32(text.encode()) % 100_000_000
 
+    def call(self, condition: str, setting: PoolSetting) -> dict:
+        """The keyword arguments of :func:`simulate_pool` for one pool at one condition."""
+        return dict(
+            scenario=self.x.scenario,
+            protocol=self._protocol(condition, setting),
+            n=self.pool_drops,
+            strengths={} if setting.model == NO_EFFECT else {setting.model: setting.strength},
+            seed=self._seed(condition, setting),
+        )
+
     # -- simulating -------------------------------------------------------------------------
     def load(self) -> None:
         """Read every stored pool of the experiment's conditions and models."""
@@ -208,16 +218,7 @@ class ReferenceTable:
         # every finished model's pools and resumes from there.
         for model in dict.fromkeys(s.model for _, s in wanted):
             mine = [(c, s) for c, s in wanted if s.model == model]
-            calls = [
-                dict(
-                    scenario=self.x.scenario,
-                    protocol=self._protocol(c, s),
-                    n=self.pool_drops,
-                    strengths={} if s.model == NO_EFFECT else {s.model: s.strength},
-                    seed=self._seed(c, s),
-                )
-                for c, s in mine
-            ]
+            calls = [self.call(c, s) for c, s in mine]
             results = run_many(simulate_pool, calls)
             for (c, _setting), result in sorted(
                 zip(mine, results, strict=True), key=lambda item: item[0][1].index

@@ -114,6 +114,7 @@ _LONGEST_FIRST = (
     "test_diagnosis.py",  # 262
     "test_model_choice.py",  # about 200 (2026-11-28, beside a study)
     "test_freezing.py",  # 179
+    "test_api.py",  # about 90 (2026-11-28, loaded machine)
     "test_conveyor.py",  # 178
     "test_paper_descriptors.py",  # 150
     "test_resume.py",  # 104
