@@ -601,7 +601,7 @@ def report(part: str) -> None:
         ]
         print(
             "explained, true effect in a tie set of <= 2: "
-            f"{rate(sum(good), len(good))}; target >= 85 %"
+            f"{rate(sum(good), len(good))}; target >= 90 % (issue 54)"
         )
         # The data's limit apart from the method's: a gap the detection does not see
         # cannot be attributed by any method.
