@@ -226,7 +226,7 @@ def _predictive_check(sims, full, where, best, chosen, rng, table) -> dict:
     strength = min(gaps, key=gaps.get)
     fitting = {v: settings[v] for v in sorted(gaps, key=gaps.get)[:FIT_POOLS]}
     keys = _mixture(sims, fitting, best, strength)
-    test = locate_gap(full, sims, rng, sims.x.settings.alpha, keys=keys)
+    test = locate_gap(full, sims, rng, sims.x.settings.alpha, keys=keys, intervals=False)
     before = sum(sims.energy(ds, sims.baseline(c, None)) for c, ds in full.items())
     after = sum(sims.energy(ds, keys[c]) for c, ds in full.items())
     with np.errstate(divide="ignore", invalid="ignore"):

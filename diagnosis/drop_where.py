@@ -322,7 +322,7 @@ class _ConditionPermutations:
                     simulation=float(sim[k]),
                     difference=d,
                     direction=int(np.sign(d)),
-                    ci95=list(interval(boot[:, k])),
+                    ci95=list(interval(boot[:, k])) if intervals else [None, None],
                     noise_floor=float(np.percentile(np.abs(self.differences[1:, k]), 95)),
                     z=float(z[0]),
                     p_value=exceedance_p(np.abs(z[1:]), abs(z[0])),
