@@ -511,21 +511,7 @@ def _summary(result: dict, plan: dict, seconds: float) -> dict:
     # The next experiment the report names (one release that would tell the best from
     # every tied effect): the ties part follows it from the cached case.
     record["next_experiment"] = which.get("next_experiment")
-    where = result["where"]
-    # What "where" names: observables beyond the noise across the conditions and in each.
-    record["flagged"] = [
-        dict(observable=r["observable"], condition="across", direction=int(r["direction"]))
-        for r in where.get("across_conditions", [])
-        if r.get("beyond_noise")
-    ] + [
-        dict(
-            observable=r["observable"],
-            condition=r["condition"],
-            direction=int(np.sign(r.get("difference") or 0.0)),
-        )
-        for r in where.get("observables", [])
-        if r.get("beyond_noise")
-    ]
+    record["flagged"] = _flagged(result["where"])
     return {**record, **strength_record(ranking, plan["truth"])}
 
 

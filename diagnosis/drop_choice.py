@@ -24,7 +24,7 @@ from diagnosis.model_choice import (
     design_summaries,
     next_experiment,
 )
-from diagnosis.reference_table import DEFAULT_POOL_DROPS, ReferenceTable, TableStore
+from diagnosis.reference_table import ReferenceTable, TableStore, pool_drops_for
 from diagnosis.statistics import interval
 from diagnosis.verdicts import off_text, percent
 from packing.effects import EFFECTS
@@ -108,7 +108,7 @@ def choose_effect(
             text=f"Gap detected; no candidate effect applies.{off_text(where)}",
         )
         return section, verdict
-    table = ReferenceTable(x, [best], store, max(DEFAULT_POOL_DROPS, max(drops.values())))
+    table = ReferenceTable(x, [best], store, pool_drops_for(drops))
     table.load()
     check = _predictive_check(sims, full, where, best, chosen, rng, table)
     check.update(
@@ -144,11 +144,6 @@ def choose_effect(
             seed=seed,
         )
     return section, verdict
-
-
-def _fitted_tilt(sims: DropSimulations, chosen: dict, best: str, condition: str) -> float | None:
-    tilt = chosen["release_tilts"].get(best)
-    return None if tilt is None else float(tilt["tilt_deg"])
 
 
 # The table's pools of the best effect the predictive check tries: those nearest its

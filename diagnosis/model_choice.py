@@ -50,6 +50,7 @@ from diagnosis.reference_table import (
     ReferenceTable,
     TableDataset,
     TableStore,
+    pool_drops_for,
 )
 from diagnosis.summaries import condition_summaries, summary_names
 from packing.effects import EFFECTS
@@ -434,7 +435,7 @@ def build_model_choice(
     """The trained model choice of the design: from the store when it was trained
     before, else the table grown until the cross-validated accuracy levels off (its
     pools simulated through ``run_many``, kept in ``store``), then trained and checked."""
-    pool_drops = max(pool_drops or DEFAULT_POOL_DROPS, max(drops.values()))
+    pool_drops = pool_drops_for(drops, pool_drops)
     table = ReferenceTable(experiment, models, store, pool_drops)
     design = _Design(experiment, table, drops, order, has_yaw, has_tilt)
     table.load()
@@ -624,7 +625,7 @@ def next_experiment(
     from packing.drop import DropProtocol
 
     n = int(np.median(list(drops.values())))
-    pool_drops = max(DEFAULT_POOL_DROPS, max(drops.values()))
+    pool_drops = pool_drops_for(drops)
     tied_counts = {m: counts[m] for m in tied}
     base = ReferenceTable(experiment, tied, store, pool_drops)
     base.load()

@@ -46,6 +46,7 @@ __all__ = [
     "ReferenceTable",
     "TableStore",
     "code_version",
+    "pool_drops_for",
     "simulate_pool",
 ]
 
@@ -79,6 +80,12 @@ class MemoryStore:
 
     def save(self, name: str, blob: bytes) -> None:
         self.blobs[name] = blob
+
+
+def pool_drops_for(drops: dict[str, int], at_least: int | None = None) -> int:
+    """Drops per pool for a design with ``drops`` per condition: the default (or
+    ``at_least``), and never fewer than a condition's own drops."""
+    return max(at_least or DEFAULT_POOL_DROPS, max(drops.values()))
 
 
 def code_version() -> str:
