@@ -5,6 +5,8 @@ them."""
 
 from __future__ import annotations
 
+import hashlib
+import io
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -13,6 +15,7 @@ import numpy as np
 
 from diagnosis.model import DropData, Experiment
 from diagnosis.observables import FeatureMetric, drop_features, drop_observables, symmetry_order
+from diagnosis.reference_table import TableStore, simulation_key
 from diagnosis.statistics import energy_distance, mean_cross, mean_within, resample_weights
 from packing.effects import EFFECTS, contact_model
 from packing.presets import PRESETS
@@ -49,8 +52,13 @@ class DropSimulations:
         run_many: Callable[[Callable, list[dict]], list],
         seed: int,
         progress: Callable[[str], None],
+        store: TableStore | None = None,
     ):
         self.x = experiment
+        # Where finished simulations are kept across diagnoses (the reference tables'
+        # store): a second diagnosis of the same design re-simulates nothing.
+        self.store = store
+        self._store_key = simulation_key(experiment.scenario) if store is not None else ""
         self.names = names
         self.order = symmetry_order(experiment.scenario)
         self.simulate = simulate
@@ -124,12 +132,52 @@ class DropSimulations:
         keys = [k for k in dict.fromkeys(keys) if k not in self.drops]
         if not keys:
             return
-        calls = [self._call(*key) for key in keys]
-        drops = sum(c["n"] for c in calls)
+        calls = {key: self._call(*key) for key in keys}
+        for key in keys:
+            stored = self._load(calls[key])
+            if stored is not None:
+                self._keep(key, stored)
+        keys = [k for k in keys if k not in self.drops]
+        if not keys:
+            return
+        drops = sum(calls[k]["n"] for k in keys)
         self.progress(f"simulating {len(keys)} settings, {drops} drops")
-        for key, result in zip(keys, self.run_many(self.simulate, calls), strict=True):
-            self.drops[key] = result
-            self.observables[key] = self.observe(result, key[0])
+        results = self.run_many(self.simulate, [calls[k] for k in keys])
+        for key, result in zip(keys, results, strict=True):
+            self._keep(key, result)
+            self._save(calls[key], result)
+
+    def _keep(self, key: tuple, result: DropData) -> None:
+        self.drops[key] = result
+        self.observables[key] = self.observe(result, key[0])
+
+    def _stored_name(self, call: dict) -> str:
+        simulate = f"{self.simulate.__module__}.{self.simulate.__qualname__}"
+        settings = {k: v for k, v in call.items() if k != "scenario"}
+        text = f"{self._store_key}|{simulate}|{sorted(settings.items())!r}"
+        return f"sims-{hashlib.sha256(text.encode()).hexdigest()[:24]}.npz"
+
+    def _load(self, call: dict) -> DropData | None:
+        blob = self.store.load(self._stored_name(call)) if self.store is not None else None
+        if blob is None:
+            return None
+        with np.load(io.BytesIO(blob)) as arrays:
+            return DropData(
+                arrays["positions"],
+                arrays["yaw_deg"] if "yaw_deg" in arrays else None,
+                arrays["tilt_deg"] if "tilt_deg" in arrays else None,
+            )
+
+    def _save(self, call: dict, result: DropData) -> None:
+        if self.store is None or not isinstance(result, DropData):
+            return
+        arrays = {"positions": result.positions}
+        for name in ("yaw_deg", "tilt_deg"):
+            if getattr(result, name) is not None:
+                arrays[name] = getattr(result, name)
+        buffer = io.BytesIO()
+        np.savez(buffer, **arrays)
+        self.store.save(self._stored_name(call), buffer.getvalue())
 
     def _call(self, condition: str, tilt: float, effect: str | None, strength: float, pool: str):
         key = (condition, tilt, effect, strength, pool)
@@ -158,6 +206,11 @@ class DropSimulations:
     def observe(self, d: DropData, condition: str) -> np.ndarray:
         yaw0 = self.x.condition(condition).protocol.yaw_deg
         return drop_observables(d.positions, d.yaw_deg, d.tilt_deg, yaw0, self.order, self.names)
+
+    def observe_many(self, d: DropData, index: np.ndarray, condition: str) -> np.ndarray:
+        """The observables (R, K) of the R subsets ``d.take(index[r])`` of ``d``
+        (``index`` (R, k) drop indices), in one vectorised call."""
+        return self.observe(d.take(np.asarray(index)), condition)
 
     # -- whole-distribution comparisons -----------------------------------------------------
     def raw_features(self, d: DropData, condition: str) -> np.ndarray:

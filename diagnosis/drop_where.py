@@ -267,13 +267,12 @@ class _ConditionPermutations:
         self.standardised = standardise(stats)
         self.t = self.standardised.max(axis=0)
         # Observable differences (experiment - simulation) under every labelling.
-        self.differences = np.array(
-            [
-                sims.observe(self.pooled.take(mask), ds.condition)
-                - sims.observe(self.pooled.take(~mask), ds.condition)
-                for mask in self.masks
-            ]
-        )
+        rows = len(self.masks)
+        experiment_side = np.nonzero(self.masks)[1].reshape(rows, n)
+        simulation_side = np.nonzero(~self.masks)[1].reshape(rows, m)
+        self.differences = sims.observe_many(
+            self.pooled, experiment_side, ds.condition
+        ) - sims.observe_many(self.pooled, simulation_side, ds.condition)
         self.observable_sd = np.maximum(self.differences[1:].std(axis=0), 1e-12)
         # Each difference standardised by its null's mean and sd (K, R); a quantile of
         # the smaller sample is biased even without a gap, and the mean takes that out.
@@ -391,11 +390,8 @@ def _bootstrap_differences(
     resamples = sims.x.settings.bootstrap
     exp_draws = rng.integers(0, ds.data.n, size=(resamples, ds.data.n))
     sim_draws = rng.integers(0, sim.n, size=(resamples, sim.n))
-    return np.array(
-        [
-            sims.observe(ds.data.take(i), ds.condition) - sims.observe(sim.take(j), ds.condition)
-            for i, j in zip(exp_draws, sim_draws, strict=True)
-        ]
+    return sims.observe_many(ds.data, exp_draws, ds.condition) - sims.observe_many(
+        sim, sim_draws, ds.condition
     )
 
 

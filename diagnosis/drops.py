@@ -105,6 +105,7 @@ class _DropDiagnosis:
             run_many or _sequential,
             seed,
             progress or (lambda message: None),
+            self.tables,
         )
         self.rng = np.random.default_rng([seed, 11])
 

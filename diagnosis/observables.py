@@ -61,27 +61,34 @@ def drop_observables(
     order: int,
     names: list[str],
 ) -> np.ndarray:
-    """The named observables of one scatter, in the order of ``names``."""
+    """The named observables of one scatter, in the order of ``names``.
+
+    Also of many scatters at once: positions (..., n, 2) mm, yaw and tilt (..., n) deg
+    give (..., K), one row per scatter (a permutation test's every relabelling in one
+    call, rather than a Python loop over them).
+    """
     positions = np.asarray(positions, dtype=float)
-    r = np.hypot(positions[:, 0], positions[:, 1])
-    theta = np.arctan2(positions[:, 1], positions[:, 0]) - np.radians(release_yaw_deg)
+    x, y = positions[..., 0], positions[..., 1]
+    r = np.hypot(x, y)
+    theta = np.arctan2(y, x) - np.radians(release_yaw_deg)
     # Drops within a hair of the release point carry no direction.
     weight = (r > 1e-6).astype(float)
-    total = max(weight.sum(), 1.0)
+    total = np.maximum(weight.sum(axis=-1), 1.0)
     values = {}
-    q = np.quantile(r, [0.25, 0.5, 0.75, 0.9, 0.95])
+    q = np.quantile(r, [0.25, 0.5, 0.75, 0.9, 0.95], axis=-1)
     values.update(r_q25=q[0], r_q50=q[1], r_q75=q[2], r_q90=q[3], r95=q[4])
-    values["mean_x"], values["mean_y"] = positions.mean(axis=0)
-    values["aniso_c"] = float((weight * np.cos(4 * theta)).sum() / total)
-    values["aniso_s"] = float((weight * np.sin(4 * theta)).sum() / total)
+    values["mean_x"], values["mean_y"] = x.mean(axis=-1), y.mean(axis=-1)
+    values["aniso_c"] = (weight * np.cos(4 * theta)).sum(axis=-1) / total
+    values["aniso_s"] = (weight * np.sin(4 * theta)).sum(axis=-1) / total
     if yaw_deg is not None:
-        turn = np.radians(order * (np.asarray(yaw_deg) - release_yaw_deg))
-        values["yaw_spread"] = 1.0 - float(np.hypot(np.cos(turn).mean(), np.sin(turn).mean()))
+        turn = np.radians(order * (np.asarray(yaw_deg, dtype=float) - release_yaw_deg))
+        resultant = np.hypot(np.cos(turn).mean(axis=-1), np.sin(turn).mean(axis=-1))
+        values["yaw_spread"] = 1.0 - resultant
     if tilt_deg is not None:
         # Quantiles, not the mean: one chip in a hundred may come to rest on its edge.
-        values["tilt_q50"] = float(np.median(tilt_deg))
-        values["tilt_q90"] = float(np.quantile(tilt_deg, 0.9))
-    return np.array([values[n] for n in names], dtype=float)
+        tilt_q = np.quantile(np.asarray(tilt_deg, dtype=float), [0.5, 0.9], axis=-1)
+        values["tilt_q50"], values["tilt_q90"] = tilt_q[0], tilt_q[1]
+    return np.stack([np.asarray(values[n], dtype=float) for n in names], axis=-1)
 
 
 def drop_features(

@@ -99,6 +99,15 @@ def code_version() -> str:
     return digest.hexdigest()[:16]
 
 
+def simulation_key(scenario) -> str:
+    """A digest of what a drop simulation of ``scenario`` depends on besides its call:
+    the scenario's every setting but its name, and :func:`code_version`."""
+    settings = scenario_to_dict(scenario)
+    settings.pop("name", None)
+    text = json.dumps(settings, sort_keys=True, default=str)
+    return hashlib.sha256(f"{text}|{code_version()}".encode()).hexdigest()[:16]
+
+
 def simulate_pool(scenario, protocol: DropProtocol, n: int, strengths: dict, seed: int):
     """``n`` noise-free drops as a (n, 4) float32 array: x, y (mm), yaw, tilt (deg)."""
     sample = simulate_drops(scenario, protocol, n, strengths, seed)
@@ -135,10 +144,7 @@ class ReferenceTable:
         self.store = store
         self.release_tilt = experiment.settings.release_tilt
         self.pool_drops = int(pool_drops)
-        scenario = scenario_to_dict(experiment.scenario)
-        scenario.pop("name", None)
-        text = json.dumps(scenario, sort_keys=True, default=str)
-        self.simulation_key = hashlib.sha256(f"{text}|{code_version()}".encode()).hexdigest()[:16]
+        self.simulation_key = simulation_key(experiment.scenario)
         self.pools: dict[tuple[str, str], np.ndarray] = {}  # (condition, model) -> (J, P, 4)
 
     # -- settings of pools ----------------------------------------------------------------

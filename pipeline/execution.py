@@ -68,11 +68,19 @@ class Executor:
         self._cluster = None
 
     def __enter__(self) -> Executor:
-        from distributed import Client, LocalCluster
-
+        # A scheduler is reached at once (a wrong address fails before any work); a local
+        # cluster starts on the first task, so a command whose every result is cached
+        # (a second diagnosis of a tabled design) never pays its two seconds.
         if self.scheduler is not None:
             self._client = _connect(self.scheduler)
-        else:
+        return self
+
+    def _started(self):
+        """The client, the local cluster started first if it is not yet."""
+        if self._client is None:
+            from distributed import Client, LocalCluster
+
+            log.info("starting a local Dask cluster of %s workers", self.workers or "all")
             n = self.workers or os.cpu_count() or 1
             self._cluster = LocalCluster(
                 n_workers=n,
@@ -83,17 +91,19 @@ class Executor:
                 silence_logs=logging.CRITICAL,
             )
             self._client = Client(self._cluster)
-        return self
+        return self._client
 
     def __exit__(self, *exc: object) -> None:
         if self._client is not None:
             self._client.close()
         if self._cluster is not None:
             self._cluster.close()
+        self._client = self._cluster = None
 
     @property
     def n_workers(self) -> int:
-        return len(self._client.scheduler_info()["workers"]) if self._client else 0
+        """Workers of the cluster (a local cluster is started to count them)."""
+        return len(self._started().scheduler_info()["workers"])
 
     def run(
         self,
@@ -109,8 +119,9 @@ class Executor:
         """
         from distributed import as_completed
 
+        client = self._started()
         futures = {
-            self._client.submit(task, *args, pure=False, key=f"run-{k}-{uuid.uuid4().hex}"): k
+            client.submit(task, *args, pure=False, key=f"run-{k}-{uuid.uuid4().hex}"): k
             for k, args in enumerate(arguments)
         }
         for future in as_completed(futures):
@@ -126,8 +137,9 @@ class Executor:
         task error is raised here."""
         # Run in the order given (a caller may order its calls longest first): equal
         # priorities leave the order of calls submitted together to the scheduler.
+        client = self._started()
         futures = [
-            self._client.submit(
+            client.submit(
                 _call_with_kwargs,
                 function,
                 kwargs,
@@ -138,7 +150,7 @@ class Executor:
             for k, kwargs in enumerate(calls)
         ]
         try:
-            return self._client.gather(futures)
+            return client.gather(futures)
         finally:
             for future in futures:
                 future.release()

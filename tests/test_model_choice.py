@@ -165,7 +165,8 @@ def test_pipeline_diagnose_names_the_effect_by_model_choice_and_reuses_the_table
     """``pipeline diagnose`` end to end with the amortised model choice on drops made with
     restitution 0.7: the report names restitution with its probability, the design's
     ceiling in words, and a predictive check; a second diagnosis of the design reuses
-    the reference table (nothing simulated for it) and gives the same answer."""
+    the reference table and the detection's baseline (nothing simulated, no cluster
+    started) and gives the same answer."""
     import json
 
     from conftest import drop_spec, run_cli
@@ -207,6 +208,10 @@ def test_pipeline_diagnose_names_the_effect_by_model_choice_and_reuses_the_table
         reports.append(json.loads((out / "diagnosis.json").read_text()))
         simulated_table = "reference table: simulating" in result.stderr
         assert simulated_table == (name == "first"), result.stderr
+        # The second simulates nothing at all (the detection's baseline is kept beside
+        # the table), so it starts no cluster either.
+        assert ("simulating" in result.stderr) == (name == "first"), result.stderr
+        assert ("Dask cluster" in result.stderr) == (name == "first"), result.stderr
     first, second = reports
     choice = first["model_choice"]
     assert first["verdict"]["kind"] in ("explained", "partly explained"), first["verdict"]
