@@ -1,8 +1,8 @@
 """What a drop diagnosis's reference table costs to simulate: the CPU seconds of one pool
-of every model (200 noise-free drops at each release of the study's design), measured in
-this process, and the wall time of the whole table on N cores that follows (the pools are
-independent, so they divide over cores). A figure of CPU time, not wall time: it holds on
-a busy machine.
+of every model (the default number of noise-free drops at each release of the study's
+design), measured in this process, and the wall time of the whole table on N cores that
+follows (the pools are independent, so they divide over cores). A figure of CPU time, not
+wall time: it holds on a busy machine.
 
 Usage: ``python benchmarks/bench_table_cost.py [--pools 16] [--cores 2] [--record]``.
 """

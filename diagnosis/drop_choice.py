@@ -293,6 +293,11 @@ def _calibrated_lack_of_fit(
         reference = _reference_p_values(sims, full, best, choice, table, has_yaw, has_tilt, rng)
         store.save(name, json.dumps(reference.tolist()).encode())
     k = len(reference)
+    if k == 0:  # pools too short for a dataset of the design: the check has no reference
+        raise ValueError(
+            f"the reference table's pools hold {table.pool_drops} drops, fewer than a "
+            f"dataset of the design ({max(d.data.n for d in full.values())})"
+        )
     # Compared at the references' resolution (their tests have fewer permutations).
     floor = 1.0 / (REFERENCE_PERMUTATIONS + 1)
     p = float((1 + np.sum(reference <= max(p_observed, floor) + 1e-12)) / (1 + k))
@@ -316,7 +321,12 @@ def _reference_p_values(sims, full, best, choice, table, has_yaw, has_tilt, rng)
             for c in x.conditions:
                 pool = table.pools[c.name, best][setting.index]
                 n = drops[c.name]
-                start = MIXTURE_DROPS // FIT_POOLS + part * n  # clear of the samples' drops
+                # Disjoint slices of the pool, after the drops a predictive sample takes
+                # from a pool where the pool is long enough, else from its start (its own
+                # test's predictive sample is drawn from the other pools, ``skip``).
+                start = MIXTURE_DROPS // FIT_POOLS + part * n
+                if MIXTURE_DROPS // FIT_POOLS + CALIBRATION_SLICES * n > len(pool):
+                    start = part * n
                 if start + n > len(pool):
                     break
                 d = table.noisy(pool[start : start + n], noise)

@@ -14,7 +14,10 @@ cross-validation keeps them together.
 
 Pools are stored by condition (height, yaw, tilt rule), model and the simulation's key
 (the scenario's chip, physics and settling, and the code that simulates), so a design
-that shares a condition with an earlier one reuses its drops. The store is given by the
+that shares a condition with an earlier one reuses its drops. A pool's drop k depends
+on its seed and k alone (``simulate_drops``), so the first P drops of a longer stored
+pool are exactly a pool of P drops: a table stored with more drops per pool serves any
+design that needs fewer. The store is given by the
 caller (``pipeline diagnose`` keeps it in a cache directory); :class:`MemoryStore` keeps
 it in memory.
 """
@@ -57,7 +60,12 @@ NO_EFFECT = "no effect"
 TABLE_VERSION = 1
 # The release tilt range drawn when it is a nuisance (``release_tilt = "fitted"``), deg.
 NUISANCE_TILT_DEG = (0.0, 20.0)
+# Drops per pool (per condition). The table's cost is proportional; the cross-validated
+# accuracy on the study's design (3 x 50 drops, 16 pools per effect) barely depends on
+# it (benchmarks/bench_table_size.py: 88.2 % with 200, 88.1 % with 100, 86.0 % with 50),
+# but the study's figures were measured with 200.
 DEFAULT_POOL_DROPS = 200
+_NONE = np.zeros((0, 0, 4), dtype=np.float32)  # no stored pool
 _SEED_BASE = 300_000_000  # apart from the diagnosis's (seed * 1000 + ...) and synth's (1e7)
 
 
@@ -84,8 +92,9 @@ class MemoryStore:
 
 def pool_drops_for(drops: dict[str, int], at_least: int | None = None) -> int:
     """Drops per pool for a design with ``drops`` per condition: the default (or
-    ``at_least``), and never fewer than a condition's own drops."""
-    return max(at_least or DEFAULT_POOL_DROPS, max(drops.values()))
+    ``at_least``), and never fewer than two datasets of the design (the calibrated
+    predictive check cuts two disjoint ones from every pool)."""
+    return max(at_least or DEFAULT_POOL_DROPS, 2 * max(drops.values()))
 
 
 def code_version() -> str:
@@ -145,7 +154,11 @@ class ReferenceTable:
         self.release_tilt = experiment.settings.release_tilt
         self.pool_drops = int(pool_drops)
         self.simulation_key = simulation_key(experiment.scenario)
-        self.pools: dict[tuple[str, str], np.ndarray] = {}  # (condition, model) -> (J, P, 4)
+        # (condition, model) -> (J, pool_drops, 4): the first pool_drops drops of each pool
+        self.pools: dict[tuple[str, str], np.ndarray] = {}
+        # The same as stored, (J, P', 4) with P' >= pool_drops: a longer stored pool is
+        # grown at its own length, so that the store keeps whole pools.
+        self._whole: dict[tuple[str, str], np.ndarray] = {}
 
     # -- settings of pools ----------------------------------------------------------------
     def settings(self, model: str, count: int) -> list[PoolSetting]:
@@ -176,7 +189,7 @@ class ReferenceTable:
         tilt = "nuisance" if self.release_tilt == "fitted" else f"{p.tilt_deg:g}"
         return (
             f"pools-{self.simulation_key}-h{p.height_mm:g}-yaw{p.yaw_deg:g}-tilt{tilt}"
-            f"-{model.replace(' ', '_')}-n{self.pool_drops}.npy"
+            f"-{model.replace(' ', '_')}.npy"
         )
 
     def _seed(self, condition: str, setting: PoolSetting) -> int:
@@ -185,23 +198,40 @@ class ReferenceTable:
         return _SEED_BASE + zlib.crc32(text.encode()) % 100_000_000
 
     def call(self, condition: str, setting: PoolSetting) -> dict:
-        """The keyword arguments of :func:`simulate_pool` for one pool at one condition."""
+        """The keyword arguments of :func:`simulate_pool` for one pool at one condition
+        (as many drops as the stored pools of its model hold, if they hold more)."""
         return dict(
             scenario=self.x.scenario,
             protocol=self._protocol(condition, setting),
-            n=self.pool_drops,
+            n=max(self.pool_drops, self._whole.get((condition, setting.model), _NONE).shape[1]),
             strengths={} if setting.model == NO_EFFECT else {setting.model: setting.strength},
             seed=self._seed(condition, setting),
         )
 
     # -- simulating -------------------------------------------------------------------------
     def load(self) -> None:
-        """Read every stored pool of the experiment's conditions and models."""
+        """Read every stored pool of the experiment's conditions and models (the first
+        ``pool_drops`` drops of each; pools stored shorter than that are simulated
+        again)."""
         for c in self.x.conditions:
             for model in self.models:
                 blob = self.store.load(self._name(c.name, model))
-                if blob is not None:
-                    self.pools[c.name, model] = _from_bytes(blob)
+                if blob is None:
+                    continue
+                stored = _from_bytes(blob)
+                if stored.shape[1] < self.pool_drops:
+                    log.info(
+                        "%s: stored pools hold %d drops, %d needed: simulated again",
+                        self._name(c.name, model),
+                        stored.shape[1],
+                        self.pool_drops,
+                    )
+                    continue
+                self._keep((c.name, model), stored)
+
+    def _keep(self, key: tuple[str, str], whole: np.ndarray) -> None:
+        self._whole[key] = whole
+        self.pools[key] = whole[:, : self.pool_drops]
 
     def count(self, model: str) -> int:
         """Pools of ``model`` simulated in every condition."""
@@ -224,28 +254,25 @@ class ReferenceTable:
                         wanted.append((c.name, setting))
         if not wanted:
             return 0
-        total = len(wanted) * self.pool_drops
+        calls = {(c, s.model, s.index): self.call(c, s) for c, s in wanted}
+        total = sum(call["n"] for call in calls.values())
         progress(f"reference table: simulating {len(wanted)} pools, {total} drops")
         done = 0
         # One batch per model: each is stored when it is done, so a killed build keeps
         # every finished model's pools and resumes from there.
         for model in dict.fromkeys(s.model for _, s in wanted):
             mine = [(c, s) for c, s in wanted if s.model == model]
-            calls = [self.call(c, s) for c, s in mine]
-            results = run_many(simulate_pool, calls)
+            results = run_many(simulate_pool, [calls[c, s.model, s.index] for c, s in mine])
             for (c, _setting), result in sorted(
                 zip(mine, results, strict=True), key=lambda item: item[0][1].index
             ):
-                have = self.pools.get((c, model))
+                have = self._whole.get((c, model))
                 block = np.asarray(result, dtype=np.float32)[None]
-                self.pools[c, model] = block if have is None else np.concatenate([have, block])
+                self._keep((c, model), block if have is None else np.concatenate([have, block]))
             for c in dict.fromkeys(c for c, _ in mine):
-                self.store.save(self._name(c, model), _to_bytes(self.pools[c, model]))
+                self.store.save(self._name(c, model), _to_bytes(self._whole[c, model]))
             done += len(mine)
-            progress(
-                f"reference table: {done} of {len(wanted)} pools ({model} done, "
-                f"{done * self.pool_drops} drops)"
-            )
+            progress(f"reference table: {done} of {len(wanted)} pools ({model} done)")
         return total
 
     # -- datasets -----------------------------------------------------------------------------

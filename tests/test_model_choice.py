@@ -114,6 +114,31 @@ def test_pools_grow_without_moving_and_round_trip_through_the_store():
     assert 0.1 < noise.std() < 1.5 and len(sets) == 4  # random subsets of a small pool
 
 
+def test_a_table_stored_with_longer_pools_serves_shorter_ones_exactly():
+    """A drop depends on its pool's seed and its own index alone, so the first 4 drops of
+    a stored 6-drop pool are the 4-drop pool: nothing is simulated for it, and a pool
+    grown there is simulated at the stored length (the store keeps whole pools); a
+    stored pool shorter than needed is simulated again, not cut short."""
+    x = _experiment(conditions=((150.0, 0.0),))
+    store = MemoryStore()
+    long = ReferenceTable(x, ["restitution"], store, pool_drops=6)
+    long.ensure({"restitution": 1}, _serial, lambda m: None)
+    fresh = ReferenceTable(x, ["restitution"], MemoryStore(), pool_drops=4)
+    fresh.ensure({"restitution": 1}, _serial, lambda m: None)
+    short = ReferenceTable(x, ["restitution"], store, pool_drops=4)
+    short.load()
+    assert short.ensure({"restitution": 1}, _serial, lambda m: None) == 0
+    assert np.array_equal(short.pools["h150", "restitution"], fresh.pools["h150", "restitution"])
+    assert short.ensure({"restitution": 2}, _serial, lambda m: None) == 6  # grown at 6
+    assert short.pools["h150", "restitution"].shape == (2, 4, 4)
+    whole = ReferenceTable(x, ["restitution"], store, pool_drops=6)
+    whole.load()
+    assert whole.count("restitution") == 2
+    longer = ReferenceTable(x, ["restitution"], store, pool_drops=8)
+    longer.load()
+    assert longer.count("restitution") == 0  # too short: simulated again
+
+
 @pytest.mark.slow
 def test_the_model_choice_names_a_withheld_effect_and_is_reused(tmp_path):
     """Two conditions x 20 drops, no effect against restitution and friction: the
@@ -218,6 +243,9 @@ def test_pipeline_diagnose_names_the_effect_by_model_choice_and_reuses_the_table
     assert choice["best_effect"] == "restitution"
     assert sum(choice["probabilities"].values()) == pytest.approx(1.0)
     assert "restitution" in choice["credible_set"]
+    # The calibrated check has its reference: datasets cut from every pool of the effect.
+    check = choice["predictive_check"]
+    assert check["reference_datasets"] >= 8 and 0 < check["calibrated_p_value"] <= 1
     assert choice["design"]["confusion"]["models"] == ["no effect", "restitution", "friction"]
     text = (tmp_path / "first" / "diagnosis.md").read_text()
     assert "## 2. Which effect" in text and "of the time" in text and "nan" not in text
