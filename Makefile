@@ -8,11 +8,15 @@ IMAGE  := $(VENV)/.image-installed
 .PHONY: run test image lint bench docs clean
 
 # The pipeline and its dependencies into .venv: wheels only, nothing compiled, no root.
+# setuptools announces every editable install that maps packages (ours: the root folders
+# as chipstack.*) with an "Editable installation" notice about folders named like the
+# package in the working directory; here that folder is the package itself, so the
+# notice is filtered by its message (nothing else is).
 $(STAMP): pyproject.toml
 	@echo "make: installing chipstack and its dependencies into $(VENV) (pip, about a minute)"
 	@$(PYTHON) -m venv $(VENV)
 	@$(BIN)/pip install --quiet --upgrade pip
-	@$(BIN)/pip install --quiet -e '.[test]'
+	@PYTHONWARNINGS="ignore:Editable installation" $(BIN)/pip install --quiet -e '.[test]'
 	@touch $(STAMP)
 
 # The image mesh kind (mesh.kind = "image") only: pygalmesh, compiled against CGAL and
@@ -32,7 +36,7 @@ $(IMAGE): $(STAMP)
 			libcgal-dev libeigen3-dev >/dev/null || exit 2; \
 	fi
 	@echo "make image: compiling pygalmesh against CGAL (5 to 9 minutes, peak 4.4 GB)"
-	@$(BIN)/pip install --quiet -e '.[image]'
+	@PYTHONWARNINGS="ignore:Editable installation" $(BIN)/pip install --quiet -e '.[image]'
 	@touch $(IMAGE)
 
 # The paper scenario through every stage: deposition, descriptors, voxel mesh; then a
@@ -65,9 +69,9 @@ bench: $(STAMP)
 # README's picture of the reference stack and its mesh (docs/stack-and-mesh.png, from
 # runs/paper-squares: run as `make run` runs it if missing, else reused).
 docs: $(STAMP)
-	$(BIN)/python -m pipeline.reference
-	$(BIN)/python -m pipeline.measured
-	$(BIN)/python -m pipeline.picture
+	$(BIN)/python -m chipstack.pipeline.reference
+	$(BIN)/python -m chipstack.pipeline.measured
+	$(BIN)/python -m chipstack.pipeline.picture
 
 clean:
 	rm -rf $(VENV) runs

@@ -48,12 +48,12 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import t as student
 
-from core import scenario_to_dict
-from core.provenance import code_versions
-from packing import deposit
-from packing.fill import container_fill
-from packing.stage import STAGE as PACKING
-from pipeline.scenario_files import load_scenario
+from chipstack.core import scenario_to_dict
+from chipstack.core.provenance import code_versions
+from chipstack.packing import deposit
+from chipstack.packing.fill import container_fill
+from chipstack.packing.stage import STAGE as PACKING
+from chipstack.pipeline.scenario_files import load_scenario
 
 # The paper's model (mean ± sd over 10 repeats) and Freeman et al. 2019 (measured, about).
 PAPER = {10: (0.286, 0.0052), 25: (0.148, 0.0026)}

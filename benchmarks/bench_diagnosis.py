@@ -55,13 +55,13 @@ from pathlib import Path
 import numpy as np
 from calibration_study import cached, current, part_header, rate, strength_record, study_main
 
-from diagnosis.drops import diagnose_drops
-from diagnosis.spec import DropData, load_experiment
-from diagnosis.synth import synthesize_drops
-from packing.effects import EFFECTS
-from pipeline.execution import Executor
-from pipeline.scenario_files import load_scenario
-from pipeline.tables import DirectoryStore
+from chipstack.diagnosis.drops import diagnose_drops
+from chipstack.diagnosis.spec import DropData, load_experiment
+from chipstack.diagnosis.synth import synthesize_drops
+from chipstack.packing.effects import EFFECTS
+from chipstack.pipeline.execution import Executor
+from chipstack.pipeline.scenario_files import load_scenario
+from chipstack.pipeline.tables import DirectoryStore
 
 RESULTS = Path(__file__).resolve().parent / "results" / "diagnosis"
 # The reference tables (simulated pools and trained model choices) the study's cases
@@ -418,8 +418,8 @@ def true_shifts(plan: dict, experiment) -> list[tuple[str, int]]:
     observables that its simulation (``TRUTH_DROPS`` drops per condition, the same
     random draws with and without it) moves in some condition by at least the sd of the
     observable's difference between two effect-free experiments of the case's size."""
-    from diagnosis.drops import simulate_condition
-    from diagnosis.observables import drop_observables, observable_names, symmetry_order
+    from chipstack.diagnosis.drops import simulate_condition
+    from chipstack.diagnosis.observables import drop_observables, observable_names, symmetry_order
 
     if plan["distortion"]:
         return [list(shift) for key in plan["distortion"] for shift in DISTORTION_SHIFTS[key]]
@@ -739,7 +739,7 @@ def _confusion(truth: list[str], best: list[str]) -> None:
 
 def record_figures(part: str) -> None:
     """The part's headline figures as data (``pipeline.measured``), for docs/measured.md."""
-    from pipeline.measured import record
+    from chipstack.pipeline.measured import record
 
     cases = cached(RESULTS, part, METHOD)
     if not cases:

@@ -32,9 +32,9 @@ import time
 from bench_diagnosis import METHOD, RESULT_FIELDS, RESULTS, _blind_data, _summary, case_plan
 from calibration_study import current
 
-from diagnosis.drops import diagnose_drops
-from pipeline.execution import Executor
-from pipeline.tables import DirectoryStore
+from chipstack.diagnosis.drops import diagnose_drops
+from chipstack.pipeline.execution import Executor
+from chipstack.pipeline.tables import DirectoryStore
 
 TARGET_S = 120.0  # the refit method's target (issue 35)
 FIRST_TARGET_S = 600.0  # amortised: the first diagnosis of a design, its table included

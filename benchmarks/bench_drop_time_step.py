@@ -22,9 +22,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from packing.drop import DropProtocol, simulate_drops
-from pipeline.execution import Executor
-from pipeline.scenario_files import load_scenario
+from chipstack.packing.drop import DropProtocol, simulate_drops
+from chipstack.pipeline.execution import Executor
+from chipstack.pipeline.scenario_files import load_scenario
 
 BOOTSTRAP = 400
 

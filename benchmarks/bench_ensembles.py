@@ -20,11 +20,11 @@ import tempfile
 import time
 from pathlib import Path
 
-from packing import scenario_from_dict
-from pipeline.ensemble import run_ensemble
-from pipeline.execution import Executor
-from pipeline.measured import record
-from pipeline.run import compute_run, derive_seed
+from chipstack.packing import scenario_from_dict
+from chipstack.pipeline.ensemble import run_ensemble
+from chipstack.pipeline.execution import Executor
+from chipstack.pipeline.measured import record
+from chipstack.pipeline.run import compute_run, derive_seed
 
 
 def ensemble_seconds(workers: int) -> float:

@@ -16,9 +16,9 @@ import argparse
 import statistics
 import time
 
-from geometry import arrangements_from_stack, describe
-from packing import deposit, scenario_from_dict
-from pipeline.measured import record
+from chipstack.geometry import arrangements_from_stack, describe
+from chipstack.packing import deposit, scenario_from_dict
+from chipstack.pipeline.measured import record
 
 PAPER_S = 210.0
 

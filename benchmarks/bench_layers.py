@@ -71,8 +71,8 @@ def physics_of(variant: str) -> dict:
 
 
 def one_stack(variant: str, seed: int) -> dict:
-    from geometry.layers import layer_counts
-    from packing import deposit, scenario_from_dict
+    from chipstack.geometry.layers import layer_counts
+    from chipstack.packing import deposit, scenario_from_dict
 
     start = time.perf_counter()
     stack = deposit(scenario_from_dict({"seed": seed, "physics": physics_of(variant)}))

@@ -34,11 +34,11 @@ from pathlib import Path
 
 import numpy as np
 
-from core.arrangement import arrangements_from_stack
-from geometry.contacts import find_contacts
-from geometry.rays import ray_maps
-from packing import deposit
-from pipeline.scenario_files import load_scenario
+from chipstack.core.arrangement import arrangements_from_stack
+from chipstack.geometry.contacts import find_contacts
+from chipstack.geometry.rays import ray_maps
+from chipstack.packing import deposit
+from chipstack.pipeline.scenario_files import load_scenario
 
 RESULTS = Path(__file__).parent / "results" / "mat"
 PAPER_FRACTION, PAPER_CONTACTS = 6.68, (2169, 24)

@@ -49,13 +49,13 @@ kind, pore = sys.argv[2], sys.argv[3]
 result = {"kind": kind, "pore_space": pore}
 start = time.perf_counter()
 if kind == "voxel":
-    from meshing import voxel_mesh
+    from chipstack.meshing import voxel_mesh
     mesh = voxel_mesh(arrangement, 0.5)
     result.update(elements=mesh.n_elements, seconds=time.perf_counter() - start)
 elif kind == "image":
-    from geometry.contacts import KINDS, find_contacts
-    from meshing import MeshingError, check_mesh
-    from meshing.image import image_mesh
+    from chipstack.geometry.contacts import KINDS, find_contacts
+    from chipstack.meshing import MeshingError, check_mesh
+    from chipstack.meshing.image import image_mesh
     voxel, optimise = float(sys.argv[4]), sys.argv[5] == "1"
     try:
         mesh = image_mesh(arrangement, voxel, 1.5, pore, optimise=optimise, seed=0)
@@ -84,9 +84,9 @@ elif kind == "image":
         result["error"] = str(exc)
     result["seconds"] = time.perf_counter() - start
 else:
-    from geometry.contacts import KINDS, find_contacts
-    from geometry.resolve import UnresolvedError, resolve_contacts
-    from meshing import MeshingError, check_mesh, conformal_mesh
+    from chipstack.geometry.contacts import KINDS, find_contacts
+    from chipstack.geometry.resolve import UnresolvedError, resolve_contacts
+    from chipstack.meshing import MeshingError, check_mesh, conformal_mesh
     before = find_contacts(arrangement)
     # As the conformal kind does: line contacts touching for a mesh of the chips alone,
     # cleared by the gap when the resolution or the mesh fails (or with the pore space).
@@ -95,12 +95,12 @@ else:
     # only the chips that can reach into it, as the conformal kind does.
     half = float(sys.argv[6])
     region = (-half, half, -half, half) if half > 0 else None
-    from meshing.kinds import pore_gap_mm
-    from meshing.sections import MeshSpec
+    from chipstack.meshing.kinds import pore_gap_mm
+    from chipstack.meshing.sections import MeshSpec
     gap = MeshSpec().gap_mm if pore == "none" else pore_gap_mm(MeshSpec(), arrangement)
     def attempt(touching):
-        from geometry.resolve import resolve_chips
-        from meshing.conformal import chips_near
+        from chipstack.geometry.resolve import resolve_chips
+        from chipstack.meshing.conformal import chips_near
         if region is None:
             resolution = resolve_contacts(
                 arrangement, gap, contacts=before, touching_lines=touching
@@ -258,9 +258,9 @@ def main() -> None:
     )
     parser.add_argument("--no-record", action="store_true", help="do not record the figures")
     args = parser.parse_args()
-    from geometry import arrangements_from_stack
-    from packing import deposit, scenario_from_dict
-    from pipeline.scenario_files import load_scenario
+    from chipstack.geometry import arrangements_from_stack
+    from chipstack.packing import deposit, scenario_from_dict
+    from chipstack.pipeline.scenario_files import load_scenario
 
     # The reference stack as the benchmarks have always built it (the packing of the
     # built-in paper-squares file is the same; its name and mesh settings are not).
@@ -308,7 +308,7 @@ def main() -> None:
 def record_figures(args, measured: list[tuple[int, dict]]) -> None:
     """The voxel mesh's time, the conformal route's worst time over the seeds and each
     valid image mesh's time, as data (pipeline.measured)."""
-    from pipeline.measured import record
+    from chipstack.pipeline.measured import record
 
     command = "python " + " ".join(["benchmarks/bench_meshing.py", *sys.argv[1:]])
     stack = f"the {args.scenario} stack" if args.scenario else "the reference stack"

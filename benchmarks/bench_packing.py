@@ -32,8 +32,8 @@ import sys
 import time
 from pathlib import Path
 
-from packing import deposit, scenario_from_dict
-from pipeline.measured import record
+from chipstack.packing import deposit, scenario_from_dict
+from chipstack.pipeline.measured import record
 
 COMMAND = "python benchmarks/bench_packing.py"
 
@@ -149,7 +149,7 @@ RESULTS = Path(__file__).parent / "results" / "conveyor"
 def panel_line(chips: int):
     """The line of a 440 x 540 mm panel: the paper's chips at the paper stack's areal
     density (0.012 chips/mm^2), a belt 540 mm wide at 20 mm/s, so 136 chips/s."""
-    from core.schema import scenario_from_dict
+    from chipstack.core.schema import scenario_from_dict
 
     return scenario_from_dict(
         {
@@ -169,7 +169,7 @@ def panel_line(chips: int):
 
 
 def one_mat(chips: int) -> dict:
-    from packing.conveyor import pour_mat
+    from chipstack.packing.conveyor import pour_mat
 
     start = time.perf_counter()
     mat = pour_mat(panel_line(chips)).mat

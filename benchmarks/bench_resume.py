@@ -42,7 +42,16 @@ ARGS = ["--to", "mesh", "--formats", "vtu,inp", "--quiet"]
 
 
 def _command(scenario: Path, out: Path) -> list[str]:
-    return [sys.executable, "-m", "pipeline", "run", str(scenario), "--out", str(out), *ARGS]
+    return [
+        sys.executable,
+        "-m",
+        "chipstack.pipeline",
+        "run",
+        str(scenario),
+        "--out",
+        str(out),
+        *ARGS,
+    ]
 
 
 def _files(run: Path) -> dict[str, bytes]:
@@ -116,7 +125,7 @@ def main() -> None:
     print(f"{matched} of {args.kills} interrupted runs matched the uninterrupted one bit for bit")
     shutil.rmtree(root)
     if not args.no_record and args.kills:
-        from pipeline.measured import record
+        from chipstack.pipeline.measured import record
 
         record(
             "reliability",

@@ -32,11 +32,11 @@ from pathlib import Path
 import numpy as np
 from calibration_study import cached, part_header, rate, strength_record, study_main
 
-from diagnosis.spec import QuantityData, load_experiment
-from diagnosis.stacks import diagnose_stacks, synthesize_quantities
-from packing.effects import EFFECTS
-from pipeline.execution import Executor
-from pipeline.scenario_files import load_scenario
+from chipstack.diagnosis.spec import QuantityData, load_experiment
+from chipstack.diagnosis.stacks import diagnose_stacks, synthesize_quantities
+from chipstack.packing.effects import EFFECTS
+from chipstack.pipeline.execution import Executor
+from chipstack.pipeline.scenario_files import load_scenario
 
 RESULTS = Path(__file__).resolve().parent / "results" / "diagnosis-stacks"
 STACK_EFFECTS = tuple(n for n in EFFECTS.names() if "stack" in EFFECTS.get(n).kinds)

@@ -16,9 +16,14 @@ from pathlib import Path
 
 from bench_diagnosis import DROP_EFFECTS, case_plan, spec_text
 
-from diagnosis.reference_table import NO_EFFECT, MemoryStore, ReferenceTable, simulate_pool
-from diagnosis.spec import load_experiment
-from pipeline.scenario_files import load_scenario
+from chipstack.diagnosis.reference_table import (
+    NO_EFFECT,
+    MemoryStore,
+    ReferenceTable,
+    simulate_pool,
+)
+from chipstack.diagnosis.spec import load_experiment
+from chipstack.pipeline.scenario_files import load_scenario
 
 
 def main() -> int:
@@ -52,7 +57,7 @@ def main() -> int:
         "diagnosis, table included: <= 10 min)"
     )
     if args.record:
-        from pipeline.measured import record
+        from chipstack.pipeline.measured import record
 
         record(
             "diagnosis",

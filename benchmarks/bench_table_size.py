@@ -18,11 +18,11 @@ from pathlib import Path
 import numpy as np
 from bench_diagnosis import DROP_EFFECTS, TABLES, case_plan, spec_text
 
-from diagnosis.model_choice import _counts, _cross_validated, _Design
-from diagnosis.observables import symmetry_order
-from diagnosis.reference_table import NO_EFFECT, ReferenceTable
-from diagnosis.spec import load_experiment
-from pipeline.scenario_files import load_scenario
+from chipstack.diagnosis.model_choice import _counts, _cross_validated, _Design
+from chipstack.diagnosis.observables import symmetry_order
+from chipstack.diagnosis.reference_table import NO_EFFECT, ReferenceTable
+from chipstack.diagnosis.spec import load_experiment
+from chipstack.pipeline.scenario_files import load_scenario
 
 SIZES = [(200, 8), (200, 16), (100, 8), (100, 16), (50, 8), (50, 16)]
 SEEDS = (0, 1)  # forest seeds averaged (the folds follow the seed too)
@@ -64,7 +64,7 @@ def main() -> int:
             flush=True,
         )
     if args.record:
-        from pipeline.measured import record
+        from chipstack.pipeline.measured import record
 
         for pool_drops, pools, datasets, accuracy in rows:
             record(

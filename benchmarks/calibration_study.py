@@ -13,7 +13,7 @@ from pathlib import Path
 
 from scipy.stats import binomtest
 
-from pipeline.execution import Executor
+from chipstack.pipeline.execution import Executor
 
 
 def rate(hits: int, n: int) -> str:

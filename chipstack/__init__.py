@@ -18,32 +18,16 @@ See :func:`run` for a whole run, and ``docs/python.md`` for a tutorial.
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
+from typing import TYPE_CHECKING
 
-# The project's own top-level packages (their names are generic: a module of the user's
-# called ``core`` or ``pipeline`` found first on sys.path would shadow them).
-_OWN = ("core", "export", "packing", "geometry", "meshing", "diagnosis", "pipeline")
+from chipstack.core.lazy import lazy_package
 
-
-def _check_own_packages() -> None:
-    """Refuse, at import, a module of someone else's that shadows one of ours, naming it
-    (instead of an AttributeError deep inside a run)."""
-    home = Path(__file__).resolve().parent.parent
-    for name in _OWN:
-        spec = importlib.util.find_spec(name)
-        origin = spec.origin if spec is not None else None
-        if origin is None or Path(origin).resolve().parent.parent != home:
-            found = origin or "nothing importable"
-            raise ImportError(
-                f"chipstack: the module {name!r} found first on sys.path is {found}, not "
-                f"chipstack's own ({home / name}); rename your module {name!r} or take its "
-                "folder off sys.path"
-            )
-
-
-_check_own_packages()
-
-from chipstack.api import Run, load_scenario, open_run, run, scenarios  # noqa: E402
+if TYPE_CHECKING:
+    from chipstack.api import Run, load_scenario, open_run, run, scenarios
 
 __all__ = ["Run", "load_scenario", "open_run", "run", "scenarios"]
+
+# The API is imported on first use: importing any package of the project
+# (``chipstack.core``, ``chipstack.packing``...) runs this file first, and must not bring
+# the command line and the stages with it.
+lazy_package(__name__, {name: "chipstack.api" for name in __all__})

@@ -14,10 +14,10 @@ from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from core.errors import InputError, brief, printable
-from core.schema import MAX_SEED, Scenario
-from pipeline.scenario_files import builtin_names, with_overrides
-from pipeline.scenario_files import load_scenario as _load_file
+from chipstack.core.errors import InputError, brief, printable
+from chipstack.core.schema import MAX_SEED, Scenario
+from chipstack.pipeline.scenario_files import builtin_names, with_overrides
+from chipstack.pipeline.scenario_files import load_scenario as _load_file
 
 if TYPE_CHECKING:
     import meshio
@@ -25,7 +25,7 @@ if TYPE_CHECKING:
     import pandas as pd
     import pyvista as pv
 
-    from core.stack import Stack
+    from chipstack.core.stack import Stack
 
 __all__ = ["Run", "load_scenario", "open_run", "run", "scenarios"]
 
@@ -85,7 +85,7 @@ def load_scenario(
     >>> chipstack.load_scenario("paper-squares", {"deposition.chipz": 3})
     Traceback (most recent call last):
     ...
-    core.errors.InputError: deposition.chipz: no such scenario key (see docs/scenarios.md)
+    chipstack.core.errors.InputError: deposition.chipz: no such scenario key (see docs/scenarios.md)
     """
     scenario = source if isinstance(source, Scenario) else _load_file(source)
     if overrides:
@@ -160,7 +160,7 @@ def run(
     >>> sorted(result.mesh().cell_data)[:3]
     ['batch', 'chip', 'fibre_1']
     """
-    from pipeline.run import run_pipeline
+    from chipstack.pipeline.run import run_pipeline
 
     resolved = load_scenario(scenario, overrides, seed)
     path = Path(out) if out is not None else Path(f"runs/{resolved.name}-seed{resolved.seed}")
@@ -200,7 +200,7 @@ def open_run(path: str | Path) -> Run:
     >>> chipstack.open_run("no/such/run")
     Traceback (most recent call last):
     ...
-    core.errors.InputError: no/such/run: not a finished run directory (no manifest.json)
+    chipstack.core.errors.InputError: no/such/run: not a finished run directory (no manifest.json)
     """
     return Run(Path(path))
 
@@ -233,7 +233,7 @@ class Run:
                 raise InputError(
                     f"{printable(path)}: not a finished run directory (no manifest.json)"
                 )
-            from core.files import read_json
+            from chipstack.core.files import read_json
 
             _manifest = read_json(manifest, "manifest")
         self._manifest = _manifest
@@ -293,7 +293,7 @@ class Run:
         shapes, batches, poses and contacts after every batch)."""
         if self._given_stack is not None:
             return self._given_stack
-        from packing.stage import STAGE
+        from chipstack.packing.stage import STAGE
 
         stack = STAGE.load(self._folder("packing"), self.scenario)
         if stack is None:
@@ -345,7 +345,7 @@ class Run:
     def description(self) -> dict[str, Any]:
         """``geometry/descriptors.json`` as written: every descriptor's scalars (value,
         unit, doc) and profiles."""
-        from core.files import read_json
+        from chipstack.core.files import read_json
 
         return read_json(self._folder("geometry") / "descriptors.json", "descriptors")
 

@@ -3,10 +3,10 @@ registry mechanism and the stage mechanism. It imports no stage package."""
 
 import logging
 
-from core.errors import ChipstackError, InputError, SimulationError, printable
-from core.registry import Registry
-from core.schema import Scenario, scenario_from_dict, scenario_to_dict
-from core.stages import Stage, StageInputs, StageOptions, StageOutput, load_stages
+from chipstack.core.errors import ChipstackError, InputError, SimulationError, printable
+from chipstack.core.registry import Registry
+from chipstack.core.schema import Scenario, scenario_from_dict, scenario_to_dict
+from chipstack.core.stages import Stage, StageInputs, StageOptions, StageOutput, load_stages
 
 __all__ = [
     "ChipstackError",

@@ -8,8 +8,8 @@ from functools import cached_property
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from core.chipshape import ChipShape
-from core.errors import InputError
+from chipstack.core.chipshape import ChipShape
+from chipstack.core.errors import InputError
 
 __all__ = ["Arrangement", "arrangements_from_stack", "stack_history", "MAX_COORDINATE_MM"]
 

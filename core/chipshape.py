@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core.schema import ChipSpec
+from chipstack.core.schema import ChipSpec
 
 __all__ = ["ChipShape", "DEFAULT_FIBRES_DEG"]
 

@@ -17,7 +17,7 @@ import os
 import struct
 from pathlib import Path
 
-from core.errors import InputError, brief, printable
+from chipstack.core.errors import InputError, brief, printable
 
 __all__ = [
     "MAX_TEXT_BYTES",

@@ -2,7 +2,7 @@
 
 The stage registry imports every stage module, hence its package's ``__init__``, at each
 command-line start; a package that re-exported its numerical modules eagerly would make
-even ``python -m pipeline --help`` import numpy, scipy, pybullet and gmsh (over a second).
+even ``python -m chipstack.pipeline --help`` import numpy, scipy, pybullet and gmsh (over a second).
 """
 
 from __future__ import annotations

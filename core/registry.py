@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from typing import Generic, TypeVar
 
-from core.errors import InputError
+from chipstack.core.errors import InputError
 
 T = TypeVar("T")
 

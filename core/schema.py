@@ -21,8 +21,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
-from core.errors import InputError, brief, printable
-from core.stages import load_stages
+from chipstack.core.errors import InputError, brief, printable
+from chipstack.core.stages import load_stages
 
 __all__ = [
     "ChipSpec",

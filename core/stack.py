@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core.chipshape import ChipShape
+from chipstack.core.chipshape import ChipShape
 
 __all__ = ["BatchResult", "Stack"]
 

@@ -19,11 +19,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
 
-from core.errors import InputError, printable
-from core.registry import Registry
+from chipstack.core.errors import InputError, printable
+from chipstack.core.registry import Registry
 
 if TYPE_CHECKING:
-    from core.schema import Scenario
+    from chipstack.core.schema import Scenario
 
 __all__ = [
     "Stage",

@@ -3,12 +3,12 @@ unmodelled effect causes it, and how much of the gap that effect closes on held-
 
 from typing import TYPE_CHECKING
 
-from core.lazy import lazy_package
+from chipstack.core.lazy import lazy_package
 
 if TYPE_CHECKING:
-    from diagnosis.drops import diagnose_drops, simulate_condition
-    from diagnosis.spec import Experiment, load_experiment, read_drop_observations
-    from diagnosis.synth import synthesize_drops
+    from chipstack.diagnosis.drops import diagnose_drops, simulate_condition
+    from chipstack.diagnosis.spec import Experiment, load_experiment, read_drop_observations
+    from chipstack.diagnosis.synth import synthesize_drops
 
 __all__ = [
     "Experiment",
@@ -24,11 +24,11 @@ __all__ = [
 lazy_package(
     __name__,
     {
-        "diagnose_drops": "diagnosis.drops",
-        "simulate_condition": "diagnosis.drops",
-        "Experiment": "diagnosis.spec",
-        "load_experiment": "diagnosis.spec",
-        "read_drop_observations": "diagnosis.spec",
-        "synthesize_drops": "diagnosis.synth",
+        "diagnose_drops": "chipstack.diagnosis.drops",
+        "simulate_condition": "chipstack.diagnosis.drops",
+        "Experiment": "chipstack.diagnosis.spec",
+        "load_experiment": "chipstack.diagnosis.spec",
+        "read_drop_observations": "chipstack.diagnosis.spec",
+        "synthesize_drops": "chipstack.diagnosis.synth",
     },
 )

@@ -15,19 +15,19 @@ from collections.abc import Callable
 
 import numpy as np
 
-from diagnosis.drop_simulations import Dataset, DropSimulations
-from diagnosis.drop_where import locate_gap
-from diagnosis.model import DropData
-from diagnosis.model_choice import (
+from chipstack.diagnosis.drop_simulations import Dataset, DropSimulations
+from chipstack.diagnosis.drop_where import locate_gap
+from chipstack.diagnosis.model import DropData
+from chipstack.diagnosis.model_choice import (
     ModelChoice,
     build_model_choice,
     design_summaries,
     next_experiment,
 )
-from diagnosis.reference_table import ReferenceTable, TableStore, pool_drops_for
-from diagnosis.statistics import interval
-from diagnosis.verdicts import off_text, percent
-from packing.effects import EFFECTS
+from chipstack.diagnosis.reference_table import ReferenceTable, TableStore, pool_drops_for
+from chipstack.diagnosis.statistics import interval
+from chipstack.diagnosis.verdicts import off_text, percent
+from chipstack.packing.effects import EFFECTS
 
 __all__ = ["choose_effect", "describe_design"]
 

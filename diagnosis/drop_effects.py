@@ -28,19 +28,19 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.stats import ttest_1samp
 
-from diagnosis.drop_separation import separating_releases
-from diagnosis.drop_simulations import (
+from chipstack.diagnosis.drop_separation import separating_releases
+from chipstack.diagnosis.drop_simulations import (
     CALIBRATION_POOL,
     NOISE_POOL,
     TILT_GRID_DEG,
     Dataset,
     DropSimulations,
 )
-from diagnosis.drop_where import energy_test
-from diagnosis.ranking import effect_entry, held_out_reduction
-from diagnosis.statistics import bootstrap_z_p, combined_p, holm, interval
-from diagnosis.verdicts import applicable_effects, how_far
-from packing.effects import EFFECTS
+from chipstack.diagnosis.drop_where import energy_test
+from chipstack.diagnosis.ranking import effect_entry, held_out_reduction
+from chipstack.diagnosis.statistics import bootstrap_z_p, combined_p, holm, interval
+from chipstack.diagnosis.verdicts import applicable_effects, how_far
+from chipstack.packing.effects import EFFECTS
 
 __all__ = [
     "TILT_GRID_DEG",

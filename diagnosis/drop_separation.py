@@ -31,9 +31,9 @@ from dataclasses import replace
 import numpy as np
 from scipy.stats import norm
 
-from diagnosis.drop_simulations import DropSimulations
-from diagnosis.observables import FeatureMetric
-from diagnosis.statistics import energy_distance, mean_cross, mean_within
+from chipstack.diagnosis.drop_simulations import DropSimulations
+from chipstack.diagnosis.observables import FeatureMetric
+from chipstack.diagnosis.statistics import energy_distance, mean_cross, mean_within
 
 __all__ = [
     "CANDIDATE_HEIGHTS_MM",

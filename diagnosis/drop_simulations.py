@@ -13,12 +13,22 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from diagnosis.model import DropData, Experiment
-from diagnosis.observables import FeatureMetric, drop_features, drop_observables, symmetry_order
-from diagnosis.reference_table import TableStore, simulation_key
-from diagnosis.statistics import energy_distance, mean_cross, mean_within, resample_weights
-from packing.effects import EFFECTS, contact_model
-from packing.presets import PRESETS
+from chipstack.diagnosis.model import DropData, Experiment
+from chipstack.diagnosis.observables import (
+    FeatureMetric,
+    drop_features,
+    drop_observables,
+    symmetry_order,
+)
+from chipstack.diagnosis.reference_table import TableStore, simulation_key
+from chipstack.diagnosis.statistics import (
+    energy_distance,
+    mean_cross,
+    mean_within,
+    resample_weights,
+)
+from chipstack.packing.effects import EFFECTS, contact_model
+from chipstack.packing.presets import PRESETS
 
 __all__ = ["CALIBRATION_POOL", "Dataset", "DropSimulations", "NOISE_POOL"]
 

@@ -32,11 +32,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from diagnosis.drop_simulations import Dataset, DropSimulations
-from diagnosis.model import DropData
-from diagnosis.observables import anisotropy
-from diagnosis.ranking import adjust_tests
-from diagnosis.statistics import (
+from chipstack.diagnosis.drop_simulations import Dataset, DropSimulations
+from chipstack.diagnosis.model import DropData
+from chipstack.diagnosis.observables import anisotropy
+from chipstack.diagnosis.ranking import adjust_tests
+from chipstack.diagnosis.statistics import (
     PERMUTATIONS,
     energy_statistics,
     exceedance_p,

@@ -35,16 +35,16 @@ from collections.abc import Callable
 
 import numpy as np
 
-from core.schema import Scenario
-from diagnosis.drop_choice import choose_effect
-from diagnosis.drop_effects import TILT_GRID_DEG, EffectRanking, Fold, how_far_best
-from diagnosis.drop_simulations import Dataset, DropSimulations
-from diagnosis.drop_where import locate_gap
-from diagnosis.model import DropData, Experiment
-from diagnosis.observables import DROP_OBSERVABLES, observable_names
-from diagnosis.reference_table import NO_EFFECT, MemoryStore, TableStore
-from diagnosis.verdicts import applicable_effects, effect_verdict, off_text
-from packing.drop import DropProtocol, simulate_drops
+from chipstack.core.schema import Scenario
+from chipstack.diagnosis.drop_choice import choose_effect
+from chipstack.diagnosis.drop_effects import TILT_GRID_DEG, EffectRanking, Fold, how_far_best
+from chipstack.diagnosis.drop_simulations import Dataset, DropSimulations
+from chipstack.diagnosis.drop_where import locate_gap
+from chipstack.diagnosis.model import DropData, Experiment
+from chipstack.diagnosis.observables import DROP_OBSERVABLES, observable_names
+from chipstack.diagnosis.reference_table import NO_EFFECT, MemoryStore, TableStore
+from chipstack.diagnosis.verdicts import applicable_effects, effect_verdict, off_text
+from chipstack.packing.drop import DropProtocol, simulate_drops
 
 __all__ = ["diagnose_drops", "simulate_condition", "TILT_GRID_DEG"]
 

@@ -10,9 +10,9 @@ from pathlib import Path
 
 import numpy as np
 
-from core.schema import Scenario
-from packing.drop import DropProtocol
-from packing.effects import EFFECTS
+from chipstack.core.schema import Scenario
+from chipstack.packing.drop import DropProtocol
+from chipstack.packing.effects import EFFECTS
 
 __all__ = ["Condition", "DiagnosisSettings", "DropData", "Experiment", "QuantityData"]
 

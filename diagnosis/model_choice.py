@@ -43,8 +43,8 @@ from sklearn.model_selection import StratifiedGroupKFold
 from sklearn.neighbors import NearestNeighbors
 from sklearn.preprocessing import StandardScaler
 
-from diagnosis.model import DropData, Experiment
-from diagnosis.reference_table import (
+from chipstack.diagnosis.model import DropData, Experiment
+from chipstack.diagnosis.reference_table import (
     DEFAULT_POOL_DROPS,
     NO_EFFECT,
     ReferenceTable,
@@ -52,8 +52,8 @@ from diagnosis.reference_table import (
     TableStore,
     pool_drops_for,
 )
-from diagnosis.summaries import condition_summaries, summary_names
-from packing.effects import EFFECTS
+from chipstack.diagnosis.summaries import condition_summaries, summary_names
+from chipstack.packing.effects import EFFECTS
 
 __all__ = [
     "ModelChoice",
@@ -506,7 +506,7 @@ def _train(design: _Design, counts, models, seed, curve, progress) -> ModelChoic
         )
     tilts = {}
     if design.table.release_tilt == "fitted":
-        from diagnosis.reference_table import NUISANCE_TILT_DEG
+        from chipstack.diagnosis.reference_table import NUISANCE_TILT_DEG
 
         for k, m in enumerate(models):
             mine = y == k
@@ -621,8 +621,8 @@ def next_experiment(
     come from one setting."""
     from dataclasses import replace as _replace
 
-    from diagnosis.model import Condition
-    from packing.drop import DropProtocol
+    from chipstack.diagnosis.model import Condition
+    from chipstack.packing.drop import DropProtocol
 
     n = int(np.median(list(drops.values())))
     pool_drops = pool_drops_for(drops)

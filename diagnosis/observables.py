@@ -48,7 +48,7 @@ def symmetry_order(scenario) -> int:
     geometry's :attr:`~core.chipshape.ChipShape.plan_symmetry`: 4 for a square, 6 for
     a hexagon, 5 for a five-pointed star, 1 for an irregular polygon). It was read from
     the shape's name before, which gave a hexagon 4 and a star 2."""
-    from packing.shapes import make_shape
+    from chipstack.packing.shapes import make_shape
 
     return make_shape(scenario.chips[0], np.random.default_rng(scenario.seed)).plan_symmetry
 

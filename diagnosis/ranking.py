@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from diagnosis.statistics import holm, interval
-from packing.effects import EFFECTS
+from chipstack.diagnosis.statistics import holm, interval
+from chipstack.packing.effects import EFFECTS
 
 __all__ = ["adjust_tests", "effect_entry", "held_out_reduction"]
 

@@ -38,10 +38,10 @@ from typing import Protocol
 import numpy as np
 from scipy.stats import qmc
 
-from core.schema import scenario_to_dict
-from diagnosis.model import Experiment
-from packing.drop import DropProtocol, simulate_drops
-from packing.effects import EFFECTS
+from chipstack.core.schema import scenario_to_dict
+from chipstack.diagnosis.model import Experiment
+from chipstack.packing.drop import DropProtocol, simulate_drops
+from chipstack.packing.effects import EFFECTS
 
 __all__ = [
     "NO_EFFECT",

@@ -10,8 +10,8 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from diagnosis.drop_separation import MOST_DROPS
-from diagnosis.verdicts import percent
+from chipstack.diagnosis.drop_separation import MOST_DROPS
+from chipstack.diagnosis.verdicts import percent
 
 __all__ = ["write_diagnosis", "report_markdown"]
 

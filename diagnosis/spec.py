@@ -17,16 +17,28 @@ from typing import Any
 
 import numpy as np
 
-from core.errors import InputError
-from core.files import number, read_text
-from core.registry import Registry
-from core.schema import MAX_LENGTH_MM, Scenario, printable, scenario_from_dict, scenario_to_dict
+from chipstack.core.errors import InputError
+from chipstack.core.files import number, read_text
+from chipstack.core.registry import Registry
+from chipstack.core.schema import (
+    MAX_LENGTH_MM,
+    Scenario,
+    printable,
+    scenario_from_dict,
+    scenario_to_dict,
+)
 
 # The data model is re-exported: the diagnosis's readers and callers take it from here.
-from diagnosis.model import Condition, DiagnosisSettings, DropData, Experiment, QuantityData
-from packing.drop import DropProtocol
-from packing.effects import EFFECTS
-from packing.shapes import SHAPES
+from chipstack.diagnosis.model import (
+    Condition,
+    DiagnosisSettings,
+    DropData,
+    Experiment,
+    QuantityData,
+)
+from chipstack.packing.drop import DropProtocol
+from chipstack.packing.effects import EFFECTS
+from chipstack.packing.shapes import SHAPES
 
 __all__ = [
     "EXPERIMENT_KINDS",
@@ -522,12 +534,12 @@ class DropExperiment(ExperimentKind):
         return read_drop_observations(experiment)
 
     def diagnose(self, experiment, data, run_many, seed, progress=None, tables=None):
-        from diagnosis.drops import diagnose_drops
+        from chipstack.diagnosis.drops import diagnose_drops
 
         return diagnose_drops(experiment, data, run_many, seed, progress, tables=tables)
 
     def synthesize(self, experiment, strengths, seed, run_many, drops, measurements):
-        from diagnosis.synth import synthesize_drops
+        from chipstack.diagnosis.synth import synthesize_drops
 
         return synthesize_drops(experiment, strengths, seed, drops, run_many)
 
@@ -542,7 +554,7 @@ class QuantityExperiment(ExperimentKind):
         return _scenario_condition(entry, key, self.name, scenario, base, load_scenario)
 
     def read_observations(self, experiment):
-        from diagnosis.stacks import QUANTITIES
+        from chipstack.diagnosis.stacks import QUANTITIES
 
         return read_quantity_observations(experiment, tuple(QUANTITIES))
 
@@ -550,12 +562,12 @@ class QuantityExperiment(ExperimentKind):
         # A stack or container simulation costs seconds to minutes where a drop costs
         # milliseconds: a reference table of thousands of them is out of reach, so stacks
         # keep the refit method (``tables`` is not used).
-        from diagnosis.stacks import diagnose_stacks
+        from chipstack.diagnosis.stacks import diagnose_stacks
 
         return diagnose_stacks(experiment, data, run_many, seed, progress)
 
     def synthesize(self, experiment, strengths, seed, run_many, drops, measurements):
-        from diagnosis.stacks import synthesize_quantities
+        from chipstack.diagnosis.stacks import synthesize_quantities
 
         return synthesize_quantities(
             experiment, strengths, seed, run_many, measurements=measurements

@@ -11,14 +11,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from diagnosis.drop_effects import STRENGTH_RESOLUTION, vertex, within
-from diagnosis.ranking import effect_entry, held_out_reduction
-from diagnosis.statistics import bootstrap_p, holm, interval
-from diagnosis.verdicts import how_far
-from packing.effects import EFFECTS
+from chipstack.diagnosis.drop_effects import STRENGTH_RESOLUTION, vertex, within
+from chipstack.diagnosis.ranking import effect_entry, held_out_reduction
+from chipstack.diagnosis.statistics import bootstrap_p, holm, interval
+from chipstack.diagnosis.verdicts import how_far
+from chipstack.packing.effects import EFFECTS
 
 if TYPE_CHECKING:
-    from diagnosis.stacks import StackRuns, StackScores
+    from chipstack.diagnosis.stacks import StackRuns, StackScores
 
 __all__ = ["BOOTSTRAP", "StackEffectRanking", "StackFold", "how_far_best", "stack_folds"]
 

@@ -32,12 +32,12 @@ from collections.abc import Callable
 import numpy as np
 from scipy.stats import t as student_t
 
-from core.errors import InputError
-from core.registry import Registry
-from core.schema import Scenario
-from diagnosis.model import Experiment, QuantityData
-from diagnosis.ranking import adjust_tests
-from diagnosis.stack_effects import (
+from chipstack.core.errors import InputError
+from chipstack.core.registry import Registry
+from chipstack.core.schema import Scenario
+from chipstack.diagnosis.model import Experiment, QuantityData
+from chipstack.diagnosis.ranking import adjust_tests
+from chipstack.diagnosis.stack_effects import (
     BOOTSTRAP,
     StackEffectRanking,
     how_far_best,
@@ -45,11 +45,11 @@ from diagnosis.stack_effects import (
     stack_folds,
     strength_grid,
 )
-from diagnosis.statistics import holm
-from diagnosis.verdicts import applicable_effects, effect_verdict
-from packing.deposition import deposit
-from packing.effects import EFFECTS, contact_model
-from packing.presets import PRESETS
+from chipstack.diagnosis.statistics import holm
+from chipstack.diagnosis.verdicts import applicable_effects, effect_verdict
+from chipstack.packing.deposition import deposit
+from chipstack.packing.effects import EFFECTS, contact_model
+from chipstack.packing.presets import PRESETS
 
 __all__ = [
     "QUANTITIES",
@@ -90,7 +90,7 @@ for _k in range(MAX_LAYERS):
 
 def _container_quantities(scenario: Scenario, stack) -> dict:
     """A container fill's volume fraction and the chips inside it."""
-    from packing.fill import container_fill
+    from chipstack.packing.fill import container_fill
 
     volumes = np.array([stack.shapes[k].volume_mm3 for k in stack.shape_index])
     c = scenario.container
@@ -100,7 +100,7 @@ def _container_quantities(scenario: Scenario, stack) -> dict:
 
 def _stack_quantities(scenario: Scenario, stack) -> dict:
     """A stack's contacts per chip, heights, volume fraction and layer filling."""
-    from geometry import arrangements_from_stack, describe
+    from chipstack.geometry import arrangements_from_stack, describe
 
     description = describe(
         arrangements_from_stack(stack), scenario.geometry, ["contacts", "stack", "layers"]

@@ -33,7 +33,7 @@ import math
 import numpy as np
 from scipy.stats import combine_pvalues, norm
 
-from geometry.stats import holm
+from chipstack.geometry.stats import holm
 
 __all__ = [
     "PERMUTATIONS",

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from diagnosis.drops import simulate_condition
-from diagnosis.model import Experiment
-from packing.effects import check_effects
+from chipstack.diagnosis.drops import simulate_condition
+from chipstack.diagnosis.model import Experiment
+from chipstack.packing.effects import check_effects
 
 __all__ = ["synthesize_drops", "SYNTH_SEED_OFFSET"]
 

@@ -7,11 +7,11 @@ import math
 
 import numpy as np
 
-from core.errors import InputError
-from diagnosis.model import Experiment
-from diagnosis.observables import DROP_OBSERVABLES
-from packing.deposition import draw_shapes
-from packing.effects import EFFECTS, shaped
+from chipstack.core.errors import InputError
+from chipstack.diagnosis.model import Experiment
+from chipstack.diagnosis.observables import DROP_OBSERVABLES
+from chipstack.packing.deposition import draw_shapes
+from chipstack.packing.effects import EFFECTS, shaped
 
 __all__ = ["applicable_effects", "effect_verdict", "how_far", "off_text", "percent"]
 
@@ -162,7 +162,7 @@ def _still_off(conditions: list[dict], alpha: float, overall_p: float | None = N
     adjusting for their number would hide a gap that every one of them sees a little of.
     ``overall_p``: the overall combination calibrated by simulation (drops:
     ``drop_effects.calibrated_adequacy``), which decides in place of Fisher's."""
-    from diagnosis.statistics import combined_p, holm
+    from chipstack.diagnosis.statistics import combined_p, holm
 
     if overall_p is None:
         overall_p = combined_p([row["p_after"] for row in conditions]) if conditions else 1.0

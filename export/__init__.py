@@ -3,11 +3,11 @@ manager in :mod:`pipeline` decides where that is."""
 
 from typing import TYPE_CHECKING
 
-from core.lazy import lazy_package
+from chipstack.core.lazy import lazy_package
 
 if TYPE_CHECKING:
-    from export.tables import write_contacts_csv, write_poses_csv
-    from export.vtk import stack_polydata, write_pvd, write_stack_vtp
+    from chipstack.export.tables import write_contacts_csv, write_poses_csv
+    from chipstack.export.vtk import stack_polydata, write_pvd, write_stack_vtp
 
 __all__ = [
     "stack_polydata",
@@ -22,10 +22,10 @@ __all__ = [
 lazy_package(
     __name__,
     {
-        "stack_polydata": "export.vtk",
-        "write_contacts_csv": "export.tables",
-        "write_poses_csv": "export.tables",
-        "write_pvd": "export.vtk",
-        "write_stack_vtp": "export.vtk",
+        "stack_polydata": "chipstack.export.vtk",
+        "write_contacts_csv": "chipstack.export.tables",
+        "write_poses_csv": "chipstack.export.tables",
+        "write_pvd": "chipstack.export.vtk",
+        "write_stack_vtp": "chipstack.export.vtk",
     },
 )

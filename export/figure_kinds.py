@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from core.registry import Registry
+from chipstack.core.registry import Registry
 
 __all__ = [
     "FIGURES",
@@ -112,7 +112,7 @@ def draw_figures(subject: str, folder: Path, data: Any) -> list[str]:
 
 
 def _stack_view(folder: Path, arrangement) -> list[str]:
-    from export import figures, stack_polydata  # pyvista only when drawing
+    from chipstack.export import figures, stack_polydata  # pyvista only when drawing
 
     a = arrangement
     mesh = stack_polydata(a.shapes, a.shape_index, a.positions, a.quaternions, a.batch)
@@ -125,7 +125,7 @@ def _stack_view(folder: Path, arrangement) -> list[str]:
 
 
 def _drop_scatter(folder: Path, drops: DropScatter) -> list[str]:
-    from export.figures import plot_drops  # matplotlib only when drawing
+    from chipstack.export.figures import plot_drops  # matplotlib only when drawing
 
     plot_drops(folder / "fig15_drops.png", drops.xy, drops.statistics, drops.yaw_deg)
     return ["fig15_drops.png"]
@@ -134,14 +134,14 @@ def _drop_scatter(folder: Path, drops: DropScatter) -> list[str]:
 def _mat_profiles(folder: Path, record: Mapping[str, Any]) -> list[str]:
     if not (record["areal_weight"] and record["thickness"]):
         return []  # no steady part of the mat to draw
-    from export.figures import plot_mat
+    from chipstack.export.figures import plot_mat
 
     plot_mat(folder / "mat.png", record)
     return ["mat.png"]
 
 
 def _force_travel(folder: Path, compaction) -> list[str]:
-    from export.figures import plot_force_displacement
+    from chipstack.export.figures import plot_force_displacement
 
     plot_force_displacement(
         folder / "force_displacement.png", compaction.press_mm, compaction.force_n

@@ -31,7 +31,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Patch, Rectangle
 from matplotlib.ticker import MaxNLocator
 
-from core.errors import InputError
+from chipstack.core.errors import InputError
 
 __all__ = [
     "neh_colormap",

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from core.stack import BatchResult, Stack
+    from chipstack.core.stack import BatchResult, Stack
 
 
 def fmt(value: float, digits: int = 6) -> str:

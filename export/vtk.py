@@ -10,7 +10,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 if TYPE_CHECKING:
-    from core.chipshape import ChipShape
+    from chipstack.core.chipshape import ChipShape
 
 
 def stack_polydata(

@@ -6,11 +6,11 @@ given as one :class:`Arrangement` per deposited batch.
 
 from typing import TYPE_CHECKING
 
-from core.lazy import lazy_package
+from chipstack.core.lazy import lazy_package
 
 if TYPE_CHECKING:
-    from core.arrangement import Arrangement, arrangements_from_stack
-    from geometry.describe import DESCRIPTORS, Description, describe
+    from chipstack.core.arrangement import Arrangement, arrangements_from_stack
+    from chipstack.geometry.describe import DESCRIPTORS, Description, describe
 
 __all__ = ["Arrangement", "DESCRIPTORS", "Description", "arrangements_from_stack", "describe"]
 
@@ -19,10 +19,10 @@ __all__ = ["Arrangement", "DESCRIPTORS", "Description", "arrangements_from_stack
 lazy_package(
     __name__,
     {
-        "Arrangement": "core.arrangement",
-        "arrangements_from_stack": "core.arrangement",
-        "DESCRIPTORS": "geometry.describe",
-        "Description": "geometry.describe",
-        "describe": "geometry.describe",
+        "Arrangement": "chipstack.core.arrangement",
+        "arrangements_from_stack": "chipstack.core.arrangement",
+        "DESCRIPTORS": "chipstack.geometry.describe",
+        "Description": "chipstack.geometry.describe",
+        "describe": "chipstack.geometry.describe",
     },
 )

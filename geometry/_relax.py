@@ -33,7 +33,7 @@ import numpy as np
 import scipy.sparse as sparse
 from scipy.spatial.transform import Rotation
 
-from geometry.contacts import GROUND, candidate_pairs
+from chipstack.geometry.contacts import GROUND, candidate_pairs
 
 log = logging.getLogger(__name__)
 
@@ -96,7 +96,7 @@ def relax(
     """Resolve every chip at once. Returns (rotations, positions, surface contacts kept
     as (chip, partner) with partner -1 for the conveyor, surface contacts let go) or None
     when the lower bounds cannot all be met."""
-    from geometry import _rigid as r
+    from chipstack.geometry import _rigid as r
 
     n = arrangement.n_chips
     pieces = [r._pieces(s) for s in arrangement.shapes]
@@ -444,7 +444,7 @@ def _violation(row) -> float:
 
 
 def _metric(rotations, inertia, weights):
-    from geometry import _rigid as r
+    from chipstack.geometry import _rigid as r
 
     blocks = []
     for k in range(len(rotations)):
@@ -609,7 +609,7 @@ def _surface_rows(worlds, chip, partner, face_a, face_b):
 
 
 def _floor_rows(world, chip, rule):
-    from geometry import _rigid as r
+    from chipstack.geometry import _rigid as r
 
     up = np.array([0.0, 0.0, 1.0])
     out = []
@@ -640,7 +640,7 @@ def _floor_rows(world, chip, rule):
 def _pair_rows(worlds, a, b, rule, chosen, piece_gaps):
     """Rows of a pair of chips along its separating axes (see resolve._near_features);
     ``piece_gaps``: the pair's entry of :func:`geometry._rigid._batched_axis_gaps`."""
-    from geometry import _rigid as r
+    from chipstack.geometry import _rigid as r
 
     wa, wb = worlds[a], worlds[b]
     candidates = []
@@ -738,7 +738,7 @@ def _qp(rows, total, metric, positions, n, radius):
     region; None when the programme fails."""
     import clarabel
 
-    from geometry import _rigid as r
+    from chipstack.geometry import _rigid as r
 
     rows = _reachable(rows, positions, radius)
     m = len(rows)

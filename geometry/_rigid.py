@@ -9,8 +9,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from geometry.contacts import GROUND, KINDS, ContactTable
-from geometry.solids import shape_pieces
+from chipstack.geometry.contacts import GROUND, KINDS, ContactTable
+from chipstack.geometry.solids import shape_pieces
 
 _SURFACE = KINDS.index("surface")
 _LINE = KINDS.index("line")

@@ -22,9 +22,9 @@ import manifold3d as m3
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
-from core.arrangement import Arrangement
-from core.errors import InputError
-from geometry.solids import chip_solid
+from chipstack.core.arrangement import Arrangement
+from chipstack.core.errors import InputError
+from chipstack.geometry.solids import chip_solid
 
 __all__ = [
     "KINDS",

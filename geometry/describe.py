@@ -18,24 +18,31 @@ from typing import Any
 
 import numpy as np
 
-from core.arrangement import Arrangement
-from core.errors import InputError
-from core.registry import Registry
-from export.tables import fmt
-from export.vtk import write_voxel_image
-from geometry.contacts import GROUND, KINDS, PLACES, ContactTable, contact_counts, find_contacts
-from geometry.layers import LayerFilling, layer_filling, slab_fractions
-from geometry.orientation import (
+from chipstack.core.arrangement import Arrangement
+from chipstack.core.errors import InputError
+from chipstack.core.registry import Registry
+from chipstack.export.tables import fmt
+from chipstack.export.vtk import write_voxel_image
+from chipstack.geometry.contacts import (
+    GROUND,
+    KINDS,
+    PLACES,
+    ContactTable,
+    contact_counts,
+    find_contacts,
+)
+from chipstack.geometry.layers import LayerFilling, layer_filling, slab_fractions
+from chipstack.geometry.orientation import (
     fibre_directions_world,
     fibre_tensor,
     in_plane_direction_deg,
     tilt_deg,
 )
-from geometry.overlaps import Overlaps, find_overlaps
-from geometry.rays import RayMaps, ray_maps
-from geometry.sections import GeometrySpec
-from geometry.solids import chip_solids, target_prism, union_solid
-from geometry.voxels import VoxelImage, voxel_solid_profile, voxelize
+from chipstack.geometry.overlaps import Overlaps, find_overlaps
+from chipstack.geometry.rays import RayMaps, ray_maps
+from chipstack.geometry.sections import GeometrySpec
+from chipstack.geometry.solids import chip_solids, target_prism, union_solid
+from chipstack.geometry.voxels import VoxelImage, voxel_solid_profile, voxelize
 
 __all__ = ["DESCRIPTORS", "Description", "describe", "SCHEMA"]
 
@@ -221,7 +228,7 @@ def _contact_tables(history: ContactHistory) -> dict[str, Table]:
 
 
 def _contact_figures(history: ContactHistory, section: dict[str, Any], folder: Path) -> list[str]:
-    from export import figures  # matplotlib only when drawing
+    from chipstack.export import figures  # matplotlib only when drawing
 
     profiles = section["profiles"]
     mean = {kind: np.array(profiles[f"{kind}_per_chip_by_batch"]["values"]) for kind in KINDS}
@@ -232,7 +239,7 @@ def _contact_figures(history: ContactHistory, section: dict[str, Any], folder: P
 
 def _contact_ensemble_figures(summary: dict[str, Any], folder: Path) -> list[str]:
     """Fig. 7 with 95 % confidence bands over the repeats."""
-    from export import figures  # matplotlib only when drawing
+    from chipstack.export import figures  # matplotlib only when drawing
 
     profiles = summary["profiles"]
     batches = np.array(profiles["point_per_chip_by_batch"]["index"])
@@ -342,7 +349,7 @@ def _thickness_tables(maps: RayMaps) -> dict[str, Table]:
 
 
 def _thickness_figures(maps: RayMaps, section: dict[str, Any], folder: Path) -> list[str]:
-    from export import figures  # matplotlib only when drawing
+    from chipstack.export import figures  # matplotlib only when drawing
 
     grid = maps.grid
     figures.plot_neh_map(
@@ -420,7 +427,7 @@ def _layer_tables(f: LayerFilling) -> dict[str, Table]:
 
 
 def _layer_figures(filling: LayerFilling, section: dict[str, Any], folder: Path) -> list[str]:
-    from export import figures  # matplotlib only when drawing
+    from chipstack.export import figures  # matplotlib only when drawing
 
     layers = np.arange(len(filling.chips))
     figures.plot_layer_filling(
@@ -438,7 +445,7 @@ def _layer_figures(filling: LayerFilling, section: dict[str, Any], folder: Path)
 
 def _layer_ensemble_figures(summary: dict[str, Any], folder: Path) -> list[str]:
     """Fig. 10 with 95 % confidence bands over the repeats."""
-    from export import figures  # matplotlib only when drawing
+    from chipstack.export import figures  # matplotlib only when drawing
 
     chips = summary["profiles"]["chips"]
     mean, low, high = bands(chips)
@@ -453,7 +460,7 @@ def _layer_comparison_figures(
     labels: tuple[str, str], summaries: tuple[dict[str, Any], dict[str, Any]], folder: Path
 ) -> list[str]:
     """Fig. 12: the two ensembles' layer filling side by side."""
-    from export import figures  # matplotlib only when drawing
+    from chipstack.export import figures  # matplotlib only when drawing
 
     series = []
     longest: list[Any] = []

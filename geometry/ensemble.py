@@ -11,8 +11,8 @@ from typing import Any
 
 import numpy as np
 
-from core.errors import InputError
-from geometry.stats import compare, holm, summarize
+from chipstack.core.errors import InputError
+from chipstack.geometry.stats import compare, holm, summarize
 
 __all__ = ["ENSEMBLE_SCHEMA", "summarize_runs", "compare_ensembles", "ALPHA"]
 

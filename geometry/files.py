@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from geometry.describe import DESCRIPTORS, Description, in_output_order
+from chipstack.geometry.describe import DESCRIPTORS, Description, in_output_order
 
 __all__ = ["write_description"]
 

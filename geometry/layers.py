@@ -18,9 +18,9 @@ from dataclasses import dataclass
 import manifold3d as m3
 import numpy as np
 
-from core.arrangement import Arrangement
-from core.errors import InputError
-from geometry.solids import target_prism
+from chipstack.core.arrangement import Arrangement
+from chipstack.core.errors import InputError
+from chipstack.geometry.solids import target_prism
 
 __all__ = ["LayerFilling", "layer_counts", "full_layer_count", "slab_fractions"]
 

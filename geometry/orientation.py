@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.arrangement import Arrangement
+from chipstack.core.arrangement import Arrangement
 
 __all__ = ["tilt_deg", "in_plane_direction_deg", "fibre_tensor", "fibre_directions_world"]
 

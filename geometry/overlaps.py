@@ -15,9 +15,9 @@ from dataclasses import dataclass
 import manifold3d as m3
 import numpy as np
 
-from core.arrangement import Arrangement
-from geometry.contacts import candidate_pairs
-from geometry.solids import chip_solid, shape_pieces
+from chipstack.core.arrangement import Arrangement
+from chipstack.geometry.contacts import candidate_pairs
+from chipstack.geometry.solids import chip_solid, shape_pieces
 
 __all__ = ["Overlaps", "footprint", "find_overlaps"]
 

@@ -15,9 +15,9 @@ from functools import cached_property
 
 import numpy as np
 
-from core.arrangement import Arrangement
-from core.errors import InputError
-from geometry.solids import shape_pieces
+from chipstack.core.arrangement import Arrangement
+from chipstack.core.errors import InputError
+from chipstack.geometry.solids import shape_pieces
 
 __all__ = ["PixelGrid", "pixel_grid", "column_intervals", "RayMaps", "ray_maps"]
 

@@ -44,9 +44,9 @@ import numpy as np
 from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
 
-from core.arrangement import Arrangement
-from core.errors import ChipstackError, InputError
-from geometry._rigid import (
+from chipstack.core.arrangement import Arrangement
+from chipstack.core.errors import ChipstackError, InputError
+from chipstack.geometry._rigid import (
     _CORNER_REACH_MM,
     _LINE,
     _MAX_MOVE_MM,
@@ -64,7 +64,7 @@ from geometry._rigid import (
     _separation,
     _World,
 )
-from geometry.contacts import GROUND, ContactTable, candidate_pairs, find_contacts
+from chipstack.geometry.contacts import GROUND, ContactTable, candidate_pairs, find_contacts
 
 __all__ = [
     "Resolution",
@@ -495,7 +495,7 @@ def _resolve_globally(
 ):
     """The global route (:mod:`geometry._relax`) finished by an exact snap of every kept
     surface contact, bottom-up; None when it leaves any pair short of its rule."""
-    from geometry._relax import relax
+    from chipstack.geometry._relax import relax
 
     out = relax(arrangement, contacts, gap_mm, snap_angle_deg, contact_gap_mm, touching_lines)
     if out is None or out[-1] < -_SLACK_MM / 2:

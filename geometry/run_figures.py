@@ -7,8 +7,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from export.figure_kinds import draw_figures
-from geometry.describe import DESCRIPTORS
+from chipstack.export.figure_kinds import draw_figures
+from chipstack.geometry.describe import DESCRIPTORS
 
 __all__ = ["single_run_figures", "ensemble_figures", "comparison_figures"]
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
-from core.schema import Section, between, key
+from chipstack.core.schema import Section, between, key
 
 __all__ = ["GeometrySpec", "SECTIONS"]
 

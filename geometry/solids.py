@@ -15,8 +15,8 @@ import manifold3d as m3
 import numpy as np
 from scipy.spatial import ConvexHull, HalfspaceIntersection
 
-from core.arrangement import Arrangement
-from core.chipshape import ChipShape
+from chipstack.core.arrangement import Arrangement
+from chipstack.core.chipshape import ChipShape
 
 __all__ = [
     "ConvexPiece",

@@ -7,15 +7,15 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from core.schema import Scenario
-from core.stages import Stage, StageInputs, StageOptions, StageOutput
-from geometry.sections import GeometrySpec
-from packing.kinds import stack_kinds
+from chipstack.core.schema import Scenario
+from chipstack.core.stages import Stage, StageInputs, StageOptions, StageOutput
+from chipstack.geometry.sections import GeometrySpec
+from chipstack.packing.kinds import stack_kinds
 
 # The descriptors and their writers are imported where used: every command-line start
 # registers this stage, and they bring numpy, scipy and manifold3d (~1 s).
 if TYPE_CHECKING:
-    from geometry.describe import Description
+    from chipstack.geometry.describe import Description
 
 __all__ = ["GeometryStage", "STAGE", "write_geometry"]
 
@@ -32,7 +32,7 @@ class GeometryStage(Stage):
     repeat_statistics = True
 
     def check_options(self, options: StageOptions) -> None:
-        from geometry.describe import check_names
+        from chipstack.geometry.describe import check_names
 
         check_names(options.descriptors)
 
@@ -43,8 +43,8 @@ class GeometryStage(Stage):
         }
 
     def compute(self, inputs: StageInputs) -> Description:
-        from core.arrangement import stack_history
-        from geometry.describe import describe
+        from chipstack.core.arrangement import stack_history
+        from chipstack.geometry.describe import describe
 
         history = stack_history(inputs.result("packing"))
         report = inputs.options.progress
@@ -56,7 +56,7 @@ class GeometryStage(Stage):
         return description
 
     def write(self, result: Description, folder: Path, inputs: StageInputs) -> StageOutput:
-        from core.arrangement import stack_history
+        from chipstack.core.arrangement import stack_history
 
         history = stack_history(inputs.result("packing"))
         summary = write_geometry(folder, result, history, inputs.scenario, inputs.options.figures)
@@ -67,7 +67,7 @@ class GeometryStage(Stage):
         return json.loads((folder / "descriptors.json").read_text())
 
     def report(self, summary: Mapping[str, Any], folder: Path) -> list[str]:
-        from geometry.describe import DESCRIPTORS, in_output_order
+        from chipstack.geometry.describe import DESCRIPTORS, in_output_order
 
         d = json.loads((folder / "descriptors.json").read_text())["descriptors"]
         known = in_output_order(d)
@@ -77,7 +77,7 @@ class GeometryStage(Stage):
 
     def summarize_repeats(self, folders, seeds) -> dict[str, Any]:
         """Mean and 95 % confidence interval of every descriptor over the repeats."""
-        from geometry.ensemble import summarize_runs  # scipy.stats: 0.7 s to import
+        from chipstack.geometry.ensemble import summarize_runs  # scipy.stats: 0.7 s to import
 
         sections = [json.loads((f / "descriptors.json").read_text()) for f in folders]
         summary = summarize_runs(sections, list(seeds))
@@ -85,7 +85,7 @@ class GeometryStage(Stage):
         return summary
 
     def write_repeats(self, summary: dict[str, Any], path) -> None:
-        from geometry.run_figures import ensemble_figures  # matplotlib only when drawing
+        from chipstack.geometry.run_figures import ensemble_figures  # matplotlib only when drawing
 
         path("ensemble.json").write_text(json.dumps(summary, indent=2) + "\n")
         ensemble_figures(path("figures/x").parent, summary)
@@ -98,12 +98,14 @@ def write_geometry(
     folder: Path, description: Description, history, scenario: Scenario, figures: bool
 ) -> dict[str, Any]:
     """Write a computed description's files into ``folder``; returns the manifest entry."""
-    from geometry.files import write_description
+    from chipstack.geometry.files import write_description
 
     extra = {"scenario": scenario.name, "seed": scenario.seed, "chips": history[-1].n_chips}
     files = write_description(folder, description, history[-1], extra)
     if figures:
-        from geometry.run_figures import single_run_figures  # matplotlib only when drawing
+        from chipstack.geometry.run_figures import (
+            single_run_figures,  # matplotlib only when drawing
+        )
 
         files += single_run_figures(folder / "figures", description, history[-1])
     return {

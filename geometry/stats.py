@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy import stats as _sps
 
-from core.errors import InputError
+from chipstack.core.errors import InputError
 
 __all__ = [
     "Comparison",

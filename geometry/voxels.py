@@ -15,9 +15,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.arrangement import Arrangement
-from core.errors import InputError
-from geometry.rays import column_intervals
+from chipstack.core.arrangement import Arrangement
+from chipstack.core.errors import InputError
+from chipstack.geometry.rays import column_intervals
 
 __all__ = ["VoxelImage", "voxelize", "voxel_solid_profile"]
 

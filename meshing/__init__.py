@@ -7,13 +7,13 @@ returning a :class:`VolumeMesh`; ``check_mesh`` reports their validity.
 
 from typing import TYPE_CHECKING
 
-from core.lazy import lazy_package
+from chipstack.core.lazy import lazy_package
 
 if TYPE_CHECKING:
-    from meshing.checks import assert_valid, check_mesh
-    from meshing.conformal import GmshSession, MeshingError, conformal_mesh
-    from meshing.mesh import PORE, VolumeMesh
-    from meshing.voxel import voxel_mesh
+    from chipstack.meshing.checks import assert_valid, check_mesh
+    from chipstack.meshing.conformal import GmshSession, MeshingError, conformal_mesh
+    from chipstack.meshing.mesh import PORE, VolumeMesh
+    from chipstack.meshing.voxel import voxel_mesh
 
 __all__ = [
     "GmshSession",
@@ -31,13 +31,13 @@ __all__ = [
 lazy_package(
     __name__,
     {
-        "GmshSession": "meshing.conformal",
-        "MeshingError": "meshing.conformal",
-        "PORE": "meshing.mesh",
-        "VolumeMesh": "meshing.mesh",
-        "assert_valid": "meshing.checks",
-        "check_mesh": "meshing.checks",
-        "conformal_mesh": "meshing.conformal",
-        "voxel_mesh": "meshing.voxel",
+        "GmshSession": "chipstack.meshing.conformal",
+        "MeshingError": "chipstack.meshing.conformal",
+        "PORE": "chipstack.meshing.mesh",
+        "VolumeMesh": "chipstack.meshing.mesh",
+        "assert_valid": "chipstack.meshing.checks",
+        "check_mesh": "chipstack.meshing.checks",
+        "conformal_mesh": "chipstack.meshing.conformal",
+        "voxel_mesh": "chipstack.meshing.voxel",
     },
 )

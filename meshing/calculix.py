@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import ChipstackError, InputError
+from chipstack.core.errors import ChipstackError, InputError
 
 __all__ = [
     "SolverError",

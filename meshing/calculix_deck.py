@@ -11,9 +11,15 @@ from typing import TextIO
 
 import numpy as np
 
-from meshing.contact_model import ContactModel, Platen, chip_box, faces_near_box, faces_within
-from meshing.files import MATERIALS
-from meshing.sections import SolveSpec
+from chipstack.meshing.contact_model import (
+    ContactModel,
+    Platen,
+    chip_box,
+    faces_near_box,
+    faces_within,
+)
+from chipstack.meshing.files import MATERIALS
+from chipstack.meshing.sections import SolveSpec
 
 __all__ = [
     "write_contact_deck",

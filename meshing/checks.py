@@ -22,12 +22,12 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from core.arrangement import Arrangement
-from geometry.contacts import candidate_pairs
-from geometry.solids import chip_solids, union_solid
-from meshing.boundaries import ELEMENT_FACES
-from meshing.conformal import MeshingError
-from meshing.mesh import VolumeMesh
+from chipstack.core.arrangement import Arrangement
+from chipstack.geometry.contacts import candidate_pairs
+from chipstack.geometry.solids import chip_solids, union_solid
+from chipstack.meshing.boundaries import ELEMENT_FACES
+from chipstack.meshing.conformal import MeshingError
+from chipstack.meshing.mesh import VolumeMesh
 
 __all__ = [
     "check_mesh",

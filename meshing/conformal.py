@@ -28,11 +28,11 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
-from core.arrangement import Arrangement
-from core.errors import ChipstackError, InputError
-from core.overlap import penetrating_pairs
-from meshing.boundaries import side_node_sets
-from meshing.mesh import PORE, VolumeMesh, element_attributes
+from chipstack.core.arrangement import Arrangement
+from chipstack.core.errors import ChipstackError, InputError
+from chipstack.core.overlap import penetrating_pairs
+from chipstack.meshing.boundaries import side_node_sets
+from chipstack.meshing.mesh import PORE, VolumeMesh, element_attributes
 
 __all__ = [
     "GmshSession",
@@ -97,7 +97,7 @@ def _pairs_closer_than(arrangement: Arrangement, inflate_mm: float, depth_mm: fl
     """Pairs (i, j) of chips that interpenetrate by more than ``depth_mm`` once each is
     grown by ``inflate_mm`` (mm): exact for boxes (separating axes on the boxes), and for
     other chips the boxes' test refined by the separating axes of their convex pieces."""
-    from geometry._rigid import _pieces, _place, _separation
+    from chipstack.geometry._rigid import _pieces, _place, _separation
 
     centres, half = _box_centres(arrangement)
     pairs, depth = penetrating_pairs(centres, arrangement.quaternions, half + inflate_mm)

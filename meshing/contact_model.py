@@ -25,10 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
-from core.arrangement import Arrangement
-from core.errors import InputError
-from geometry.contacts import candidate_pairs, find_contacts
-from meshing.mesh import chip_attributes
+from chipstack.core.arrangement import Arrangement
+from chipstack.core.errors import InputError
+from chipstack.geometry.contacts import candidate_pairs, find_contacts
+from chipstack.meshing.mesh import chip_attributes
 
 __all__ = [
     "ContactModel",

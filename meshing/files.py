@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from core.registry import Registry
-from export.figure_kinds import FIGURES, FigureKind
-from meshing.boundaries import FACET_TAGS, boundary_facets
-from meshing.mesh import PORE, VolumeMesh
+from chipstack.core.registry import Registry
+from chipstack.export.figure_kinds import FIGURES, FigureKind
+from chipstack.meshing.boundaries import FACET_TAGS, boundary_facets
+from chipstack.meshing.mesh import PORE, VolumeMesh
 
 __all__ = ["MESH_FORMATS", "write_mesh", "to_meshio", "MATERIALS", "facets", "FACET_TAGS"]
 
@@ -106,7 +106,7 @@ def write_msh(path: Path, mesh: VolumeMesh) -> list[Path]:
     """gmsh 4.1 (binary): one discrete volume and physical group per chip (tag k + 1,
     named chip_K) and one for the pores (tag n + 1, named pore); the boundary faces on each
     side of the domain as a physical surface (tags and names in ``FACET_TAGS``)."""
-    from meshing.conformal import GmshSession
+    from chipstack.meshing.conformal import GmshSession
 
     path = Path(path)
     physical = np.where(mesh.chip >= 0, mesh.chip + 1, mesh.n_chips + 1).astype(np.int64)
@@ -272,7 +272,7 @@ def _mesh_view(folder: Path, picture) -> list[str]:
     """The mesh's outer surface coloured by chip (pores hidden), rendered off screen."""
     import pyvista
 
-    from export import figures
+    from chipstack.export import figures
 
     mesh = picture.mesh
     path = folder / f"{picture.stem}.png"

@@ -39,13 +39,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.arrangement import Arrangement
-from core.errors import InputError
-from geometry.voxels import voxelize
-from meshing.boundaries import side_node_sets
-from meshing.checks import face_neighbours
-from meshing.conformal import MeshingError
-from meshing.mesh import PORE, VolumeMesh, check_voxel_below_thinnest, element_attributes
+from chipstack.core.arrangement import Arrangement
+from chipstack.core.errors import InputError
+from chipstack.geometry.voxels import voxelize
+from chipstack.meshing.boundaries import side_node_sets
+from chipstack.meshing.checks import face_neighbours
+from chipstack.meshing.conformal import MeshingError
+from chipstack.meshing.mesh import PORE, VolumeMesh, check_voxel_below_thinnest, element_attributes
 
 __all__ = ["image_mesh", "image_voxel_mm", "tetra_sicn", "cgal_available", "require_cgal"]
 
@@ -218,8 +218,8 @@ def _clusters(
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    from geometry.contacts import candidate_pairs
-    from meshing.voxel import _crop
+    from chipstack.geometry.contacts import candidate_pairs
+    from chipstack.meshing.voxel import _crop
 
     n = arrangement.n_chips
     near = np.ones(n, dtype=bool)

@@ -19,19 +19,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from core.errors import InputError, printable
-from core.registry import Registry
+from chipstack.core.errors import InputError, printable
+from chipstack.core.registry import Registry
 
 if TYPE_CHECKING:
     from collections.abc import Callable
 
     import numpy as np
 
-    from core.arrangement import Arrangement
-    from core.schema import Scenario
-    from core.stages import StageInputs
-    from meshing.contact_model import ContactModel
-    from meshing.mesh import VolumeMesh
+    from chipstack.core.arrangement import Arrangement
+    from chipstack.core.schema import Scenario
+    from chipstack.core.stages import StageInputs
+    from chipstack.meshing.contact_model import ContactModel
+    from chipstack.meshing.mesh import VolumeMesh
 
 __all__ = ["Built", "MeshKind", "MESH_KINDS", "COMBINED", "mesh_kinds"]
 
@@ -123,7 +123,7 @@ def write_volume_mesh(
     folder: Path, kind: str, built: Built, report: dict, inputs: StageInputs
 ) -> dict[str, Any]:
     """A volume mesh's files, picture and check report; returns its manifest entry."""
-    from meshing.files import write_mesh
+    from chipstack.meshing.files import write_mesh
 
     stem = f"stack_{kind}"
     spec = inputs.scenario.mesh
@@ -135,7 +135,7 @@ def write_volume_mesh(
         files.append(f"{stem}.{name}")
     if inputs.options.figures:
         # meshing.files (imported above) registers the mesh's figure.
-        from export.figure_kinds import MeshPicture, draw_figures
+        from chipstack.export.figure_kinds import MeshPicture, draw_figures
 
         files += draw_figures("mesh", folder, MeshPicture(stem, built.mesh))
     (folder / f"{stem}_checks.json").write_text(json.dumps(report, indent=2) + "\n")
@@ -158,7 +158,7 @@ def write_volume_mesh(
 def _checked_volume(mesh, arrangement, pairs, min_quality, tolerance, kind) -> dict[str, Any]:
     import logging
 
-    from meshing.checks import assert_valid, check_mesh, split_warning
+    from chipstack.meshing.checks import assert_valid, check_mesh, split_warning
 
     report = check_mesh(
         mesh,
@@ -170,7 +170,7 @@ def _checked_volume(mesh, arrangement, pairs, min_quality, tolerance, kind) -> d
     )
     assert_valid(report)
     if (warning := split_warning(report, kind)) is not None:
-        logging.getLogger("meshing.stage").warning("%s", warning)
+        logging.getLogger("chipstack.meshing.stage").warning("%s", warning)
     return report
 
 
@@ -182,8 +182,8 @@ class VoxelKind(MeshKind):
     solve_models = ("volume",)
 
     def build(self, arrangement, scenario, scratch):
-        from meshing.mesh import check_voxel_below_thinnest
-        from meshing.voxel import voxel_mesh
+        from chipstack.meshing.mesh import check_voxel_below_thinnest
+        from chipstack.meshing.voxel import voxel_mesh
 
         spec = scenario.mesh
         check_voxel_below_thinnest("mesh.voxel_mm", spec.voxel_mm, arrangement, 2)
@@ -219,25 +219,25 @@ class ConformalKind(MeshKind):
 
     @property
     def crop_shift_mm(self) -> float:
-        from meshing.conformal import CROP_SHIFT_MM
+        from chipstack.meshing.conformal import CROP_SHIFT_MM
 
         return CROP_SHIFT_MM
 
     @property
     def failures(self):
-        from geometry.resolve import UnresolvedError
-        from meshing.conformal import MeshingError
+        from chipstack.geometry.resolve import UnresolvedError
+        from chipstack.meshing.conformal import MeshingError
 
         return (MeshingError, UnresolvedError)
 
     def build(self, arrangement, scenario, scratch):
-        from geometry.resolve import (
+        from chipstack.geometry.resolve import (
             UnresolvedError,
             check_settings,
             resolve_chips,
             resolve_contacts,
         )
-        from meshing.conformal import MeshingError, chips_near, conformal_mesh
+        from chipstack.meshing.conformal import MeshingError, chips_near, conformal_mesh
 
         spec, g = scenario.mesh, scenario.geometry
         native = {}
@@ -355,17 +355,17 @@ class ImageKind(MeshKind):
 
     @property
     def failures(self):
-        from meshing.conformal import MeshingError
+        from chipstack.meshing.conformal import MeshingError
 
         return (MeshingError,)
 
     def check_available(self) -> None:
-        from meshing.image import require_cgal
+        from chipstack.meshing.image import require_cgal
 
         require_cgal()
 
     def build(self, arrangement, scenario, scratch):
-        from meshing.image import image_mesh
+        from chipstack.meshing.image import image_mesh
 
         spec = scenario.mesh
         mesh = image_mesh(
@@ -396,7 +396,7 @@ class ContactKind(MeshKind):
     solve_models = ("contact",)
 
     def build(self, arrangement, scenario, scratch):
-        from meshing.contact_model import contact_model
+        from chipstack.meshing.contact_model import contact_model
 
         spec = scenario.mesh
         model = contact_model(
@@ -459,7 +459,7 @@ def contact_volume_mesh(model: ContactModel, arrangement: Arrangement) -> Volume
     """The chips of a contact model as a :class:`VolumeMesh` (for checks and files)."""
     import numpy as np
 
-    from meshing.mesh import VolumeMesh, element_attributes
+    from chipstack.meshing.mesh import VolumeMesh, element_attributes
 
     n = len(model.cells)
     attributes = element_attributes(arrangement, model.chip, 2.0)
@@ -483,10 +483,10 @@ def write_contact(
     """The model's mesh part for CalculiX (the solve stage includes it in the compaction
     deck it writes from ``[solve]``), the model's arrays, a VTU of the chips and the
     check report; the manifest entry."""
-    from meshing.calculix_deck import write_contact_mesh
-    from meshing.conformal import MeshingError
-    from meshing.contact_model import save_contact_model
-    from meshing.files import write_mesh
+    from chipstack.meshing.calculix_deck import write_contact_mesh
+    from chipstack.meshing.conformal import MeshingError
+    from chipstack.meshing.contact_model import save_contact_model
+    from chipstack.meshing.files import write_mesh
 
     spec = inputs.scenario.mesh
     write_contact_mesh(folder / "stack_contact.inp", model, spec.element)

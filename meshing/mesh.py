@@ -7,13 +7,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from core.errors import InputError
-from meshing.boundaries import PeriodicPairs
+from chipstack.core.errors import InputError
+from chipstack.meshing.boundaries import PeriodicPairs
 
 # The arrangement (scipy) only when attributes are computed: meshing.files imports this
 # module to check a scenario's mesh formats at every run.
 if TYPE_CHECKING:
-    from core.arrangement import Arrangement
+    from chipstack.core.arrangement import Arrangement
 
 __all__ = [
     "VolumeMesh",
@@ -106,7 +106,7 @@ def check_voxel_below_thinnest(
 def chip_attributes(arrangement: Arrangement, layer_mm: float) -> tuple[np.ndarray, ...]:
     """Per chip: batch (n,), layer by centre of mass (n,), two fibre directions (n, 2, 3)
     and the chip's normal (n, 3), in the world frame."""
-    from geometry.orientation import fibre_directions_world
+    from chipstack.geometry.orientation import fibre_directions_world
 
     n = arrangement.n_chips
     layer = np.maximum(np.floor(arrangement.positions[:, 2] / layer_mm), 0).astype(np.int64)

@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
-from core.schema import Section, between, key, one_of, region
+from chipstack.core.schema import Section, between, key, one_of, region
 
 __all__ = ["MeshSpec", "SolveSpec"]
 

@@ -15,14 +15,14 @@ import shutil
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from core.errors import InputError
-from core.registry import Registry
+from chipstack.core.errors import InputError
+from chipstack.core.registry import Registry
 
 if TYPE_CHECKING:
     import numpy as np
 
-    from core.schema import Scenario
-    from core.stages import StageInputs
+    from chipstack.core.schema import Scenario
+    from chipstack.core.stages import StageInputs
 
 __all__ = ["SolveModel", "SOLVE_MODELS", "solve_model"]
 
@@ -61,7 +61,7 @@ SOLVE_MODELS: Registry[SolveModel] = Registry("solve model", "chipstack.solve_mo
 
 def solve_model(scenario: Scenario) -> SolveModel:
     """The model that presses the scenario's mesh; refused in one line when none can."""
-    from meshing.kinds import mesh_kinds
+    from chipstack.meshing.kinds import mesh_kinds
 
     for kind in mesh_kinds(scenario.mesh.kind):
         for name in kind.solve_models:
@@ -79,13 +79,13 @@ class ContactPress(SolveModel):
     needs = "the contact model (mesh.kind = 'contact')"
 
     def accepts(self, scenario):
-        from meshing.kinds import mesh_kinds
+        from chipstack.meshing.kinds import mesh_kinds
 
         return any(self.name in kind.solve_models for kind in mesh_kinds(scenario.mesh.kind))
 
     def prepare(self, mesh_folder, scratch, job, scenario):
-        from meshing.calculix_deck import write_contact_compaction
-        from meshing.contact_model import load_contact_model
+        from chipstack.meshing.calculix_deck import write_contact_compaction
+        from chipstack.meshing.contact_model import load_contact_model
 
         shutil.copy(mesh_folder / "stack_contact.inp", scratch / "stack_contact.inp")
         model = load_contact_model(mesh_folder / "stack_contact_model.npz")
@@ -113,13 +113,13 @@ class VolumePress(SolveModel):
     @staticmethod
     def stem(scenario) -> str:
         """The files of the first of the scenario's mesh kinds that this model presses."""
-        from meshing.kinds import mesh_kinds
+        from chipstack.meshing.kinds import mesh_kinds
 
         kind = next(k for k in mesh_kinds(scenario.mesh.kind) if "volume" in k.solve_models)
         return f"stack_{kind.name}"
 
     def accepts(self, scenario):
-        from meshing.kinds import mesh_kinds
+        from chipstack.meshing.kinds import mesh_kinds
 
         spec = scenario.mesh
         pressable = any(self.name in kind.solve_models for kind in mesh_kinds(spec.kind))
@@ -132,7 +132,7 @@ class VolumePress(SolveModel):
             )
 
     def prepare(self, mesh_folder, scratch, job, scenario):
-        from meshing.calculix_deck import write_volume_compaction
+        from chipstack.meshing.calculix_deck import write_volume_compaction
 
         stem = self.stem(scenario)
         shutil.copy(mesh_folder / f"{stem}.inp", scratch / f"{stem}.inp")

@@ -13,11 +13,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from core.schema import Scenario
-from core.stages import Stage, StageInputs, StageOutput
-from meshing.sections import SolveSpec
-from meshing.solve_models import solve_model
-from packing.kinds import stack_kinds
+from chipstack.core.schema import Scenario
+from chipstack.core.stages import Stage, StageInputs, StageOutput
+from chipstack.meshing.sections import SolveSpec
+from chipstack.meshing.solve_models import solve_model
+from chipstack.packing.kinds import stack_kinds
 
 # The solver's driver, readers and writers are imported where used: every command-line
 # start registers this stage, and they bring numpy and scipy.
@@ -58,12 +58,12 @@ class SolveStage(Stage):
 
     def check_run(self, scenario: Scenario) -> None:
         solve_model(scenario).check(scenario)
-        from meshing.calculix import ccx_path
+        from chipstack.meshing.calculix import ccx_path
 
         ccx_path()
 
     def compute(self, inputs: StageInputs) -> Compaction:
-        from meshing.calculix import SolverError, read_node_prints, run_ccx
+        from chipstack.meshing.calculix import SolverError, read_node_prints, run_ccx
 
         mesh = inputs.result("mesh")
         scratch = Path(tempfile.mkdtemp(prefix="chipstack-solve-"))
@@ -128,7 +128,7 @@ STAGE = SolveStage()
 def _write_results(result: Compaction, folder: Path, figures: bool) -> list[str]:
     """The deck, the solver's log and .dat, the last increment as VTU, and the force
     against the press as CSV (and a figure)."""
-    from meshing.calculix import frd_to_vtu
+    from chipstack.meshing.calculix import frd_to_vtu
 
     files = []
     for suffix in (".inp", ".dat", ".log"):
@@ -151,7 +151,7 @@ def _write_results(result: Compaction, folder: Path, figures: bool) -> list[str]
             writer.writerow([f"{v:.9g}" for v in row])
     files.append("force_displacement.csv")
     if figures:
-        from export.figure_kinds import draw_figures
+        from chipstack.export.figure_kinds import draw_figures
 
         files += draw_figures("compaction", folder, result)
     return files

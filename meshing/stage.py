@@ -9,19 +9,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from core.errors import InputError, printable
-from core.schema import Scenario
-from core.stages import Stage, StageInputs, StageOptions, StageOutput
-from meshing.kinds import MESH_KINDS, Built, crop_region, mesh_kinds
-from meshing.sections import MeshSpec
-from packing.kinds import stack_kinds
+from chipstack.core.errors import InputError, printable
+from chipstack.core.schema import Scenario
+from chipstack.core.stages import Stage, StageInputs, StageOptions, StageOutput
+from chipstack.meshing.kinds import MESH_KINDS, Built, crop_region, mesh_kinds
+from chipstack.meshing.sections import MeshSpec
+from chipstack.packing.kinds import stack_kinds
 
 # The meshers, checks and writers are imported where used: every command-line start
 # registers this stage, and they bring numpy, scipy, manifold3d and gmsh (~1 s).
 if TYPE_CHECKING:
     import numpy as np
 
-    from core.arrangement import Arrangement
+    from chipstack.core.arrangement import Arrangement
 
 __all__ = ["MeshStage", "STAGE", "check_formats"]
 
@@ -92,7 +92,7 @@ class MeshStage(Stage):
         return {"figures": options.figures, "algorithms": versions}
 
     def compute(self, inputs: StageInputs) -> MeshedStack:
-        from core.arrangement import stack_history
+        from chipstack.core.arrangement import stack_history
 
         arrangement = stack_history(inputs.result("packing"))[-1]
         scenario = inputs.scenario
@@ -166,7 +166,7 @@ class MeshFiles:
 
 def check_formats(formats: tuple[str, ...], key: str) -> None:
     """Refuse an empty list or an unknown mesh format, listing the valid ones."""
-    from meshing.files import MESH_FORMATS  # numpy: when a scenario is checked
+    from chipstack.meshing.files import MESH_FORMATS  # numpy: when a scenario is checked
 
     valid = ", ".join(MESH_FORMATS.names())
     if not formats:
@@ -184,7 +184,7 @@ def _surface_pairs(arrangement: Arrangement, scenario: Scenario) -> np.ndarray:
     crop cuts to a sliver may keep no whole voxel face)."""
     import numpy as np
 
-    from geometry.contacts import KINDS, find_contacts
+    from chipstack.geometry.contacts import KINDS, find_contacts
 
     g = scenario.geometry
     table = find_contacts(arrangement, g.contact_gap_mm, g.contact_extent_mm)

@@ -17,11 +17,11 @@ import time
 
 import numpy as np
 
-from core.arrangement import Arrangement
-from core.errors import InputError
-from geometry.voxels import voxelize
-from meshing.boundaries import PeriodicPairs, side_node_sets
-from meshing.mesh import VolumeMesh, element_attributes
+from chipstack.core.arrangement import Arrangement
+from chipstack.core.errors import InputError
+from chipstack.geometry.voxels import voxelize
+from chipstack.meshing.boundaries import PeriodicPairs, side_node_sets
+from chipstack.meshing.mesh import VolumeMesh, element_attributes
 
 __all__ = ["voxel_mesh"]
 

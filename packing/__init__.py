@@ -3,16 +3,16 @@
 import logging
 from typing import TYPE_CHECKING
 
-from core.errors import ChipstackError, InputError, SimulationError
-from core.lazy import lazy_package
-from core.schema import Scenario, scenario_from_dict, scenario_to_dict
-from packing.presets import PRESETS, PhysicsPreset
+from chipstack.core.errors import ChipstackError, InputError, SimulationError
+from chipstack.core.lazy import lazy_package
+from chipstack.core.schema import Scenario, scenario_from_dict, scenario_to_dict
+from chipstack.packing.presets import PRESETS, PhysicsPreset
 
 if TYPE_CHECKING:
-    from core.stack import BatchResult, Stack
-    from packing.deposition import deposit
-    from packing.shapes import SHAPES, ChipShape, make_shape
-    from packing.world import GROUND, MM_PER_UNIT, ChipWorld, ContactRecord
+    from chipstack.core.stack import BatchResult, Stack
+    from chipstack.packing.deposition import deposit
+    from chipstack.packing.shapes import SHAPES, ChipShape, make_shape
+    from chipstack.packing.world import GROUND, MM_PER_UNIT, ChipWorld, ContactRecord
 
 __all__ = [
     "BatchResult",
@@ -40,16 +40,16 @@ __all__ = [
 lazy_package(
     __name__,
     {
-        "deposit": "packing.deposition",
-        "SHAPES": "packing.shapes",
-        "ChipShape": "packing.shapes",
-        "make_shape": "packing.shapes",
-        "BatchResult": "core.stack",
-        "Stack": "core.stack",
-        "GROUND": "packing.world",
-        "MM_PER_UNIT": "packing.world",
-        "ChipWorld": "packing.world",
-        "ContactRecord": "packing.world",
+        "deposit": "chipstack.packing.deposition",
+        "SHAPES": "chipstack.packing.shapes",
+        "ChipShape": "chipstack.packing.shapes",
+        "make_shape": "chipstack.packing.shapes",
+        "BatchResult": "chipstack.core.stack",
+        "Stack": "chipstack.core.stack",
+        "GROUND": "chipstack.packing.world",
+        "MM_PER_UNIT": "chipstack.packing.world",
+        "ChipWorld": "chipstack.packing.world",
+        "ContactRecord": "chipstack.packing.world",
     },
 )
 

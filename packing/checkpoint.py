@@ -19,10 +19,10 @@ from typing import Any
 
 import numpy as np
 
-from core.errors import InputError
-from core.stack import BatchResult, Stack
-from packing.shapes import ChipShape, shape_from_record, shape_record
-from packing.world import ContactRecord
+from chipstack.core.errors import InputError
+from chipstack.core.stack import BatchResult, Stack
+from chipstack.packing.shapes import ChipShape, shape_from_record, shape_record
+from chipstack.packing.world import ContactRecord
 
 __all__ = [
     "DepositionState",

@@ -36,11 +36,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.chipshape import ChipShape
-from core.errors import InputError
-from core.schema import Scenario
-from core.stack import Stack
-from packing.deposition import (
+from chipstack.core.chipshape import ChipShape
+from chipstack.core.errors import InputError
+from chipstack.core.schema import Scenario
+from chipstack.core.stack import Stack
+from chipstack.packing.deposition import (
     CHECK_INTERVAL_S,
     _batch_result,
     _RestTracker,
@@ -49,8 +49,8 @@ from packing.deposition import (
     shape_table,
     wake_near_movers,
 )
-from packing.presets import PRESETS
-from packing.world import GRAVITY_MM_S2, ChipWorld
+from chipstack.packing.presets import PRESETS
+from chipstack.packing.world import GRAVITY_MM_S2, ChipWorld
 
 __all__ = ["MatRecord", "ConveyorResult", "pour_mat", "steady_range_mm", "ON_BELT", "SPILLED"]
 

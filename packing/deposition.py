@@ -27,12 +27,12 @@ from collections.abc import Callable, Mapping
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from core.errors import InputError, SimulationError
-from core.overlap import box_penetration_depth, floor_penetration_mm
-from core.schema import Scenario
-from core.stack import BatchResult, Stack
-from packing.checkpoint import DepositionState, round_trip
-from packing.effects import (
+from chipstack.core.errors import InputError, SimulationError
+from chipstack.core.overlap import box_penetration_depth, floor_penetration_mm
+from chipstack.core.schema import Scenario
+from chipstack.core.stack import BatchResult, Stack
+from chipstack.packing.checkpoint import DepositionState, round_trip
+from chipstack.packing.effects import (
     apply_effect_loads,
     check_effects,
     release_spin,
@@ -41,10 +41,10 @@ from packing.effects import (
     shaped,
     spins_at_release,
 )
-from packing.presets import PRESETS
-from packing.shapes import ChipShape, make_shape, varies_per_chip
-from packing.sites import SITES
-from packing.world import GRAVITY_MM_S2, ChipWorld
+from chipstack.packing.presets import PRESETS
+from chipstack.packing.shapes import ChipShape, make_shape, varies_per_chip
+from chipstack.packing.sites import SITES
+from chipstack.packing.world import GRAVITY_MM_S2, ChipWorld
 
 __all__ = [
     "deposit",

@@ -17,18 +17,18 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from core.chipshape import ChipShape
-from core.errors import SimulationError
-from core.schema import Scenario
-from packing.deposition import (
+from chipstack.core.chipshape import ChipShape
+from chipstack.core.errors import SimulationError
+from chipstack.core.schema import Scenario
+from chipstack.packing.deposition import (
     CHECK_INTERVAL_S,
     _RestTracker,
     draw_shapes,
     settle,
 )
-from packing.effects import apply_effect_loads, release_spin, setup_effects, shaped
-from packing.presets import PRESETS
-from packing.world import ChipWorld
+from chipstack.packing.effects import apply_effect_loads, release_spin, setup_effects, shaped
+from chipstack.packing.presets import PRESETS
+from chipstack.packing.world import ChipWorld
 
 __all__ = [
     "DropProtocol",

@@ -27,9 +27,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import ConvexHull
 
-from core.chipshape import ChipShape
-from core.errors import InputError
-from core.registry import Registry
+from chipstack.core.chipshape import ChipShape
+from chipstack.core.errors import InputError
+from chipstack.core.registry import Registry
 
 __all__ = [
     "EFFECTS",

@@ -10,14 +10,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from core.registry import Registry
-from core.schema import Scenario
+from chipstack.core.registry import Registry
+from chipstack.core.schema import Scenario
 
 # The records and writers bring numpy, trimesh and matplotlib: imported where used.
 if TYPE_CHECKING:
-    from core.stack import BatchResult, Stack
-    from packing.conveyor import MatRecord
-    from packing.drop import DropResult
+    from chipstack.core.stack import BatchResult, Stack
+    from chipstack.packing.conveyor import MatRecord
+    from chipstack.packing.drop import DropResult
 
 __all__ = [
     "STACK_WRITERS",
@@ -60,8 +60,8 @@ def write_stack_files(folder: Path, stack: Stack) -> list[str]:
 def _write_record(folder: Path, stack: Stack) -> list[str]:
     import numpy as np
 
-    from packing.checkpoint import stack_to_arrays
-    from packing.shapes import shape_record
+    from chipstack.packing.checkpoint import stack_to_arrays
+    from chipstack.packing.shapes import shape_record
 
     shapes = {"schema": "chipstack.shapes/1", "shapes": [shape_record(s) for s in stack.shapes]}
     (folder / "shapes.json").write_text(json.dumps(shapes) + "\n")
@@ -81,7 +81,7 @@ def _per_batch(folder: Path, stack: Stack, pattern: str, write) -> list[str]:
 
 
 def _write_poses(folder: Path, stack: Stack) -> list[str]:
-    from export import write_poses_csv
+    from chipstack.export import write_poses_csv
 
     return _per_batch(
         folder, stack, "poses_after_batch_{:02d}.csv", lambda p, r: write_poses_csv(p, stack, r)
@@ -89,13 +89,13 @@ def _write_poses(folder: Path, stack: Stack) -> list[str]:
 
 
 def _write_contacts(folder: Path, stack: Stack) -> list[str]:
-    from export import write_contacts_csv
+    from chipstack.export import write_contacts_csv
 
     return _per_batch(folder, stack, "contacts_after_batch_{:02d}.csv", write_contacts_csv)
 
 
 def _write_vtk_series(folder: Path, stack: Stack) -> list[str]:
-    from export import stack_polydata, write_pvd, write_stack_vtp
+    from chipstack.export import stack_polydata, write_pvd, write_stack_vtp
 
     series = []
     for result in stack.batches:
@@ -150,15 +150,15 @@ for _writer in (
 def write_drop_files(folder: Path, scenario: Scenario, drops: DropResult, figures: bool) -> dict:
     """Every final pose, the statistics and, with figures, the drops' figures (Fig. 15,
     ``export.figure_kinds``); returns the statistics."""
-    from export.tables import write_drops_csv
-    from packing.scatter import drop_statistics
+    from chipstack.export.tables import write_drops_csv
+    from chipstack.packing.scatter import drop_statistics
 
     write_drops_csv(folder / "drops.csv", drops)
     statistics = drop_statistics(drops.positions[:, :2], scenario.drop.yaw_deg)
     statistics["settled"] = int(drops.settled.sum())
     (folder / "drop_statistics.json").write_text(json.dumps(statistics, indent=2) + "\n")
     if figures:
-        from export.figure_kinds import DropScatter, draw_figures
+        from chipstack.export.figure_kinds import DropScatter, draw_figures
 
         scatter = DropScatter(drops.positions[:, :2], statistics, scenario.drop.yaw_deg)
         draw_figures("drops", folder / "figures", scatter)
@@ -196,7 +196,7 @@ def container_summary(stack: Stack, scenario: Scenario) -> dict[str, Any]:
     """How full the container is (volume fraction by centres of mass)."""
     import numpy as np
 
-    from packing.fill import container_fill
+    from chipstack.packing.fill import container_fill
 
     volumes = np.array([stack.shapes[k].volume_mm3 for k in stack.shape_index])
     c = scenario.container
@@ -205,7 +205,7 @@ def container_summary(stack: Stack, scenario: Scenario) -> dict[str, Any]:
 
 def top_mm(stack: Stack, result: BatchResult) -> float:
     """Height of the highest point of any chip after ``result``'s batch (mm)."""
-    from core.overlap import vertex_heights_mm
+    from chipstack.core.overlap import vertex_heights_mm
 
     n = len(result.positions)
     top = 0.0
@@ -225,8 +225,8 @@ def mat_summary(scenario: Scenario, mat: MatRecord) -> tuple[dict[str, Any], dic
     the mat's steady part (:func:`packing.conveyor.steady_range_mm`), across the belt."""
     import numpy as np
 
-    from packing.conveyor import LEFT_DOMAIN, ON_BELT, SPILLED
-    from packing.mat import (
+    from chipstack.packing.conveyor import LEFT_DOMAIN, ON_BELT, SPILLED
+    from chipstack.packing.mat import (
         areal_weight_map,
         coefficient_of_variation,
         orientation_distribution,
@@ -341,7 +341,7 @@ def _panel_weights(mat: MatRecord, on, steady: tuple[float, float], panel_mm: fl
     fewer than two)."""
     import numpy as np
 
-    from packing.mat import coefficient_of_variation
+    from chipstack.packing.mat import coefficient_of_variation
 
     low, high = steady
     count = int((high - low) // panel_mm)
@@ -362,7 +362,7 @@ def write_mat_files(folder: Path, scenario: Scenario, mat: MatRecord, figures: b
     entry."""
     import numpy as np
 
-    from packing.shapes import shape_record
+    from chipstack.packing.shapes import shape_record
 
     shapes = {"schema": "chipstack.shapes/1", "shapes": [shape_record(s) for s in mat.shapes]}
     (folder / "mat_shapes.json").write_text(json.dumps(shapes) + "\n")
@@ -378,7 +378,7 @@ def write_mat_files(folder: Path, scenario: Scenario, mat: MatRecord, figures: b
     summary, record = mat_summary(scenario, mat)
     (folder / "mat.json").write_text(json.dumps(record, indent=1) + "\n")
     if figures:
-        from export.figure_kinds import draw_figures
+        from chipstack.export.figure_kinds import draw_figures
 
         draw_figures("mat", folder / "figures", record)
     return summary

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from packing.sites import reaches_rim
+from chipstack.packing.sites import reaches_rim
 
 __all__ = ["container_fill"]
 

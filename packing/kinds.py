@@ -19,23 +19,23 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple
 
-from core.errors import InputError, brief
-from core.registry import Registry
-from core.schema import Scenario
-from core.stages import StageInputs, StageOptions, StageOutput
-from packing.files import (
+from chipstack.core.errors import InputError, brief
+from chipstack.core.registry import Registry
+from chipstack.core.schema import Scenario
+from chipstack.core.stages import StageInputs, StageOptions, StageOutput
+from chipstack.packing.files import (
     container_summary,
     packing_summary,
     write_drop_files,
     write_mat_files,
     write_stack_files,
 )
-from packing.sections import ContainerSpec, ConveyorSpec, DropSpec
+from chipstack.packing.sections import ContainerSpec, ConveyorSpec, DropSpec
 
 # The simulation is imported where used: every command-line start registers the stage.
 if TYPE_CHECKING:
-    from core.stack import BatchResult, Stack
-    from packing.conveyor import ConveyorResult
+    from chipstack.core.stack import BatchResult, Stack
+    from chipstack.packing.conveyor import ConveyorResult
 
 __all__ = ["SCENARIO_KINDS", "ScenarioKind", "ChipExtent", "kind_of_summary", "stack_kinds"]
 
@@ -98,7 +98,7 @@ class ScenarioKind:
             return None
         import numpy as np
 
-        from packing.checkpoint import stack_from_arrays
+        from chipstack.packing.checkpoint import stack_from_arrays
 
         path = folder / "stack.npz"
         try:
@@ -169,8 +169,8 @@ class StackKind(ScenarioKind):
         _release_clears_the_floor(scenario, chips)
 
     def compute(self, inputs: StageInputs, stage_name: str) -> Stack:
-        from packing.checkpoint import state_from_arrays, state_to_arrays
-        from packing.deposition import deposit
+        from chipstack.packing.checkpoint import state_from_arrays, state_to_arrays
+        from chipstack.packing.deposition import deposit
 
         scenario = inputs.scenario
         n_batches = -(-scenario.deposition.chips // scenario.deposition.batch_size)
@@ -231,7 +231,7 @@ class DropKind(ScenarioKind):
         return {"figures": options.figures}  # the drop stage draws Fig. 15
 
     def compute(self, inputs: StageInputs, stage_name: str):
-        from packing.drop import drop_chips
+        from chipstack.packing.drop import drop_chips
 
         return drop_chips(inputs.scenario)
 
@@ -283,14 +283,14 @@ class ConveyorKind(StackKind):
         pass  # the panel is cut from the mat: check_conveyor weighs it against the chips
 
     def check(self, scenario: Scenario, chips: list[ChipExtent]) -> None:
-        from packing.conveyor import check_conveyor
+        from chipstack.packing.conveyor import check_conveyor
 
         largest_radius = _largest_radius(chips)
         check_conveyor(scenario, 2 * largest_radius)
         _release_clears_the_floor(scenario, chips)
 
     def compute(self, inputs: StageInputs, stage_name: str) -> ConveyorResult:
-        from packing.conveyor import pour_mat, pour_timing
+        from chipstack.packing.conveyor import pour_mat, pour_timing
 
         report = inputs.options.progress
 

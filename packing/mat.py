@@ -15,7 +15,7 @@ import numpy as np
 from scipy.spatial import Delaunay
 from scipy.spatial.transform import Rotation
 
-from core.errors import InputError
+from chipstack.core.errors import InputError
 
 __all__ = [
     "areal_weight_map",

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.errors import InputError
+from chipstack.core.errors import InputError
 
 __all__ = [
     "signed_area",

@@ -30,7 +30,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from core.registry import Registry
+from chipstack.core.registry import Registry
 
 __all__ = ["PhysicsPreset", "PRESETS"]
 

@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from core.errors import InputError
+from chipstack.core.errors import InputError
 
 __all__ = ["drop_statistics", "rayleigh_p", "disc_radius"]
 

@@ -14,8 +14,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
-from core.errors import InputError, brief
-from core.schema import (
+from chipstack.core.errors import InputError, brief
+from chipstack.core.schema import (
     MAX_LENGTH_MM,
     Section,
     between,

@@ -24,11 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
-from core.chipshape import ChipShape, _fibres, _frozen
-from core.errors import InputError, brief, printable
-from core.files import check_geometry_file
-from core.schema import LENGTH_UNITS_MM, ChipSpec
-from packing.polygons import convex_partition, counter_clockwise
+from chipstack.core.chipshape import ChipShape, _fibres, _frozen
+from chipstack.core.errors import InputError, brief, printable
+from chipstack.core.files import check_geometry_file
+from chipstack.core.schema import LENGTH_UNITS_MM, ChipSpec
+from chipstack.packing.polygons import convex_partition, counter_clockwise
 
 __all__ = ["shape_from_file", "FILE_SUFFIXES", "MAX_DECOMPOSITION_ERROR"]
 
@@ -144,7 +144,7 @@ def _decompose(mesh, shown: str) -> list[np.ndarray]:
     import trimesh
 
     # pybullet (~0.1 s) only for a concave file: every scenario check imports this module
-    from packing.bullet import vhacd
+    from chipstack.packing.bullet import vhacd
 
     with tempfile.TemporaryDirectory(prefix="chipstack-vhacd-") as tmp:
         source, target = os.path.join(tmp, "in.obj"), os.path.join(tmp, "out.obj")

@@ -23,11 +23,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.chipshape import DEFAULT_FIBRES_DEG, ChipShape, _fibres, _frozen
-from core.errors import InputError, printable
-from core.registry import Registry
-from core.schema import MAX_LENGTH_MM, ChipSpec
-from packing.polygons import (
+from chipstack.core.chipshape import DEFAULT_FIBRES_DEG, ChipShape, _fibres, _frozen
+from chipstack.core.errors import InputError, printable
+from chipstack.core.registry import Registry
+from chipstack.core.schema import MAX_LENGTH_MM, ChipSpec
+from chipstack.packing.polygons import (
     check_simple,
     convex_partition,
     counter_clockwise,
@@ -35,7 +35,7 @@ from packing.polygons import (
     regular_polygon,
     star_polygon,
 )
-from packing.shapefiles import shape_from_file
+from chipstack.packing.shapefiles import shape_from_file
 
 __all__ = [
     "ChipShape",

@@ -14,9 +14,9 @@ from typing import ClassVar
 
 import numpy as np
 
-from core.errors import InputError
-from core.registry import Registry
-from core.schema import Scenario
+from chipstack.core.errors import InputError
+from chipstack.core.registry import Registry
+from chipstack.core.schema import Scenario
 
 __all__ = ["SITES", "Site", "SquareTarget", "Cylinder", "PourZone", "reaches_rim"]
 

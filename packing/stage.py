@@ -7,17 +7,17 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from core.errors import InputError
-from core.files import file_sha256
-from core.provenance import code_versions
-from core.schema import Scenario
-from core.stages import Stage, StageInputs, StageOutput
-from packing.kinds import SCENARIO_KINDS, ChipExtent, kind_of_summary
-from packing.presets import PRESETS
-from packing.sections import SECTIONS
+from chipstack.core.errors import InputError
+from chipstack.core.files import file_sha256
+from chipstack.core.provenance import code_versions
+from chipstack.core.schema import Scenario
+from chipstack.core.stages import Stage, StageInputs, StageOutput
+from chipstack.packing.kinds import SCENARIO_KINDS, ChipExtent, kind_of_summary
+from chipstack.packing.presets import PRESETS
+from chipstack.packing.sections import SECTIONS
 
 if TYPE_CHECKING:
-    from core.stack import Stack
+    from chipstack.core.stack import Stack
 
 __all__ = ["PackingStage", "STAGE", "check_packing"]
 
@@ -91,7 +91,9 @@ def check_packing(scenario: Scenario) -> None:
     """The scenario values the packing stage needs: its kind, the preset, chip shapes and
     sizes, and what the kind asks of them (chips that fit its target, container or belt
     and clear the floor at release)."""
-    from packing.shapes import check_chip  # numpy: when a scenario is checked, not at start
+    from chipstack.packing.shapes import (
+        check_chip,  # numpy: when a scenario is checked, not at start
+    )
 
     kind = SCENARIO_KINDS.get(scenario.kind, key="kind")
     PRESETS.get(scenario.physics.preset, key="physics.preset")

@@ -31,16 +31,16 @@ import logging
 
 import numpy as np
 
-from core.chipshape import ChipShape
-from packing.bullet import pybullet
-from packing.presets import PhysicsPreset
-from packing.sections import PhysicsSpec
-from packing.world_bodies import ChipBodies, CollisionShapes
-from packing.world_contacts import GROUND, ContactQueries, ContactRecord
-from packing.world_engine import GRAVITY_MM_S2, MM_PER_UNIT, EngineSession
-from packing.world_freezing import Freezer
-from packing.world_loads import ChipLoads
-from packing.world_states import ChipStates
+from chipstack.core.chipshape import ChipShape
+from chipstack.packing.bullet import pybullet
+from chipstack.packing.presets import PhysicsPreset
+from chipstack.packing.sections import PhysicsSpec
+from chipstack.packing.world_bodies import ChipBodies, CollisionShapes
+from chipstack.packing.world_contacts import GROUND, ContactQueries, ContactRecord
+from chipstack.packing.world_engine import GRAVITY_MM_S2, MM_PER_UNIT, EngineSession
+from chipstack.packing.world_freezing import Freezer
+from chipstack.packing.world_loads import ChipLoads
+from chipstack.packing.world_states import ChipStates
 
 __all__ = ["MM_PER_UNIT", "GRAVITY_MM_S2", "ChipWorld", "GROUND", "ContactRecord"]
 

@@ -10,10 +10,10 @@ import tempfile
 import numpy as np
 from scipy.spatial import ConvexHull
 
-from core.chipshape import ChipShape
-from core.errors import SimulationError
-from packing.bullet import pybullet
-from packing.world_engine import MM_PER_UNIT, EngineSession
+from chipstack.core.chipshape import ChipShape
+from chipstack.core.errors import SimulationError
+from chipstack.packing.bullet import pybullet
+from chipstack.packing.world_engine import MM_PER_UNIT, EngineSession
 
 __all__ = ["CollisionShapes", "ChipBodies", "RETIRED"]
 

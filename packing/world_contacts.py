@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.stack import ContactRecord
-from packing.bullet import pybullet
-from packing.world_bodies import RETIRED, ChipBodies
-from packing.world_engine import MM_PER_UNIT, EngineSession
+from chipstack.core.stack import ContactRecord
+from chipstack.packing.bullet import pybullet
+from chipstack.packing.world_bodies import RETIRED, ChipBodies
+from chipstack.packing.world_engine import MM_PER_UNIT, EngineSession
 
 __all__ = ["GROUND", "ContactRecord", "ContactQueries"]
 

@@ -8,7 +8,7 @@ everything outside them is in millimetres.
 
 from __future__ import annotations
 
-from packing.bullet import pybullet
+from chipstack.packing.bullet import pybullet
 
 __all__ = ["MM_PER_UNIT", "GRAVITY_MM_S2", "RESTITUTION_THRESHOLD_MM_S", "EngineSession"]
 

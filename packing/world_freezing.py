@@ -7,9 +7,9 @@ chip that a moving one can reach is woken: its mass given back, in the moving gr
 
 from __future__ import annotations
 
-from packing.bullet import pybullet
-from packing.world_bodies import ChipBodies
-from packing.world_engine import EngineSession
+from chipstack.packing.bullet import pybullet
+from chipstack.packing.world_bodies import ChipBodies
+from chipstack.packing.world_engine import EngineSession
 
 __all__ = ["Freezer"]
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from packing.bullet import pybullet
-from packing.world_bodies import ChipBodies
-from packing.world_engine import MM_PER_UNIT, EngineSession
+from chipstack.packing.bullet import pybullet
+from chipstack.packing.world_bodies import ChipBodies
+from chipstack.packing.world_engine import MM_PER_UNIT, EngineSession
 
 __all__ = ["ChipLoads"]
 

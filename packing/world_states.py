@@ -7,10 +7,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from core.errors import SimulationError
-from packing.bullet import pybullet
-from packing.world_bodies import RETIRED, ChipBodies
-from packing.world_engine import MM_PER_UNIT, EngineSession
+from chipstack.core.errors import SimulationError
+from chipstack.packing.bullet import pybullet
+from chipstack.packing.world_bodies import RETIRED, ChipBodies
+from chipstack.packing.world_engine import MM_PER_UNIT, EngineSession
 
 __all__ = ["ChipStates"]
 

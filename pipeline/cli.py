@@ -12,9 +12,9 @@ import logging
 import os
 import sys
 
-from core.errors import ChipstackError, printable
-from core.schema import MAX_DROPS, MAX_REPEATS, MAX_SEED, MAX_WORKERS
-from core.stages import check_stage_name, stage_names
+from chipstack.core.errors import ChipstackError, printable
+from chipstack.core.schema import MAX_DROPS, MAX_REPEATS, MAX_SEED, MAX_WORKERS
+from chipstack.core.stages import check_stage_name, stage_names
 
 __all__ = ["main"]
 
@@ -277,8 +277,8 @@ def _names(text: str | None) -> list[str] | None:
 
 
 def _run(args: argparse.Namespace) -> None:
-    from pipeline.run import run_pipeline
-    from pipeline.scenario_files import load_scenario
+    from chipstack.pipeline.run import run_pipeline
+    from chipstack.pipeline.scenario_files import load_scenario
 
     scenario = load_scenario(args.scenario)
     if args.seed is not None:
@@ -290,7 +290,7 @@ def _run(args: argparse.Namespace) -> None:
     if args.formats is not None:
         import dataclasses
 
-        from meshing.stage import check_formats
+        from chipstack.meshing.stage import check_formats
 
         formats = tuple(f.strip() for f in args.formats.split(",") if f.strip())
         check_formats(formats, "--formats")
@@ -356,7 +356,7 @@ def _print_run(path, manifest: dict) -> None:
     """Each completed stage's lines of summary, with where the run was written."""
     from pathlib import Path
 
-    from core.stages import load_stages
+    from chipstack.core.stages import load_stages
 
     times = manifest["wall_time_s"]
     if manifest["stages_reused"]:
@@ -377,7 +377,7 @@ def _print_run(path, manifest: dict) -> None:
 def _ensemble(args: argparse.Namespace, scenario, out: str, descriptors) -> None:
     from tqdm import tqdm
 
-    from pipeline.ensemble import run_ensemble
+    from chipstack.pipeline.ensemble import run_ensemble
 
     bars: list[tqdm] = []
 
@@ -437,7 +437,7 @@ def _print_ensemble(path, manifest: dict, repeats: int) -> None:
 
         summary = json.loads((Path(path) / "ensemble.json").read_text())
         d = summary["descriptors"]
-        from geometry.describe import DESCRIPTORS, in_output_order
+        from chipstack.geometry.describe import DESCRIPTORS, in_output_order
 
         shown = in_output_order(d)
         for section in shown:
@@ -450,7 +450,7 @@ def _print_ensemble(path, manifest: dict, repeats: int) -> None:
 
 
 def _describe(args: argparse.Namespace) -> None:
-    from pipeline.describe import describe_run
+    from chipstack.pipeline.describe import describe_run
 
     manifest = describe_run(
         args.run_dir,
@@ -461,7 +461,7 @@ def _describe(args: argparse.Namespace) -> None:
     if not args.quiet:
         from pathlib import Path
 
-        from geometry.stage import STAGE
+        from chipstack.geometry.stage import STAGE
 
         folder = Path(args.run_dir) / "geometry"
         for line in STAGE.report(manifest["geometry"], folder):
@@ -472,7 +472,7 @@ def _describe(args: argparse.Namespace) -> None:
 def _compare(args: argparse.Namespace) -> None:
     from pathlib import Path
 
-    from pipeline.compare import compare_runs
+    from chipstack.pipeline.compare import compare_runs
 
     out = args.out or f"runs/compare-{Path(args.run_a).name}-{Path(args.run_b).name}"
     _, table = compare_runs(args.run_a, args.run_b, out, overwrite=args.overwrite, command=sys.argv)
@@ -484,7 +484,7 @@ def _compare(args: argparse.Namespace) -> None:
 def _validate(args: argparse.Namespace) -> None:
     from tqdm import tqdm
 
-    from pipeline.validate import CASES, table_markdown, validate
+    from chipstack.pipeline.validate import CASES, table_markdown, validate
 
     cases = [c.strip() for c in args.cases.split(",") if c.strip()] if args.cases else CASES
     if not cases:
@@ -525,7 +525,7 @@ class _Formatter(logging.Formatter):
 def _diagnose(args: argparse.Namespace) -> None:
     from pathlib import Path
 
-    from pipeline.diagnose import diagnose
+    from chipstack.pipeline.diagnose import diagnose
 
     out = args.out or f"runs/diagnose-{Path(args.spec).stem}"
 
@@ -552,7 +552,7 @@ def _diagnose(args: argparse.Namespace) -> None:
 
 
 def _synth(args: argparse.Namespace) -> None:
-    from pipeline.diagnose import synth
+    from chipstack.pipeline.diagnose import synth
 
     path, rows = synth(
         args.spec,
@@ -572,8 +572,8 @@ def _synth(args: argparse.Namespace) -> None:
 def _sweep(args: argparse.Namespace) -> None:
     from tqdm import tqdm
 
-    from pipeline.scenario_files import load_scenario
-    from pipeline.sweep import parse_vary, run_sweep, sweep_points
+    from chipstack.pipeline.scenario_files import load_scenario
+    from chipstack.pipeline.sweep import parse_vary, run_sweep, sweep_points
 
     scenario = load_scenario(args.scenario)
     if args.seed is not None:

@@ -6,10 +6,10 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from core.errors import InputError
-from core.files import read_json
-from core.schema import printable
-from pipeline.rundir import RunDirectory
+from chipstack.core.errors import InputError
+from chipstack.core.files import read_json
+from chipstack.core.schema import printable
+from chipstack.pipeline.rundir import RunDirectory
 
 __all__ = ["load_ensemble", "compare_runs", "comparison_table"]
 
@@ -121,8 +121,8 @@ def compare_runs(
     ensembles = (load_ensemble(run_a), load_ensemble(run_b))
     # Imported once the inputs are checked: scipy.stats and matplotlib take ~1.5 s, too
     # long to wait for a one-line error about a missing directory.
-    from geometry.ensemble import compare_ensembles
-    from geometry.run_figures import comparison_figures
+    from chipstack.geometry.ensemble import compare_ensembles
+    from chipstack.geometry.run_figures import comparison_figures
 
     labels = (Path(run_a).name or str(run_a), Path(run_b).name or str(run_b))
     if labels[0] == labels[1]:

@@ -8,11 +8,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from core.errors import InputError, printable
-from geometry.describe import check_names, describe
-from geometry.stage import write_geometry
-from pipeline.rundir import StageWriter, write_atomically
-from pipeline.stackfiles import load_run
+from chipstack.core.errors import InputError, printable
+from chipstack.geometry.describe import check_names, describe
+from chipstack.geometry.stage import write_geometry
+from chipstack.pipeline.rundir import StageWriter, write_atomically
+from chipstack.pipeline.stackfiles import load_run
 
 __all__ = ["describe_run"]
 

@@ -10,14 +10,14 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from core.errors import InputError
-from core.schema import MAX_DROPS, printable
-from diagnosis.spec import EXPERIMENT_KINDS, Experiment, load_experiment
-from packing.effects import EFFECTS, check_effects
-from pipeline.execution import Executor
-from pipeline.rundir import RunDirectory, check_output_file, write_atomically
-from pipeline.scenario_files import load_scenario
-from pipeline.tables import DirectoryStore, default_tables_dir
+from chipstack.core.errors import InputError
+from chipstack.core.schema import MAX_DROPS, printable
+from chipstack.diagnosis.spec import EXPERIMENT_KINDS, Experiment, load_experiment
+from chipstack.packing.effects import EFFECTS, check_effects
+from chipstack.pipeline.execution import Executor
+from chipstack.pipeline.rundir import RunDirectory, check_output_file, write_atomically
+from chipstack.pipeline.scenario_files import load_scenario
+from chipstack.pipeline.tables import DirectoryStore, default_tables_dir
 
 __all__ = ["diagnose", "synth", "parse_effects"]
 
@@ -64,7 +64,7 @@ def diagnose(
     run_dir = RunDirectory(out, overwrite=overwrite)
     # The statistics, the simulations and the report are imported only once the inputs
     # are known to be good (seconds of scipy and matplotlib that a typo need not pay for).
-    from diagnosis.report import write_diagnosis
+    from chipstack.diagnosis.report import write_diagnosis
 
     start = time.perf_counter()
     with run_dir as run:  # locked from here: a second diagnosis into it is refused

@@ -12,14 +12,14 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from core.errors import InputError, SimulationError
-from core.provenance import code_versions
-from core.schema import MAX_REPEATS, Scenario
-from core.stages import StageOptions
-from pipeline.execution import Executor
-from pipeline.run import RepeatResult, compute_run, derive_seed, stages_to, write_run
-from pipeline.rundir import EnsembleDirectory
-from pipeline.scenario_files import dumps_toml
+from chipstack.core.errors import InputError, SimulationError
+from chipstack.core.provenance import code_versions
+from chipstack.core.schema import MAX_REPEATS, Scenario
+from chipstack.core.stages import StageOptions
+from chipstack.pipeline.execution import Executor
+from chipstack.pipeline.run import RepeatResult, compute_run, derive_seed, stages_to, write_run
+from chipstack.pipeline.rundir import EnsembleDirectory
+from chipstack.pipeline.scenario_files import dumps_toml
 
 __all__ = ["run_ensemble", "MAX_REPEATS"]
 

@@ -15,8 +15,8 @@ import uuid
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from core.errors import InputError
-from core.schema import MAX_WORKERS, printable
+from chipstack.core.errors import InputError
+from chipstack.core.schema import MAX_WORKERS, printable
 
 __all__ = ["Executor", "CONNECT_TIMEOUT_S"]
 

@@ -15,7 +15,7 @@ import socket
 import time
 from pathlib import Path
 
-from core.errors import InputError
+from chipstack.core.errors import InputError
 
 __all__ = ["DirectoryLock", "lock_path"]
 

@@ -1,6 +1,6 @@
 """The README's picture: the paper's reference stack, settled, beside its voxel mesh.
 
-``python -m pipeline.picture`` (part of ``make docs``) runs the reference scenario to its
+``python -m chipstack.pipeline.picture`` (part of ``make docs``) runs the reference scenario to its
 mesh into ``runs/paper-squares`` as ``make run`` does (the stage cache makes that instant
 after ``make run``) and draws ``docs/stack-and-mesh.png``: the chips coloured by
 batch, and the hexahedra of the middle of the stack cut open, coloured by chip.
@@ -24,8 +24,8 @@ def draw(run_dir: Path = ROOT / "runs" / "paper-squares", out: Path = PICTURE) -
     """Run (or reuse) the reference stack to its mesh in ``run_dir`` and draw ``out``."""
     import pyvista
 
-    from pipeline.run import run_pipeline
-    from pipeline.scenario_files import load_scenario
+    from chipstack.pipeline.run import run_pipeline
+    from chipstack.pipeline.scenario_files import load_scenario
 
     scenario = load_scenario("paper-squares").with_seed(0)
     run_pipeline(scenario, run_dir, to="mesh")

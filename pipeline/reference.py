@@ -1,6 +1,6 @@
 """Reference tables generated from the code's own schema and registries, and the docs
 pages that hold them (between ``<!-- BEGIN generated:NAME -->`` and ``<!-- END
-generated:NAME -->`` markers). ``python -m pipeline.reference`` refreshes the pages; a
+generated:NAME -->`` markers). ``python -m chipstack.pipeline.reference`` refreshes the pages; a
 test checks they are up to date, so the documentation cannot drift from the code."""
 
 from __future__ import annotations
@@ -9,15 +9,15 @@ import re
 from collections.abc import Callable
 from pathlib import Path
 
-from core.schema import key_table_markdown
-from core.stages import load_stages
-from geometry.describe import DESCRIPTORS
-from meshing.files import MESH_FORMATS
-from packing.effects import EFFECTS
-from packing.kinds import SCENARIO_KINDS
-from packing.presets import PRESETS
-from packing.shapes import SHAPES
-from packing.sites import SITES
+from chipstack.core.schema import key_table_markdown
+from chipstack.core.stages import load_stages
+from chipstack.geometry.describe import DESCRIPTORS
+from chipstack.meshing.files import MESH_FORMATS
+from chipstack.packing.effects import EFFECTS
+from chipstack.packing.kinds import SCENARIO_KINDS
+from chipstack.packing.presets import PRESETS
+from chipstack.packing.shapes import SHAPES
+from chipstack.packing.sites import SITES
 
 __all__ = ["GENERATED", "refresh", "stale_blocks"]
 
@@ -67,7 +67,7 @@ def mesh_formats_markdown() -> str:
 
 
 def stack_writers_markdown() -> str:
-    from packing.files import STACK_WRITERS
+    from chipstack.packing.files import STACK_WRITERS
 
     rows = []
     for name in STACK_WRITERS.in_order():
@@ -78,8 +78,8 @@ def stack_writers_markdown() -> str:
 
 
 def figures_markdown() -> str:
-    import meshing.files  # noqa: F401  (registers the mesh's figure)
-    from export.figure_kinds import FIGURES, SUBJECT_FOLDERS
+    import chipstack.meshing.files  # noqa: F401  (registers the mesh's figure)
+    from chipstack.export.figure_kinds import FIGURES, SUBJECT_FOLDERS
 
     rows = []
     for name in FIGURES.in_order():
@@ -90,7 +90,7 @@ def figures_markdown() -> str:
 
 
 def mesh_kinds_markdown() -> str:
-    from meshing.kinds import MESH_KINDS
+    from chipstack.meshing.kinds import MESH_KINDS
 
     rows = []
     for name in MESH_KINDS.in_order():
@@ -102,7 +102,7 @@ def mesh_kinds_markdown() -> str:
 
 
 def solve_models_markdown() -> str:
-    from meshing.solve_models import SOLVE_MODELS
+    from chipstack.meshing.solve_models import SOLVE_MODELS
 
     rows = [(n, _first_line(type(SOLVE_MODELS.get(n)).__doc__)) for n in SOLVE_MODELS.in_order()]
     return _table(("solve model", "what it presses"), rows)
@@ -129,7 +129,7 @@ def effects_markdown() -> str:
 def scenario_kinds_markdown() -> str:
     """The registered scenario kinds, their own tables, deposition sites and which later
     stages run."""
-    from core.schema import sections
+    from chipstack.core.schema import sections
 
     rows = []
     for name in SCENARIO_KINDS.in_order():
@@ -149,7 +149,7 @@ def scenario_kinds_markdown() -> str:
 
 def experiment_kinds_markdown() -> str:
     """The diagnosis's experiment kinds, what they observe and what the spec may set."""
-    from diagnosis.spec import EXPERIMENT_KINDS
+    from chipstack.diagnosis.spec import EXPERIMENT_KINDS
 
     rows = []
     for name in EXPERIMENT_KINDS.in_order():
@@ -187,12 +187,13 @@ def _registries() -> dict[str, list]:
     import importlib
     import pkgutil
 
-    from core.registry import Registry
+    from chipstack.core.registry import Registry
 
     found: dict[int, tuple[str, Registry]] = {}
     for layer, _ in LAYERS:
-        package = importlib.import_module(layer)
-        for info in pkgutil.walk_packages(package.__path__, layer + "."):
+        name = layer if layer == "chipstack" else f"chipstack.{layer}"
+        package = importlib.import_module(name)
+        for info in pkgutil.walk_packages(package.__path__, name + "."):
             if info.name.endswith("__main__"):
                 continue
             module = importlib.import_module(info.name)

@@ -14,12 +14,19 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from core.errors import InputError, printable
-from core.provenance import code_versions
-from core.schema import Scenario, scenario_to_dict
-from core.stages import Stage, StageInputs, StageOptions, chain, check_stage_name, load_stages
-from pipeline.rundir import StagedRun
-from pipeline.scenario_files import dumps_toml
+from chipstack.core.errors import InputError, printable
+from chipstack.core.provenance import code_versions
+from chipstack.core.schema import Scenario, scenario_to_dict
+from chipstack.core.stages import (
+    Stage,
+    StageInputs,
+    StageOptions,
+    chain,
+    check_stage_name,
+    load_stages,
+)
+from chipstack.pipeline.rundir import StagedRun
+from chipstack.pipeline.scenario_files import dumps_toml
 
 __all__ = [
     "run_pipeline",

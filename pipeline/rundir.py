@@ -15,10 +15,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from core.errors import InputError, printable
-from core.files import file_sha256, read_json
-from core.stages import Checkpoint, stage_names
-from pipeline.locks import DirectoryLock
+from chipstack.core.errors import InputError, printable
+from chipstack.core.files import file_sha256, read_json
+from chipstack.core.stages import Checkpoint, stage_names
+from chipstack.pipeline.locks import DirectoryLock
 
 __all__ = [
     "RunDirectory",

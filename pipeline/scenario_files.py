@@ -9,9 +9,9 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from core.errors import InputError
-from core.files import read_text
-from core.schema import Scenario, printable, scenario_from_dict, scenario_to_dict
+from chipstack.core.errors import InputError
+from chipstack.core.files import read_text
+from chipstack.core.schema import Scenario, printable, scenario_from_dict, scenario_to_dict
 
 __all__ = ["BUILTIN", "builtin_names", "load_scenario", "dumps_toml", "with_overrides"]
 
@@ -20,7 +20,7 @@ MAX_SCENARIO_BYTES = 1_000_000
 
 
 def builtin_names() -> list[str]:
-    folder = resources.files("pipeline") / "scenarios"
+    folder = resources.files("chipstack.pipeline") / "scenarios"
     return sorted(
         p.name.removesuffix(".toml") for p in folder.iterdir() if p.name.endswith(".toml")
     )
@@ -38,7 +38,9 @@ def load_scenario(source: str | Path | None) -> Scenario:
         raise InputError(f"{shown}: unusable scenario path ({exc})") from None
     if not is_file:
         if str(source) in builtin_names():
-            text = (resources.files("pipeline") / "scenarios" / f"{source}.toml").read_text()
+            text = (
+                resources.files("chipstack.pipeline") / "scenarios" / f"{source}.toml"
+            ).read_text()
             return _parse(text, f"built-in scenario {source}", None)
         if is_dir:
             raise InputError(f"{shown}: is a directory, not a scenario file")

@@ -8,13 +8,13 @@ from pathlib import Path
 
 import numpy as np
 
-from core.arrangement import Arrangement
-from core.errors import InputError
-from core.files import read_json, read_text
-from core.schema import MAX_LENGTH_MM, Scenario, printable
-from export.tables import POSE_COLUMNS
-from packing.shapes import make_shape, shape_from_record, varies_per_chip
-from pipeline.scenario_files import load_scenario
+from chipstack.core.arrangement import Arrangement
+from chipstack.core.errors import InputError
+from chipstack.core.files import read_json, read_text
+from chipstack.core.schema import MAX_LENGTH_MM, Scenario, printable
+from chipstack.export.tables import POSE_COLUMNS
+from chipstack.packing.shapes import make_shape, shape_from_record, varies_per_chip
+from chipstack.pipeline.scenario_files import load_scenario
 
 __all__ = ["load_run"]
 

@@ -22,10 +22,10 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from core.errors import InputError, brief, printable
-from core.schema import Scenario, scenario_from_dict, scenario_to_dict
-from pipeline.rundir import write_atomically
-from pipeline.scenario_files import dumps_toml
+from chipstack.core.errors import InputError, brief, printable
+from chipstack.core.schema import Scenario, scenario_from_dict, scenario_to_dict
+from chipstack.pipeline.rundir import write_atomically
+from chipstack.pipeline.scenario_files import dumps_toml
 
 __all__ = ["parse_vary", "sweep_points", "run_sweep", "SWEEP_SCHEMA"]
 
@@ -145,8 +145,8 @@ def run_sweep(
 ) -> tuple[Path, dict[str, Any]]:
     """An ensemble of ``repeats`` runs at every point of ``vary``'s grid, then the sweep's
     table and figures in ``out``. Returns (out, the sweep record)."""
-    from pipeline.ensemble import run_ensemble
-    from pipeline.run import stages_to
+    from chipstack.pipeline.ensemble import run_ensemble
+    from chipstack.pipeline.run import stages_to
 
     points = sweep_points(scenario, vary)
     for _, point in points:
@@ -209,7 +209,7 @@ def run_sweep(
     if not any(p["scalars"] for p in rows):
         log.warning("the sweep's runs give no scalar to draw; no figures")
         return out, record
-    from export.figures import plot_sweep  # matplotlib only when drawing
+    from chipstack.export.figures import plot_sweep  # matplotlib only when drawing
 
     (out / "figures").mkdir(exist_ok=True)
     for key in record["keys"]:
@@ -234,7 +234,7 @@ def _point_scalars(folder: Path, manifest: dict[str, Any]) -> dict[str, Any]:
     """Mean and 95 % interval of every scalar of one point: the geometry's descriptors
     (its ``ensemble.json``) and the numbers of the packing's result entries (a
     conveyor's mat, a container's fill) over the repeats' manifests."""
-    from geometry.stats import summarize
+    from chipstack.geometry.stats import summarize
 
     scalars: dict[str, dict[str, Any]] = {}
     ensemble = folder / "ensemble.json"

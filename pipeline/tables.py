@@ -9,8 +9,8 @@ import os
 import re
 from pathlib import Path
 
-from core.errors import InputError, printable
-from pipeline.rundir import write_atomically
+from chipstack.core.errors import InputError, printable
+from chipstack.pipeline.rundir import write_atomically
 
 __all__ = ["DirectoryStore", "default_tables_dir"]
 

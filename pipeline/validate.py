@@ -25,11 +25,11 @@ from typing import Any
 
 import numpy as np
 
-from core.errors import InputError
-from core.schema import MAX_DROPS, MAX_REPEATS, printable
-from pipeline.run import derive_seed
-from pipeline.rundir import RunDirectory
-from pipeline.scenario_files import load_scenario
+from chipstack.core.errors import InputError
+from chipstack.core.schema import MAX_DROPS, MAX_REPEATS, printable
+from chipstack.pipeline.run import derive_seed
+from chipstack.pipeline.rundir import RunDirectory
+from chipstack.pipeline.scenario_files import load_scenario
 
 __all__ = ["CASES", "validate", "PAPER"]
 
@@ -48,8 +48,8 @@ MEASURED = {"container AR 25": 18.0, "container AR 10": 37.0}
 
 
 def _drop_task(scenario) -> dict:
-    from packing.drop import drop_chips
-    from packing.scatter import drop_statistics
+    from chipstack.packing.drop import drop_chips
+    from chipstack.packing.scatter import drop_statistics
 
     drops = drop_chips(scenario)
     stats = drop_statistics(drops.positions[:, :2], scenario.drop.yaw_deg)
@@ -58,11 +58,11 @@ def _drop_task(scenario) -> dict:
 
 
 def _mat_task(scenario) -> dict:
-    from core.arrangement import arrangements_from_stack
-    from core.overlap import vertex_heights_mm
-    from geometry.contacts import find_contacts
-    from packing import deposit
-    from packing.shapes import shape_record
+    from chipstack.core.arrangement import arrangements_from_stack
+    from chipstack.core.overlap import vertex_heights_mm
+    from chipstack.geometry.contacts import find_contacts
+    from chipstack.packing import deposit
+    from chipstack.packing.shapes import shape_record
 
     stack = deposit(scenario)
     arrangement = arrangements_from_stack(stack)[-1]
@@ -90,14 +90,14 @@ def _mat_task(scenario) -> dict:
 
 
 def _container_task(scenario) -> dict:
-    from packing import deposit
-    from packing.files import container_summary
+    from chipstack.packing import deposit
+    from chipstack.packing.files import container_summary
 
     return container_summary(deposit(scenario), scenario)
 
 
 def _mixed_task(scenario):
-    from pipeline.run import compute_run
+    from chipstack.pipeline.run import compute_run
 
     return compute_run(scenario, "geometry", None)
 
@@ -194,7 +194,7 @@ def _run(
     progress: Callable[[int, int], None] | None,
 ) -> tuple[dict[str, list], list[str]]:
     """Run the tasks on the execution layer: results by key, and one line per failure."""
-    from pipeline.execution import Executor
+    from chipstack.pipeline.execution import Executor
 
     results: dict[str, list] = {}
     errors: list[str] = []
@@ -259,8 +259,8 @@ def _rows(results: dict[str, list], folder: Path, seed: int) -> list[dict[str, A
 
 def _drop_rows(runs: list[dict], folder: Path) -> list[dict[str, Any]]:
     """Fig. 15: the scatter of the single-chip drops, per experiment and pooled."""
-    from export.figures import plot_drops
-    from packing.scatter import drop_statistics
+    from chipstack.export.figures import plot_drops
+    from chipstack.packing.scatter import drop_statistics
 
     first = runs[0]
     plot_drops(folder / "fig15_drops.png", np.array(first["xy"]), first)
@@ -354,7 +354,7 @@ def _container_row(runs: list[dict], label: str) -> dict[str, Any]:
 
 def _mixed_row(result, folder: Path) -> dict[str, Any]:
     """Fig. 18: the mixed stack written as a run (described, meshed and rendered)."""
-    from pipeline.run import write_run
+    from chipstack.pipeline.run import write_run
 
     run = RunDirectory(folder / "mixed", overwrite=True)
     with run:
@@ -371,9 +371,9 @@ def _mixed_row(result, folder: Path) -> dict[str, Any]:
 def _mat_figure(path: Path, run: dict) -> None:
     """Fig. 16: the fibre mat rendered (pyvista, off screen); skipped with a warning if no
     renderer is available."""
-    from export.figures import render_stack
-    from export.vtk import stack_polydata
-    from packing.shapes import shape_from_record
+    from chipstack.export.figures import render_stack
+    from chipstack.export.vtk import stack_polydata
+    from chipstack.packing.shapes import shape_from_record
 
     shape = shape_from_record(run["shape"], "fibre-mat run")
     positions = np.array(run["positions"])

@@ -63,7 +63,7 @@ def drop_spec(
 
 def run_cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
     return subprocess.run(
-        [sys.executable, "-m", "pipeline", *args],
+        [sys.executable, "-m", "chipstack.pipeline", *args],
         capture_output=True,
         text=True,
         cwd=cwd,

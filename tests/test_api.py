@@ -15,7 +15,7 @@ from conftest import run_cli
 
 import chipstack
 import chipstack.api
-from core.errors import InputError
+from chipstack.core.errors import InputError
 
 ROOT = Path(__file__).resolve().parent.parent
 SMALL = {
@@ -115,20 +115,43 @@ def test_docstring_examples_run(monkeypatch, tmp_path):
         assert result.failed == 0, module.__name__
 
 
-def test_a_module_of_the_users_that_shadows_ours_is_named_at_import(tmp_path):
-    """``core`` and ``pipeline`` are generic names: a user's ``core.py`` found first on
-    sys.path is named in one line instead of failing somewhere inside a run."""
-    (tmp_path / "core.py").write_text("VALUE = 1\n")
-    probe = "import chipstack"
+def test_nothing_generic_is_importable_outside_the_clone(tmp_path):
+    """The project installs one import name, ``chipstack``: its packages are
+    ``chipstack.core``, ``chipstack.pipeline``... and none of their folders' generic names
+    (``core``, ``pipeline``...) can be imported from outside the clone."""
+    generic = ("core", "pipeline", "packing", "geometry", "meshing", "export", "diagnosis")
+    probe = (
+        "import importlib.util, chipstack.core.errors, chipstack.pipeline.cli\n"
+        f"print(*[n for n in {generic!r} if importlib.util.find_spec(n) is not None])"
+    )
     result = subprocess.run(
         [sys.executable, "-c", probe], capture_output=True, text=True, cwd=tmp_path
     )
-    assert result.returncode == 1
-    last = result.stderr.strip().splitlines()[-1]
-    assert last.startswith("ImportError: chipstack: the module 'core' found first")
-    assert str(tmp_path / "core.py") in last
-    clean = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=ROOT)
-    assert clean.returncode == 0, clean.stderr
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split() == []
+    for name in generic:
+        result = subprocess.run(
+            [sys.executable, "-c", f"import {name}"], capture_output=True, text=True, cwd=tmp_path
+        )
+        assert f"ModuleNotFoundError: No module named '{name}'" in result.stderr
+
+
+def test_a_module_of_the_users_named_like_ours_shadows_nothing(tmp_path):
+    """``core`` and ``pipeline`` are generic names: a user's ``core.py`` or ``pipeline.py``
+    beside their script is theirs, and chipstack still finds its own packages."""
+    (tmp_path / "core.py").write_text("VALUE = 1\n")
+    (tmp_path / "pipeline.py").write_text("VALUE = 2\n")
+    probe = (
+        "import chipstack, chipstack.core.errors as errors\n"
+        "core, pipeline = __import__('core'), __import__('pipeline')\n"
+        "print(core.VALUE, pipeline.VALUE, errors.__name__, "
+        "chipstack.load_scenario('paper-squares').name)"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, cwd=tmp_path
+    )
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split() == ["1", "2", "chipstack.core.errors", "paper-squares"]
 
 
 def _blocks(text: str, language: str) -> list[str]:

@@ -14,7 +14,7 @@ import pytest
 from conftest import run_cli
 from golden import result_hashes
 
-from core.stages import load_stages, stage_names
+from chipstack.core.stages import load_stages, stage_names
 
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = (
@@ -30,8 +30,19 @@ PACKAGES = (
 
 
 def _module_name(path: Path) -> str:
+    """The installed name of a module: every package is under ``chipstack`` (the folder
+    ``core/`` is the package ``chipstack.core``)."""
     parts = path.relative_to(ROOT).with_suffix("").parts
-    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+    parts = parts[:-1] if parts[-1] == "__init__" else parts
+    return ".".join(parts if parts[0] == "chipstack" else ("chipstack", *parts))
+
+
+def _layer(name: str) -> str:
+    """The package (a folder, a layer) of an installed module name: ``core`` for
+    ``chipstack.core.schema``, ``chipstack`` for ``chipstack`` and ``chipstack.api``."""
+    parts = name.split(".")
+    assert parts[0] == "chipstack", name
+    return parts[1] if len(parts) > 1 and parts[1] in PACKAGES else "chipstack"
 
 
 def _imports(path: Path) -> set[str]:
@@ -53,7 +64,7 @@ def _imports(path: Path) -> set[str]:
             names = [a.name for a in node.names]
         else:
             continue
-        found.update(n for n in names if n.split(".")[0] in PACKAGES)
+        found.update(n for n in names if n.split(".")[0] == "chipstack")
     return found
 
 
@@ -104,8 +115,8 @@ def test_the_cycle_check_finds_a_cycle():
 def test_core_imports_no_stage():
     graph = _graph()
     for name, targets in graph.items():
-        if name.split(".")[0] == "core":
-            outside = {t for t in targets if t.split(".")[0] != "core"}
+        if _layer(name) == "core":
+            outside = {t for t in targets if _layer(t) != "core"}
             assert not outside, f"{name} imports {outside}"
 
 
@@ -116,7 +127,7 @@ LAYERS = ("core", "export", "packing", "geometry", "meshing", "diagnosis", "pipe
 
 
 def test_the_docs_picture_of_the_layers_has_these_layers():
-    from pipeline.reference import LAYERS as PICTURED
+    from chipstack.pipeline.reference import LAYERS as PICTURED
 
     assert tuple(layer for layer, _ in PICTURED) == LAYERS
 
@@ -127,7 +138,7 @@ def _upward(graph: dict[str, set[str]]) -> list[str]:
         f"{a} -> {b}"
         for a, targets in graph.items()
         for b in targets
-        if rank[b.split(".")[0]] > rank[a.split(".")[0]]
+        if rank[_layer(b)] > rank[_layer(a)]
     )
 
 
@@ -140,10 +151,18 @@ def test_no_import_runs_up_the_layers():
 
 
 def test_the_layer_check_finds_an_upward_import():
-    assert _upward({"export.vtk": {"packing.shapes"}, "packing.shapes": set()}) == [
-        "export.vtk -> packing.shapes"
-    ]
-    assert _upward({"meshing.kinds": {"export.figures"}, "export.figures": set()}) == []
+    assert _upward(
+        {"chipstack.export.vtk": {"chipstack.packing.shapes"}, "chipstack.packing.shapes": set()}
+    ) == ["chipstack.export.vtk -> chipstack.packing.shapes"]
+    assert (
+        _upward(
+            {
+                "chipstack.meshing.kinds": {"chipstack.export.figures"},
+                "chipstack.export.figures": set(),
+            }
+        )
+        == []
+    )
 
 
 def test_pybullet_only_in_one_module():
@@ -191,10 +210,13 @@ def test_command_line_start_imports_no_heavy_library():
     """Every command-line start loads the stage registry (``--help`` lists the stages) and
     every run checks its scenario: the stage modules import their numerical libraries
     where they use them (scipy, gmsh, pybullet... cost a second at each start)."""
-    assert _heavy_imported("import pipeline.cli, core.stages; core.stages.load_stages()") == []
+    probe = (
+        "import chipstack.pipeline.cli, chipstack.core.stages\nchipstack.core.stages.load_stages()"
+    )
+    assert _heavy_imported(probe) == []
     loaded = _heavy_imported(
-        "import pipeline.run\n"
-        "from pipeline.scenario_files import load_scenario\n"
+        "import chipstack.pipeline.run\n"
+        "from chipstack.pipeline.scenario_files import load_scenario\n"
         "load_scenario('paper-squares')"
     )
     assert loaded == ["numpy"]  # the chip shapes are checked with numpy
@@ -202,7 +224,7 @@ def test_command_line_start_imports_no_heavy_library():
 
 def test_every_scenario_table_is_in_some_stage_key():
     """A key no stage declares would not invalidate the stage cache when changed."""
-    from core.schema import Scenario, scenario_to_dict
+    from chipstack.core.schema import Scenario, scenario_to_dict
 
     declared = {section for stage in load_stages() for section in stage.sections}
     assert set(scenario_to_dict(Scenario())) - {"name"} <= declared
@@ -213,14 +235,14 @@ def test_each_stage_owns_its_scenario_tables():
     the scenario is assembled from what the stages own (the core declares none)."""
     import inspect
 
-    import core.schema
-    from core.schema import Section, sections
+    import chipstack.core.schema
+    from chipstack.core.schema import Section, sections
 
     owners, tables = {}, {}
     for stage in load_stages():
-        package = type(stage).__module__.split(".")[0]
+        package = _layer(type(stage).__module__)
         for cls in stage.owned_sections:
-            assert cls.__module__.split(".")[0] == package, (cls, stage.name)
+            assert _layer(cls.__module__) == package, (cls, stage.name)
             owners[cls.table] = stage.name
             tables[cls.table] = cls
     assert [cls.table for cls in sections()] == [
@@ -229,7 +251,7 @@ def test_each_stage_owns_its_scenario_tables():
     ]
     declared_in_core = [
         name
-        for name, obj in vars(core.schema).items()
+        for name, obj in vars(chipstack.core.schema).items()
         if inspect.isclass(obj) and issubclass(obj, Section) and obj is not Section
     ]
     assert declared_in_core == []
@@ -241,7 +263,7 @@ def test_tables_are_assembled_in_pipeline_order_and_a_clash_is_refused():
     from dataclasses import dataclass
     from typing import ClassVar
 
-    from core.schema import Section, assemble, key
+    from chipstack.core.schema import Section, assemble, key
 
     @dataclass(frozen=True)
     class Upstream(Section):
@@ -283,8 +305,8 @@ def test_a_scenario_reads_replaces_and_pickles_its_tables():
     import dataclasses
     import pickle
 
-    from core.schema import Scenario, scenario_from_dict
-    from meshing.sections import MeshSpec
+    from chipstack.core.schema import Scenario, scenario_from_dict
+    from chipstack.meshing.sections import MeshSpec
 
     scenario = scenario_from_dict({"mesh": {"kind": "conformal"}, "seed": 4})
     assert isinstance(scenario.mesh, MeshSpec) and scenario.mesh.kind == "conformal"
@@ -304,7 +326,7 @@ def test_a_scenario_reads_replaces_and_pickles_its_tables():
 def test_the_packing_stage_asks_the_scenario_kind_and_never_tests_its_name():
     """Each scenario kind is an object of the registry; the stage delegates to it, and
     a run's summary finds the kind that wrote it."""
-    from packing.kinds import SCENARIO_KINDS, kind_of_summary
+    from chipstack.packing.kinds import SCENARIO_KINDS, kind_of_summary
 
     for module in ("stage", "deposition", "drop", "conveyor"):
         source = (ROOT / "packing" / f"{module}.py").read_text()
@@ -329,9 +351,9 @@ def test_docs_hold_the_tables_the_code_generates():
     """Scenario keys, stages, shapes, descriptors, formats, effects and presets in docs/
     are the code's own, and docs/measured.md is the rendering of the figures recorded
     under benchmarks/results/ (refresh both with ``make docs``)."""
-    from core.schema import key_table_markdown
-    from pipeline.measured import PAGE, render
-    from pipeline.reference import GENERATED, stale_blocks
+    from chipstack.core.schema import key_table_markdown
+    from chipstack.pipeline.measured import PAGE, render
+    from chipstack.pipeline.reference import GENERATED, stale_blocks
 
     assert stale_blocks() == []
     assert PAGE.read_text() == render(), "docs/measured.md is stale: run `make docs`"
@@ -342,7 +364,7 @@ def test_docs_hold_the_tables_the_code_generates():
 
 
 def test_the_docs_check_reports_a_stale_table(tmp_path):
-    from pipeline.reference import refresh, stale_blocks
+    from chipstack.pipeline.reference import refresh, stale_blocks
 
     page = tmp_path / "page.md"
     page.write_text("x\n<!-- BEGIN generated:shapes -->\n| old |\n<!-- END generated:shapes -->\n")
@@ -407,3 +429,29 @@ def test_the_readme_is_one_screen_of_what_and_how():
     assert not re.search(r"\bmethods? \d", readme)
     assert "docs/measured.md" in readme
     assert re.findall(r"^make \w+", readme, re.MULTILINE) == ["make run", "make test"]
+
+
+def test_the_module_names_are_the_installed_ones():
+    """The graph above is of installed names (``chipstack.core.schema``): every import of
+    the project's own code is under ``chipstack``, none by a folder's bare name."""
+    graph = _graph()
+    assert "chipstack.core.schema" in graph and "chipstack.api" in graph
+    assert {_layer(name) for name in graph} == set(LAYERS)
+    bare = sorted(
+        f"{p.relative_to(ROOT)}: {name}"
+        for folder in (*PACKAGES, "tests", "benchmarks")
+        for p in (ROOT / folder).rglob("*.py")
+        for name in _imported_names(p)
+        if name.split(".")[0] in PACKAGES and name.split(".")[0] != "chipstack"
+    )
+    assert bare == []
+
+
+def _imported_names(path: Path) -> set[str]:
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names.add(node.module)
+        elif isinstance(node, ast.Import):
+            names.update(a.name for a in node.names)
+    return names

@@ -402,8 +402,8 @@ def test_a_file_not_in_the_expected_format_is_never_quoted(tmp_path):
 
 def test_a_spreadsheet_csv_with_a_byte_order_mark_is_read_like_plain_utf8(tmp_path):
     """ "CSV UTF-8" from a spreadsheet starts with a byte-order mark: same observations."""
-    from diagnosis.spec import load_experiment, read_drop_observations
-    from pipeline.scenario_files import load_scenario
+    from chipstack.diagnosis.spec import load_experiment, read_drop_observations
+    from chipstack.pipeline.scenario_files import load_scenario
 
     spec = drop_spec(tmp_path, effects=("friction",))
     _write_drops(tmp_path / "data.csv", _good_rows())
@@ -420,7 +420,7 @@ def test_a_spreadsheet_csv_with_a_byte_order_mark_is_read_like_plain_utf8(tmp_pa
 def test_a_run_directory_edited_in_a_spreadsheet_reads_the_same(tmp_path, finished_run):
     """A poses table and a scenario saved back with a byte-order mark describe the same
     stack."""
-    from pipeline.stackfiles import load_run
+    from chipstack.pipeline.stackfiles import load_run
 
     copy = tmp_path / "run"
     shutil.copytree(finished_run, copy)
@@ -438,7 +438,15 @@ def test_synth_on_a_full_disk_leaves_no_partial_file(tmp_path):
     spec = drop_spec(tmp_path)
     before = tree(tmp_path)
     result = subprocess.run(
-        [sys.executable, "-m", "pipeline", "synth", str(spec), "-o", str(tmp_path / "d.csv")]
+        [
+            sys.executable,
+            "-m",
+            "chipstack.pipeline",
+            "synth",
+            str(spec),
+            "-o",
+            str(tmp_path / "d.csv"),
+        ]
         + ["--drops", "40", "--workers", "1"],
         capture_output=True,
         text=True,
@@ -453,7 +461,7 @@ def test_validate_expands_home_and_writes_a_whole_run_directory(tmp_path):
     directory with its manifest, replaced only with --overwrite."""
     home = tmp_path / "home"
     home.mkdir()
-    args = [sys.executable, "-m", "pipeline", "validate", "--cases", "drop"]
+    args = [sys.executable, "-m", "chipstack.pipeline", "validate", "--cases", "drop"]
     args += ["--repeats", "2", "--drops", "5", "--workers", "1", "--out", "~/v"]
     env = {**os.environ, "HOME": str(home)}
     first = subprocess.run(args, capture_output=True, text=True, env=env, cwd=tmp_path)
@@ -661,7 +669,7 @@ def _run_on_a_full_disk(tmp_path, limit) -> tuple[subprocess.CompletedProcess, d
     (tmp_path / "s.toml").write_text(SMALL_SCENARIO)
     before = tree(tmp_path)
     result = subprocess.run(
-        [sys.executable, "-m", "pipeline", "run", str(tmp_path / "s.toml")]
+        [sys.executable, "-m", "chipstack.pipeline", "run", str(tmp_path / "s.toml")]
         + ["--out", str(tmp_path / "out"), "--quiet"],
         capture_output=True,
         text=True,

@@ -9,7 +9,7 @@ import pytest
 import pyvista
 from conftest import run_cli
 
-from pipeline.scenario_files import dumps_toml, load_scenario
+from chipstack.pipeline.scenario_files import dumps_toml, load_scenario
 
 
 @pytest.fixture(scope="module")

@@ -17,12 +17,12 @@ import numpy as np
 import pytest
 from conftest import run_cli
 
-from core.errors import InputError
-from core.schema import scenario_from_dict, scenario_to_dict
-from packing import deposit
-from packing.conveyor import ON_BELT, SPILLED, pour_mat
-from packing.files import mat_summary
-from pipeline.scenario_files import dumps_toml, load_scenario
+from chipstack.core.errors import InputError
+from chipstack.core.schema import scenario_from_dict, scenario_to_dict
+from chipstack.packing import deposit
+from chipstack.packing.conveyor import ON_BELT, SPILLED, pour_mat
+from chipstack.packing.files import mat_summary
+from chipstack.pipeline.scenario_files import dumps_toml, load_scenario
 
 
 def short_mat(seed: int = 0, **sections) -> object:

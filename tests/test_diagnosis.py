@@ -13,10 +13,15 @@ import pytest
 from conftest import SMALL_SCENARIO, drop_spec, run_cli
 from scipy.spatial.distance import cdist
 
-from core.errors import InputError
-from core.schema import ChipSpec
-from diagnosis.observables import FeatureMetric, drop_features, drop_observables, observable_names
-from diagnosis.statistics import (
+from chipstack.core.errors import InputError
+from chipstack.core.schema import ChipSpec
+from chipstack.diagnosis.observables import (
+    FeatureMetric,
+    drop_features,
+    drop_observables,
+    observable_names,
+)
+from chipstack.diagnosis.statistics import (
     energy_statistics,
     exceedance_p,
     max_t,
@@ -25,8 +30,8 @@ from diagnosis.statistics import (
     permutation_masks,
     resample_weights,
 )
-from packing.effects import AIR_DENSITY_G_MM3, EFFECTS, FlightState, check_effects
-from packing.shapes import make_shape
+from chipstack.packing.effects import AIR_DENSITY_G_MM3, EFFECTS, FlightState, check_effects
+from chipstack.packing.shapes import make_shape
 
 NAMES = observable_names(True, True)
 
@@ -135,7 +140,7 @@ def test_strength_fit_finds_the_minimum_between_grid_points():
     """The vertex of a parabola sampled on a coarse grid is found exactly, off the grid;
     at the grid's end it stays between the end and its neighbour; a curve with no
     bend keeps the grid's minimum; every column (resample) is fitted."""
-    from diagnosis.drop_effects import vertex
+    from chipstack.diagnosis.drop_effects import vertex
 
     grid = [0.0, 0.2, 0.4, 0.6, 0.8]
     x = np.array(grid)
@@ -155,7 +160,7 @@ def test_a_noisy_strength_curve_is_fitted_on_its_smoothed_shape_not_its_lowest_p
     through the lowest point and its two neighbours does; on flat noise it does not pile
     up at the ends of the prior; a single low outlier beside the truth does not drag it
     most of a grid step away."""
-    from diagnosis.drop_effects import smoothed_minimum, vertex
+    from chipstack.diagnosis.drop_effects import smoothed_minimum, vertex
 
     grid = [0.0, 0.4, 0.8, 1.2, 1.6, 2.0, 2.4, 2.8, 3.2, 3.6, 4.0]
     x = np.array(grid)
@@ -187,7 +192,7 @@ def test_the_discrepancy_left_is_read_off_the_smoothed_curve_at_its_minimum():
     the fitted strength, end guard and all. Its price: a V-shaped valley (slope 3) is
     read 0.62 high on the coarse grid, 0.24 with the strengths refined near it, so a
     steep right model is handicapped against a gentle imitator."""
-    from diagnosis.drop_effects import (
+    from chipstack.diagnosis.drop_effects import (
         SMOOTHING_POINTS,
         _loess_matrix,
         refined_strengths,
@@ -230,7 +235,7 @@ def test_a_narrow_valley_is_refined_and_fitted_on_its_own_points():
     and smoothed minimum are added; with the valley's values there, the fit lands in it.
     A curve nowhere below its neutral strength adds nothing; no added strength is within
     a sixth of a step of another; all are on the fits' rounding lattice."""
-    from diagnosis.drop_effects import refined_strengths, smoothed_minimum
+    from chipstack.diagnosis.drop_effects import refined_strengths, smoothed_minimum
 
     grid = [0.0, 0.2, 0.4, 0.6, 0.8, 1.0, 1.2, 1.4, 1.6, 1.8, 2.0]
     coarse = np.array([0.66, 0.36, 0.31, 0.43, 0.41, 0.45, 1.0, 0.88, 0.05, 0.51, 0.48])
@@ -261,8 +266,13 @@ def test_the_tie_test_holds_its_level_with_the_simulations_noise_in_it():
     71 %), though neither is; the bootstrap of the held-out gaps, which resamples the
     simulated drops too, at about its level (3 to 5 %; at most 10 % as the loser is the
     one of two that looks worse). A model twice as far leaves the tie (99 to 100 %)."""
-    from diagnosis.drop_effects import _p_worse, worse_than_best_p
-    from diagnosis.statistics import energy_distance, mean_cross, mean_within, resample_weights
+    from chipstack.diagnosis.drop_effects import _p_worse, worse_than_best_p
+    from chipstack.diagnosis.statistics import (
+        energy_distance,
+        mean_cross,
+        mean_within,
+        resample_weights,
+    )
 
     rng = np.random.default_rng(3)
     n, m, resamples, repeats = 75, 120, 200, 300
@@ -301,7 +311,7 @@ def test_joint_fit_finds_the_minimum_of_a_tilted_bowl_between_grid_points():
     part of the strength) sampled on the 3 x 3 stencil has its minimum found off both
     grids, where fitting the strength at the middle tilt alone misses it; a minimum
     beyond the box stays on its edge; every column is fitted."""
-    from diagnosis.drop_effects import quadratic_minimum, vertex
+    from chipstack.diagnosis.drop_effects import quadratic_minimum, vertex
 
     xs, ys = [0.4, 0.5, 0.6], [3.23, 5.73, 8.23]
     u, v = np.meshgrid(xs, ys, indexing="ij")
@@ -323,7 +333,7 @@ def test_joint_fit_finds_the_minimum_of_a_tilted_bowl_between_grid_points():
 def test_plausible_strengths_are_the_grid_points_within_the_fits_interval():
     """The adequacy test also tries the grid's strengths inside the 95 % interval of the
     fit's resamples: none outside it, all inside (its ends included)."""
-    from diagnosis.drop_effects import within
+    from chipstack.diagnosis.drop_effects import within
 
     resamples = np.linspace(0.9, 2.1, 401)  # 95 % interval 0.93 to 2.07
     fitted = np.concatenate([[1.5], resamples])
@@ -336,8 +346,8 @@ def test_a_gap_every_held_out_half_sees_a_little_of_is_not_adjusted_away():
     none significant (4 x 0.03 = 0.12), Fisher's combination (p = 0.0005) finds the model
     inadequate; a condition seen in two folds is named when its own combination is
     significant; p-values that look like noise leave nothing still off."""
-    from diagnosis.statistics import combined_p
-    from diagnosis.verdicts import _still_off
+    from chipstack.diagnosis.statistics import combined_p
+    from chipstack.diagnosis.verdicts import _still_off
 
     rows = [dict(condition=c, p_after=0.03) for c in ("low", "high") for _fold in ("A", "B")]
     assert combined_p([0.03] * 4) == pytest.approx(0.000464, rel=0.01)
@@ -358,8 +368,8 @@ def test_the_adequacy_calibrated_by_simulation_decides_over_fishers_combination(
     0.3 look calm to Fisher (p = 0.35) yet can be rare for a model whose own
     pseudo-experiments give larger ones (calibrated p = 0.025): the model is inadequate,
     taken together; and a calibrated p of 0.5 clears a small Fisher combination."""
-    from diagnosis.statistics import combined_p
-    from diagnosis.verdicts import _still_off
+    from chipstack.diagnosis.statistics import combined_p
+    from chipstack.diagnosis.verdicts import _still_off
 
     rows = [dict(condition=c, p_after=0.3) for c in ("low", "high")]
     assert combined_p([0.3, 0.3]) > 0.05
@@ -380,7 +390,7 @@ def test_drops_named_to_tell_two_models_apart_give_the_tie_test_its_power():
     model is true)."""
     from scipy.stats import norm, ttest_1samp
 
-    from diagnosis.drop_separation import drops_needed
+    from chipstack.diagnosis.drop_separation import drops_needed
 
     rng = np.random.default_rng(4)
     pool = 60
@@ -497,7 +507,7 @@ def test_air_drag_face_normals_and_moments_agree_with_scipy():
     of a drop) against scipy's Rotation and numpy's cross on random states."""
     from scipy.spatial.transform import Rotation
 
-    from packing.effects import _cross, _face_normals
+    from chipstack.packing.effects import _cross, _face_normals
 
     rng = np.random.default_rng(4)
     quaternions = Rotation.random(50, random_state=5).as_quat()
@@ -511,8 +521,8 @@ def test_each_drop_is_independent_of_the_others_simulated_with_it():
     """Drop k lands where it lands whatever else is dropped beside it: its own random
     stream (spin and tilt), and the air's loads until it has landed itself (a drop that
     lands early is not kept under the air by one still falling)."""
-    from packing.drop import DropProtocol, simulate_drops
-    from pipeline.scenario_files import load_scenario
+    from chipstack.packing.drop import DropProtocol, simulate_drops
+    from chipstack.pipeline.scenario_files import load_scenario
 
     scenario = load_scenario("single-chip-drop")
     protocol = DropProtocol(height_mm=150.0, tilt_deg=10.0)
@@ -530,8 +540,8 @@ def test_each_drop_is_independent_of_the_others_simulated_with_it():
     "compound of convex pieces, lands elsewhere when another drop lands at the same instant",
 )
 def test_a_warped_drop_is_independent_of_the_others_simulated_with_it():
-    from packing.drop import DropProtocol, simulate_drops
-    from pipeline.scenario_files import load_scenario
+    from chipstack.packing.drop import DropProtocol, simulate_drops
+    from chipstack.pipeline.scenario_files import load_scenario
 
     scenario = load_scenario("single-chip-drop")
     protocol = DropProtocol(height_mm=200.0, tilt_deg=10.0)
@@ -544,8 +554,8 @@ def test_drops_sharing_a_world_fall_apart_each_at_a_place_of_its_own():
     """Release points: a spiral whose k-th point depends on k alone, no two closer than
     the spacing (so released chips never share Bullet's broad phase), and every drop's
     landing reported from its own point (identical drops land at the same place)."""
-    from packing.drop import DropProtocol, release_places, simulate_drops
-    from pipeline.scenario_files import load_scenario
+    from chipstack.packing.drop import DropProtocol, release_places, simulate_drops
+    from chipstack.pipeline.scenario_files import load_scenario
 
     places = release_places(50, 42.0)
     np.testing.assert_array_equal(places[:7], release_places(7, 42.0))
@@ -562,7 +572,7 @@ def test_an_effect_that_leaves_a_significant_gap_is_only_partly_explained():
     """'Explained' needs the held-out data to be consistent with the best effect: a
     residual gap beyond the noise floor after it (Holm across held-out conditions) makes
     the verdict 'partly explained', naming where."""
-    from diagnosis.verdicts import effect_verdict
+    from chipstack.diagnosis.verdicts import effect_verdict
 
     top = dict(
         effect="warp",
@@ -653,8 +663,8 @@ def test_warped_chip_keeps_its_volume_and_rises_at_its_ends():
 
 
 def test_effects_change_simulated_drops_the_way_physics_says():
-    from packing.drop import DropProtocol, simulate_drops
-    from pipeline.scenario_files import load_scenario
+    from chipstack.packing.drop import DropProtocol, simulate_drops
+    from chipstack.pipeline.scenario_files import load_scenario
 
     scenario = load_scenario("single-chip-drop")
     protocol = DropProtocol(200.0, 0.0, 5.7296)
@@ -677,8 +687,8 @@ def test_effects_change_simulated_drops_the_way_physics_says():
 
 
 def test_stack_deposition_with_effects(small_scenario):
-    from packing.deposition import deposit
-    from pipeline.scenario_files import load_scenario
+    from chipstack.packing.deposition import deposit
+    from chipstack.pipeline.scenario_files import load_scenario
 
     scenario = load_scenario(small_scenario)
     base = deposit(scenario)
@@ -847,7 +857,7 @@ def test_a_gap_no_candidate_effect_can_act_on_is_unexplained(tmp_path):
     written (no ranking to show), not a traceback."""
     import dataclasses
 
-    from pipeline.scenario_files import dumps_toml, load_scenario
+    from chipstack.pipeline.scenario_files import dumps_toml, load_scenario
 
     star = dataclasses.replace(load_scenario("single-chip-drop"), chip=ChipSpec(shape="star"))
     (tmp_path / "star.toml").write_text(dumps_toml(star))
@@ -871,10 +881,10 @@ def test_a_gap_no_candidate_effect_can_act_on_is_unexplained(tmp_path):
 
 
 def test_effects_that_cannot_act_on_the_chip_are_set_aside():
-    from diagnosis.spec import Condition, Experiment
-    from diagnosis.verdicts import applicable_effects
-    from packing.drop import DropProtocol
-    from pipeline.scenario_files import load_scenario
+    from chipstack.diagnosis.spec import Condition, Experiment
+    from chipstack.diagnosis.verdicts import applicable_effects
+    from chipstack.packing.drop import DropProtocol
+    from chipstack.pipeline.scenario_files import load_scenario
 
     base = load_scenario("single-chip-drop")
     star = base.__class__(**{**base.__dict__, "chip": ChipSpec(shape="star")})
@@ -937,7 +947,7 @@ def test_simulation_batches_go_longest_first_and_come_back_in_order():
     and every result comes back in the caller's order."""
     from types import SimpleNamespace
 
-    from diagnosis.drop_simulations import _longest_first
+    from chipstack.diagnosis.drop_simulations import _longest_first
 
     seen = []
 

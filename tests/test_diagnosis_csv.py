@@ -24,9 +24,9 @@ import numpy as np
 import pytest
 from conftest import assert_refused, run_cli, tree
 
-from diagnosis.spec import MIN_DROPS, load_experiment, read_drop_observations
-from diagnosis.statistics import mean_within, resample_weights
-from pipeline.scenario_files import load_scenario
+from chipstack.diagnosis.spec import MIN_DROPS, load_experiment, read_drop_observations
+from chipstack.diagnosis.statistics import mean_within, resample_weights
+from chipstack.pipeline.scenario_files import load_scenario
 
 BENCHMARK = Path(__file__).resolve().parents[1] / "benchmarks" / "drops"
 # The cheapest diagnosis the spec allows: few simulated drops, a coarse grid, one effect.

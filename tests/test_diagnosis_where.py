@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from scipy.spatial.distance import cdist
 
-from diagnosis.drop_where import gap_family
-from diagnosis.statistics import (
+from chipstack.diagnosis.drop_where import gap_family
+from chipstack.diagnosis.statistics import (
     energy_statistics,
     exceedance_p,
     max_t_adjusted,
@@ -146,12 +146,12 @@ def _synthetic_where(shift_mm: float | dict, seed: int, drops: int = 60):
     spread growing with the height; uniform yaw; small tilts) against simulations drawn
     the same way, the experiment's moved by ``shift_mm`` along x in every condition (or
     by ``shift_mm[condition]``)."""
-    from diagnosis.drop_simulations import Dataset, DropSimulations
-    from diagnosis.drop_where import locate_gap
-    from diagnosis.observables import observable_names
-    from diagnosis.spec import Condition, DiagnosisSettings, DropData, Experiment
-    from packing.drop import DropProtocol
-    from pipeline.scenario_files import load_scenario
+    from chipstack.diagnosis.drop_simulations import Dataset, DropSimulations
+    from chipstack.diagnosis.drop_where import locate_gap
+    from chipstack.diagnosis.observables import observable_names
+    from chipstack.diagnosis.spec import Condition, DiagnosisSettings, DropData, Experiment
+    from chipstack.packing.drop import DropProtocol
+    from chipstack.pipeline.scenario_files import load_scenario
 
     def draw(rng, protocol, n, shift=0.0):
         spread = 6.0 * (protocol.height_mm / 200.0) ** 0.5
@@ -243,7 +243,7 @@ def test_where_reads_conditions_first_then_the_observables_within_them():
     """Only the highest condition's drops moved (6 mm along +x, 0.7 of its spread): that
     condition's test is significant and lists mean_x, upwards, as what is off in it; the
     others list nothing; the verdict's text names it with its direction and size."""
-    from diagnosis.verdicts import off_text
+    from chipstack.diagnosis.verdicts import off_text
 
     where = _synthetic_where({"low": 0.0, "mid": 0.0, "high": 6.0}, seed=7)
     assert where["overall"]["significant"]

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from conftest import SMALL_SCENARIO, run_cli
 
-from pipeline.execution import Executor
+from chipstack.pipeline.execution import Executor
 
 
 def _scenario(tmp_path: Path, chips: int = 24) -> Path:
@@ -175,7 +175,7 @@ def test_an_interrupted_ensemble_resumes_where_it_stopped(tmp_path):
     args = [
         sys.executable,
         "-m",
-        "pipeline",
+        "chipstack.pipeline",
         "run",
         scenario,
         "--to",
@@ -259,7 +259,7 @@ def test_the_ensemble_survives_a_killed_worker(tmp_path):
             [
                 sys.executable,
                 "-m",
-                "pipeline",
+                "chipstack.pipeline",
                 "run",
                 str(_scenario(tmp_path, 36)),
                 "--to",

@@ -14,8 +14,8 @@ import pytest
 from matplotlib.figure import Figure
 from matplotlib.image import imread
 
-import export.figures as figures
-from export.figures import (
+import chipstack.export.figures as figures
+from chipstack.export.figures import (
     neh_colormap,
     plot_contact_types,
     plot_layer_comparison,
@@ -234,7 +234,7 @@ def test_matplotlib_global_state_untouched(tmp_path):
         import sys, matplotlib
         # the raw rcParams entry: matplotlib.get_backend() would resolve it through pyplot
         before = dict.__getitem__(matplotlib.rcParams, "backend")
-        import export.figures as f
+        import chipstack.export.figures as f
         f.plot_profile({str(tmp_path / "p.png")!r}, [0, 1, 2], [0.1, 0.2], "x (-)", "t")
         f.plot_contact_types(
             {str(tmp_path / "c.png")!r}, [1, 2],
@@ -472,7 +472,7 @@ def test_render_stack_with_a_broken_opengl_does_not_crash(tmp_path):
     script = textwrap.dedent(
         f"""
         import pyvista
-        from export.figures import render_stack
+        from chipstack.export.figures import render_stack
         box = pyvista.Box()
         box.cell_data["chip_id"] = list(range(box.n_cells))
         try:

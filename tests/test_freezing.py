@@ -13,9 +13,9 @@ import statistics
 import numpy as np
 import pytest
 
-from packing import deposit
-from packing.fill import container_fill
-from pipeline.scenario_files import load_scenario
+from chipstack.packing import deposit
+from chipstack.packing.fill import container_fill
+from chipstack.pipeline.scenario_files import load_scenario
 
 # Five repeats (measured: frozen within 0.042 of dynamic, pooled sd 0.053; never woken 0.10
 # below, pooled sd 0.041); eight cost four minutes of one test worker.

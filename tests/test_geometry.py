@@ -8,19 +8,19 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from core.arrangement import Arrangement
-from core.errors import InputError
-from core.schema import ChipSpec
-from geometry.contacts import GROUND, KINDS, PLACES, classify_patch, find_contacts
-from geometry.describe import DESCRIPTORS, describe
-from geometry.layers import full_layer_count, layer_counts, layer_filling, slab_fractions
-from geometry.orientation import fibre_directions_world, fibre_tensor, tilt_deg
-from geometry.overlaps import find_overlaps
-from geometry.rays import ray_maps
-from geometry.sections import GeometrySpec
-from geometry.solids import chip_solids, union_solid
-from geometry.voxels import voxel_solid_profile, voxelize
-from packing.shapes import box_shape
+from chipstack.core.arrangement import Arrangement
+from chipstack.core.errors import InputError
+from chipstack.core.schema import ChipSpec
+from chipstack.geometry.contacts import GROUND, KINDS, PLACES, classify_patch, find_contacts
+from chipstack.geometry.describe import DESCRIPTORS, describe
+from chipstack.geometry.layers import full_layer_count, layer_counts, layer_filling, slab_fractions
+from chipstack.geometry.orientation import fibre_directions_world, fibre_tensor, tilt_deg
+from chipstack.geometry.overlaps import find_overlaps
+from chipstack.geometry.rays import ray_maps
+from chipstack.geometry.sections import GeometrySpec
+from chipstack.geometry.solids import chip_solids, union_solid
+from chipstack.geometry.voxels import voxel_solid_profile, voxelize
+from chipstack.packing.shapes import box_shape
 
 SQUARE = box_shape(ChipSpec())  # 20 x 20 x 2 mm, fibres at 0 and 90 deg
 

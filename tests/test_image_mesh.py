@@ -15,10 +15,10 @@ from conftest import assert_refused, run_cli, tree
 from scipy.spatial.transform import Rotation
 from test_resolve import arrange
 
-from core.errors import InputError
-from meshing import check_mesh
-from meshing.image import cgal_available, image_mesh, image_voxel_mm, tetra_sicn
-from meshing.mesh import PORE
+from chipstack.core.errors import InputError
+from chipstack.meshing import check_mesh
+from chipstack.meshing.image import cgal_available, image_mesh, image_voxel_mm, tetra_sicn
+from chipstack.meshing.mesh import PORE
 
 needs_cgal = pytest.mark.skipif(
     not cgal_available() and not os.environ.get("CHIPSTACK_REQUIRE_CGAL"),
@@ -53,9 +53,9 @@ def test_the_default_voxel_is_an_eighth_of_the_thinnest_dimension_and_a_thick_on
 
 
 def test_without_cgal_the_image_kind_says_what_to_install(monkeypatch):
-    import meshing.image
+    import chipstack.meshing.image
 
-    monkeypatch.setattr(meshing.image, "cgal_available", lambda: False)
+    monkeypatch.setattr(chipstack.meshing.image, "cgal_available", lambda: False)
     with pytest.raises(InputError, match=r"^mesh.kind: 'image' needs pygalmesh .*`make image`"):
         image_mesh(arrange(PILE_AND_LONE_CHIP), 0.5)
 
@@ -65,10 +65,10 @@ def test_without_cgal_an_image_run_is_refused_before_the_deposition(
 ):
     """One line naming `make image`, exit 2 and nothing written: not after minutes of
     packing (``make run`` installs no CGAL)."""
-    import meshing.image
-    from pipeline.cli import main
+    import chipstack.meshing.image
+    from chipstack.pipeline.cli import main
 
-    monkeypatch.setattr(meshing.image, "cgal_available", lambda: False)
+    monkeypatch.setattr(chipstack.meshing.image, "cgal_available", lambda: False)
     # main() configures the root logger: give it a list of handlers of its own.
     monkeypatch.setattr(logging.root, "handlers", [])
     monkeypatch.setattr(logging.root, "level", logging.root.level)
@@ -231,7 +231,7 @@ def test_a_stray_tetrahedron_joins_its_neighbour_and_a_pore_pocket_stays_pore():
     10 x 11 slab plus a one-cube pocket beside chip 0 (0.9 % of the pore space, as small
     as a stray: a pocket the chips close off stays pore); a tetrahedron of chip 0
     touching nothing through a face (0.8 % of it) is dropped."""
-    from meshing.image import _absorb_strays
+    from chipstack.meshing.image import _absorb_strays
 
     corners = [(i, j, 0) for i in range(4) for j in range(5)]  # chip 0: rows 0-119
     corners += [(20 + i, j, 0) for i in range(5) for j in range(5)]  # chip 1: 120-269
@@ -251,8 +251,8 @@ def test_a_stray_tetrahedron_joins_its_neighbour_and_a_pore_pocket_stays_pore():
 
 
 def test_a_subdomain_over_the_void_is_refused_not_called_pore():
-    from meshing.conformal import MeshingError
-    from meshing.image import _chips_of_subdomains, _Cluster
+    from chipstack.meshing.conformal import MeshingError
+    from chipstack.meshing.image import _chips_of_subdomains, _Cluster
 
     labels = np.zeros((6, 6, 6), dtype=np.uint16)
     labels[1:3, 1:3, 1:3] = 1

@@ -7,8 +7,8 @@ import json
 
 import pytest
 
-from core.errors import InputError
-from pipeline.measured import load, met, record, render, write_page
+from chipstack.core.errors import InputError
+from chipstack.pipeline.measured import load, met, record, render, write_page
 
 
 def test_a_recorded_figure_reads_back_with_its_provenance(tmp_path):

@@ -13,14 +13,21 @@ import pytest
 import pyvista
 from scipy.spatial.transform import Rotation
 
-from core.arrangement import Arrangement
-from core.errors import InputError
-from core.schema import ChipSpec
-from geometry.contacts import find_contacts
-from meshing import PORE, GmshSession, MeshingError, check_mesh, conformal_mesh, voxel_mesh
-from meshing.checks import element_faces, exact_chip_volumes
-from meshing.files import FACET_TAGS, MESH_FORMATS, facets, write_mesh
-from packing.shapes import box_shape
+from chipstack.core.arrangement import Arrangement
+from chipstack.core.errors import InputError
+from chipstack.core.schema import ChipSpec
+from chipstack.geometry.contacts import find_contacts
+from chipstack.meshing import (
+    PORE,
+    GmshSession,
+    MeshingError,
+    check_mesh,
+    conformal_mesh,
+    voxel_mesh,
+)
+from chipstack.meshing.checks import element_faces, exact_chip_volumes
+from chipstack.meshing.files import FACET_TAGS, MESH_FORMATS, facets, write_mesh
+from chipstack.packing.shapes import box_shape
 
 SQUARE = box_shape(ChipSpec())
 
@@ -141,7 +148,7 @@ def test_stars_polygons_and_beams_mesh_conformally_from_their_faces():
     random seven-sided polygon (not convex) and a beam beside them, a star turned on the
     square. Every chip present with its exact volume (to 0.01 %: flat faces are meshed
     exactly), the surface contacts sharing faces, every element sound."""
-    from packing.shapes import _slender, random_polygon_shape, star_shape
+    from chipstack.packing.shapes import _slender, random_polygon_shape, star_shape
 
     star = star_shape(ChipSpec(shape="star", sides=5, length_mm=30.0, inner_ratio=0.5))
     polygon = random_polygon_shape(
@@ -212,7 +219,7 @@ def test_checks_catch_a_broken_mesh(conformal_layup):
 def test_a_chip_in_pieces_joined_at_an_edge_is_not_valid():
     """A steeply tilted chip voxelised at its own thickness falls apart into pieces that
     touch only along edges: a mechanism in a solver, so the report must not say valid."""
-    from meshing.checks import chip_pieces, split_warning
+    from chipstack.meshing.checks import chip_pieces, split_warning
 
     tilted = arrange([((0, 0, 8.0), Rotation.from_euler("y", 60, degrees=True))])
     sound = voxel_mesh(tilted, voxel_mm=0.5)
@@ -482,7 +489,7 @@ def test_periodic_sides_give_the_elastic_answers(tmp_path):
     """Periodic sides with no jump confine the slab laterally: the force is C33 x strain x
     area (uniaxial strain); with the jumps free, or with free sides and no ties, it is
     E3 x strain x area (uniaxial stress). Both are exact for a homogeneous box."""
-    from meshing.files import MATERIALS
+    from chipstack.meshing.files import MATERIALS
 
     c = MATERIALS["CHIP"]
     compliance = np.array(
@@ -585,10 +592,10 @@ def test_line_contacts_kept_touching_fall_back_to_the_gap_when_the_mesh_fails(
     """Two chips side by side in a line contact: resolved with the contact touching first;
     when that mesh fails, the contact is cleared by the gap and the stack meshed again,
     and the report says so."""
-    import meshing.conformal as conformal
-    from core.schema import Scenario
-    from geometry.resolve import separation_mm
-    from meshing.kinds import MESH_KINDS
+    import chipstack.meshing.conformal as conformal
+    from chipstack.core.schema import Scenario
+    from chipstack.geometry.resolve import separation_mm
+    from chipstack.meshing.kinds import MESH_KINDS
 
     real, calls = conformal.conformal_mesh, []
 
@@ -624,10 +631,10 @@ def test_an_unknown_mesh_kind_lists_the_registered_ones(tmp_path, small_scenario
 def test_a_registered_mesh_kind_is_built_checked_and_written_by_the_stage(tmp_path):
     """A new kind is one subclass and one registration: the stage builds, checks and
     writes it without knowing its name."""
-    from core.schema import scenario_from_dict
-    from core.stages import StageInputs, StageOptions
-    from meshing.kinds import MESH_KINDS, VoxelKind
-    from meshing.stage import STAGE
+    from chipstack.core.schema import scenario_from_dict
+    from chipstack.core.stages import StageInputs, StageOptions
+    from chipstack.meshing.kinds import MESH_KINDS, VoxelKind
+    from chipstack.meshing.stage import STAGE
 
     class CoarseVoxels(VoxelKind):
         name = "coarse_voxel"
@@ -660,7 +667,7 @@ def test_a_volume_meshed_again_keeps_its_faces_and_its_neighbour():
     """The sliver fallback meshes one volume again with Delaunay in a model of its own: the
     shared face's triangles stay as they were (the neighbour stays conformal), every new
     tetrahedron is positive and the two volumes still fill the two boxes exactly."""
-    from meshing.conformal import _remesh_delaunay
+    from chipstack.meshing.conformal import _remesh_delaunay
 
     with GmshSession() as gmsh:
         model = gmsh.model
@@ -693,7 +700,7 @@ def test_a_volume_with_a_hole_meshed_again_leaves_the_hole_empty():
     """The pore is a box with chips as holes in it: meshed again, its outer shell and each
     hole are separate surfaces of the new volume, so the holes stay empty (as one surface
     they were filled too, over the chip's own elements: mixed-shapes seed 4)."""
-    from meshing.conformal import _remesh_delaunay
+    from chipstack.meshing.conformal import _remesh_delaunay
 
     with GmshSession() as gmsh:
         model = gmsh.model
@@ -770,8 +777,8 @@ def test_a_crop_side_that_would_cut_a_concave_chip_in_two_moves_off():
     above the base keeps two separate arms, which the crop refuses;
     it moves into the base instead (the nearest place that keeps one piece and clears
     the corners by a quarter element), and the chip is meshed in one piece."""
-    from meshing.checks import chip_pieces
-    from meshing.conformal import _splits
+    from chipstack.meshing.checks import chip_pieces
+    from chipstack.meshing.conformal import _splits
 
     u, a = _u_chip()
     base_top = float(u.vertices[:, 1].min()) + 6.0
@@ -790,7 +797,7 @@ def test_pieces_joined_along_part_of_a_face_count_as_one_chip():
     through the arms two."""
     import dataclasses
 
-    from meshing.conformal import _splits
+    from chipstack.meshing.conformal import _splits
 
     u, _ = _u_chip()
     low = u.vertices.min(axis=0)
@@ -813,7 +820,7 @@ def test_a_crop_that_must_cut_a_concave_chip_in_two_meshes_both_pieces():
     """A side 5 mm into the U's arms, every place within 1 mm of it cutting them: both arm
     tips are meshed as the chip's part inside the crop (its exact volume there), and the
     checks count two pieces as what the crop leaves, not as a chip falling apart."""
-    from meshing.checks import chip_pieces
+    from chipstack.meshing.checks import chip_pieces
 
     u, a = _u_chip()
     base_top = float(u.vertices[:, 1].min()) + 6.0
@@ -829,7 +836,7 @@ def test_a_crop_that_must_cut_a_concave_chip_in_two_meshes_both_pieces():
 def _u_chip(shape=None):
     """A U-shaped chip 30 x 20 x 2 mm (arms 10 mm wide, a 6 mm base), lying flat at the
     origin: its shape and a one-chip arrangement of ``shape`` (default: that shape)."""
-    from packing.shapes import prism_shape
+    from chipstack.packing.shapes import prism_shape
 
     outline = np.array([(0, 0), (30, 0), (30, 20), (20, 20), (20, 6), (10, 6), (10, 20), (0, 20)])
     u = prism_shape("u 30x20x2", "polygon", outline.astype(float), 2.0, ChipSpec(), principal=False)

@@ -10,18 +10,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from diagnosis.model import Condition, DiagnosisSettings, DropData, Experiment
-from diagnosis.model_choice import (
+from chipstack.diagnosis.model import Condition, DiagnosisSettings, DropData, Experiment
+from chipstack.diagnosis.model_choice import (
     build_model_choice,
     design_summaries,
     expected_calibration_error,
     smallest_credible_set,
 )
-from diagnosis.reference_table import NO_EFFECT, MemoryStore, ReferenceTable
-from diagnosis.summaries import condition_summaries, summary_names
-from diagnosis.synth import synthesize_drops
-from packing.drop import DropProtocol
-from pipeline.scenario_files import load_scenario
+from chipstack.diagnosis.reference_table import NO_EFFECT, MemoryStore, ReferenceTable
+from chipstack.diagnosis.summaries import condition_summaries, summary_names
+from chipstack.diagnosis.synth import synthesize_drops
+from chipstack.packing.drop import DropProtocol
+from chipstack.pipeline.scenario_files import load_scenario
 
 
 def test_expected_calibration_error_of_known_cases():

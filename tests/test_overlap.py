@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from core.overlap import box_penetration_depth, floor_penetration_mm, penetrating_pairs
+from chipstack.core.overlap import box_penetration_depth, floor_penetration_mm, penetrating_pairs
 
 HALF = np.array([10.0, 10.0, 1.0])
 I3 = np.eye(3)

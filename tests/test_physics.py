@@ -5,11 +5,11 @@ import math
 import numpy as np
 import pytest
 
-from core.overlap import floor_penetration_mm, penetrating_pairs
-from core.schema import ChipSpec
-from packing import PRESETS, ChipWorld, deposit, make_shape, scenario_from_dict
-from packing.sections import PhysicsSpec
-from packing.world import GROUND
+from chipstack.core.overlap import floor_penetration_mm, penetrating_pairs
+from chipstack.core.schema import ChipSpec
+from chipstack.packing import PRESETS, ChipWorld, deposit, make_shape, scenario_from_dict
+from chipstack.packing.sections import PhysicsSpec
+from chipstack.packing.world import GROUND
 
 G = 9810.0  # mm/s^2
 
@@ -103,7 +103,7 @@ def test_chips_deep_under_the_surface_are_buried_and_the_rest_are_not():
     is more than 40 mm under the column's top (65 mm: tops below 25 mm, centres 0 to 10 mm)
     are buried; the lone rod, with nothing over it, is not; a depth deeper than the column
     buries nothing."""
-    from packing.deposition import buried_under
+    from chipstack.packing.deposition import buried_under
 
     column = np.array([[0.0, 0.0, 5.0 * k] for k in range(12)])
     lone = np.array([[100.0, 0.0, 0.0]])

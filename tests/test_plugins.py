@@ -81,7 +81,9 @@ def run(args: list[str], cwd: Path, plugin: bool = True) -> subprocess.Completed
 
 def test_a_plugin_shape_descriptor_mesh_kind_and_writer_run_through_their_stages(tmp_path):
     (tmp_path / "tri.toml").write_text(TRIANGLES)
-    result = run(["-m", "pipeline", "run", "tri.toml", "--to", "mesh", "--out", "run"], tmp_path)
+    result = run(
+        ["-m", "chipstack.pipeline", "run", "tri.toml", "--to", "mesh", "--out", "run"], tmp_path
+    )
     assert result.returncode == 0, result.stderr
     assert "coarse_voxel mesh:" in result.stdout
     # The plugin's stack writer: the centres after the last batch, as the poses file has them.
@@ -118,7 +120,9 @@ def test_a_plugin_shape_descriptor_mesh_kind_and_writer_run_through_their_stages
 def test_without_the_plugin_its_names_are_refused_in_one_line(tmp_path):
     (tmp_path / "tri.toml").write_text(TRIANGLES)
     result = run(
-        ["-m", "pipeline", "run", "tri.toml", "--to", "mesh", "--out", "run"], tmp_path, False
+        ["-m", "chipstack.pipeline", "run", "tri.toml", "--to", "mesh", "--out", "run"],
+        tmp_path,
+        False,
     )
     assert result.returncode == 2
     (line,) = result.stderr.strip().splitlines()
@@ -128,7 +132,9 @@ def test_without_the_plugin_its_names_are_refused_in_one_line(tmp_path):
 
 def test_a_plugin_scenario_kind_with_its_own_table_runs_through_the_stages(tmp_path):
     (tmp_path / "ring.toml").write_text(RING)
-    result = run(["-m", "pipeline", "run", "ring.toml", "--to", "mesh", "--out", "run"], tmp_path)
+    result = run(
+        ["-m", "chipstack.pipeline", "run", "ring.toml", "--to", "mesh", "--out", "run"], tmp_path
+    )
     assert result.returncode == 0, result.stderr
     assert "[ring]\nradius_mm = 8.0" in (tmp_path / "run" / "scenario.toml").read_text()
     with open(tmp_path / "run" / "packing" / "poses_after_batch_03.csv") as f:
@@ -137,14 +143,16 @@ def test_a_plugin_scenario_kind_with_its_own_table_runs_through_the_stages(tmp_p
     # Released over the disc 25 mm along x, not over the 80 mm square centred on 0.
     assert len(x) == 12 and np.median(x) > 12.0
     assert (tmp_path / "run" / "mesh" / "stack_voxel.vtu").exists()
-    without = run(["-m", "pipeline", "run", "ring.toml", "--out", "run2"], tmp_path, False)
+    without = run(
+        ["-m", "chipstack.pipeline", "run", "ring.toml", "--out", "run2"], tmp_path, False
+    )
     assert without.returncode == 2
     assert "ring: unknown key in the top level" in without.stderr  # its table, then its kind
 
 
 def test_a_plugin_effect_acts_on_simulated_drops(tmp_path):
     (tmp_path / "spec.toml").write_text(WIND)
-    common = ["-m", "pipeline", "synth", "spec.toml", "--drops", "12", "--seed", "1"]
+    common = ["-m", "chipstack.pipeline", "synth", "spec.toml", "--drops", "12", "--seed", "1"]
     windy = run([*common, "--effect", "crosswind=1000", "-o", "a.csv", "--workers", "1"], tmp_path)
     assert windy.returncode == 0, windy.stderr
     still = run([*common, "-o", "b.csv", "--workers", "1"], tmp_path)
@@ -159,7 +167,7 @@ def test_a_plugin_effect_acts_on_simulated_drops(tmp_path):
 
 def test_plugin_rows_are_generated_in_the_docs_tables(tmp_path):
     code = (
-        "from pipeline.reference import GENERATED\n"
+        "from chipstack.pipeline.reference import GENERATED\n"
         "names = ('shapes', 'descriptors', 'mesh_kinds', 'effects', 'scenario_kinds',\n"
         "         'stack_writers', 'figures')\n"
         "for name in names:\n"
@@ -180,7 +188,7 @@ def test_plugin_rows_are_generated_in_the_docs_tables(tmp_path):
 def test_a_broken_plugin_names_itself_every_time(tmp_path, monkeypatch):
     """A plugin that cannot be imported, or that takes a built-in's name, is one error
     naming it, on every call, not an unknown name on the second."""
-    from core.registry import Registry
+    from chipstack.core.registry import Registry
 
     info = tmp_path / "broken-0.1.dist-info"
     info.mkdir()

@@ -9,9 +9,9 @@ import math
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from core.errors import InputError
-from core.schema import scenario_from_dict
-from pipeline.scenario_files import _parse, dumps_toml
+from chipstack.core.errors import InputError
+from chipstack.core.schema import scenario_from_dict
+from chipstack.pipeline.scenario_files import _parse, dumps_toml
 
 KEYS = {
     "chip": [

@@ -27,7 +27,7 @@ def test_second_run_into_the_same_directory_is_refused(tmp_path, small_scenario)
         [
             sys.executable,
             "-m",
-            "pipeline",
+            "chipstack.pipeline",
             "run",
             str(small_scenario),
             "--out",
@@ -111,11 +111,11 @@ def test_describe_refuses_a_run_another_process_holds(tmp_path, small_scenario):
 def _world_with_chip(z_mm: float, x_mm: float = 0.0):
     import numpy as np
 
-    from core.schema import ChipSpec
-    from packing.presets import PRESETS
-    from packing.sections import PhysicsSpec
-    from packing.shapes import make_shape
-    from packing.world import ChipWorld
+    from chipstack.core.schema import ChipSpec
+    from chipstack.packing.presets import PRESETS
+    from chipstack.packing.sections import PhysicsSpec
+    from chipstack.packing.shapes import make_shape
+    from chipstack.packing.world import ChipWorld
 
     world = ChipWorld(PRESETS.get("default"), PhysicsSpec()).__enter__()
     chip = world.add_chip(
@@ -130,8 +130,8 @@ def test_energy_growing_without_bound_is_an_error_naming_the_chips():
     import numpy as np
     import pytest
 
-    from core.errors import SimulationError
-    from packing.deposition import _RestTracker
+    from chipstack.core.errors import SimulationError
+    from chipstack.packing.deposition import _RestTracker
 
     world, chip = _world_with_chip(50.0)
     try:
@@ -149,8 +149,8 @@ def test_energy_growing_without_bound_is_an_error_naming_the_chips():
 
 def test_chips_leaving_the_domain_are_frozen_and_reported(small_scenario):
 
-    from packing.deposition import settle
-    from pipeline.scenario_files import load_scenario
+    from chipstack.packing.deposition import settle
+    from chipstack.pipeline.scenario_files import load_scenario
 
     scenario = load_scenario(small_scenario)
     # 20 x the scenario's largest size (4 m here) is the domain: 5 m is beyond.

@@ -8,13 +8,18 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from core.arrangement import Arrangement
-from core.errors import InputError
-from core.schema import ChipSpec
-from geometry.contacts import KINDS, find_contacts
-from geometry.resolve import UnresolvedError, resolve_chips, resolve_contacts, separation_mm
-from meshing import check_mesh, conformal_mesh
-from packing.shapes import box_shape
+from chipstack.core.arrangement import Arrangement
+from chipstack.core.errors import InputError
+from chipstack.core.schema import ChipSpec
+from chipstack.geometry.contacts import KINDS, find_contacts
+from chipstack.geometry.resolve import (
+    UnresolvedError,
+    resolve_chips,
+    resolve_contacts,
+    separation_mm,
+)
+from chipstack.meshing import check_mesh, conformal_mesh
+from chipstack.packing.shapes import box_shape
 
 SQUARE = box_shape(ChipSpec())  # 20 x 20 x 2 mm
 
@@ -94,7 +99,7 @@ def test_a_beam_crossing_a_square_at_a_shallow_angle_is_aligned_too():
     (40 x 6 x 2 mm) lying on a square at 1.7 deg is turned parallel like a square would
     be, and the pair meshes soundly (the beam's name had kept it out: a wedge of SICN
     0.065, mixed-shapes seed 3)."""
-    from packing.shapes import _slender
+    from chipstack.packing.shapes import _slender
 
     beam = _slender("beam")(ChipSpec(shape="beam", length_mm=40.0, width_mm=6.0))
     a = Arrangement(

@@ -93,7 +93,16 @@ def _kill_when(scenario: Path, out: Path, reached) -> dict:
     at the kill."""
     partial = out.parent / f".{out.name}.partial"
     process = subprocess.Popen(
-        [sys.executable, "-m", "pipeline", "run", str(scenario), "--out", str(out), *ARGS],
+        [
+            sys.executable,
+            "-m",
+            "chipstack.pipeline",
+            "run",
+            str(scenario),
+            "--out",
+            str(out),
+            *ARGS,
+        ],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
     )
@@ -214,7 +223,7 @@ def test_a_kill_while_updating_a_finished_run_leaves_it_whole(scenario, referenc
     changed = tmp_path / "coarser.toml"
     changed.write_text(SCENARIO.replace("voxel_mm = 1.0", "voxel_mm = 0.4"))
     process = subprocess.Popen(
-        [sys.executable, "-m", "pipeline", "run", str(changed), "--out", str(out), *ARGS],
+        [sys.executable, "-m", "chipstack.pipeline", "run", str(changed), "--out", str(out), *ARGS],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
@@ -300,7 +309,16 @@ def test_a_full_disk_keeps_the_batches_and_the_run_resumes_once_there_is_room(
     scenario, reference, tmp_path
 ):
     out = tmp_path / "run"
-    command = [sys.executable, "-m", "pipeline", "run", str(scenario), "--out", str(out), *ARGS]
+    command = [
+        sys.executable,
+        "-m",
+        "chipstack.pipeline",
+        "run",
+        str(scenario),
+        "--out",
+        str(out),
+        *ARGS,
+    ]
     full = subprocess.run(command, capture_output=True, text=True, preexec_fn=_file_size_limit)
     assert full.returncode == 2, full.stderr
     lines = full.stderr.strip().splitlines()
@@ -319,9 +337,9 @@ def test_a_full_disk_keeps_the_batches_and_the_run_resumes_once_there_is_room(
 def test_a_new_version_of_a_mesh_kind_redoes_the_mesh_and_what_follows(monkeypatch):
     # A run directory meshed by an older algorithm must not reuse its mesh: the kind's
     # version is part of the mesh stage's key (and so of the solve stage's).
-    from meshing.kinds import MESH_KINDS
-    from packing import scenario_from_dict
-    from pipeline.run import stage_inputs
+    from chipstack.meshing.kinds import MESH_KINDS
+    from chipstack.packing import scenario_from_dict
+    from chipstack.pipeline.run import stage_inputs
 
     scenario = scenario_from_dict({"mesh": {"kind": "conformal"}})
     before = stage_inputs(scenario)

@@ -11,12 +11,18 @@ import pytest
 import trimesh
 from conftest import run_cli
 
-from core.schema import ChipSpec
-from packing import InputError, deposit, scenario_from_dict
-from packing.deposition import draw_shapes
-from packing.polygons import check_simple, convex_partition, is_convex, signed_area, star_polygon
-from packing.shapes import SHAPES, make_shape, shape_from_record, shape_record
-from pipeline.scenario_files import dumps_toml
+from chipstack.core.schema import ChipSpec
+from chipstack.packing import InputError, deposit, scenario_from_dict
+from chipstack.packing.deposition import draw_shapes
+from chipstack.packing.polygons import (
+    check_simple,
+    convex_partition,
+    is_convex,
+    signed_area,
+    star_polygon,
+)
+from chipstack.packing.shapes import SHAPES, make_shape, shape_from_record, shape_record
+from chipstack.pipeline.scenario_files import dumps_toml
 
 
 def _pieces_volume(shape) -> float:
@@ -120,7 +126,7 @@ def test_random_polygons_are_seeded_simple_and_on_principal_axes():
 def test_fibre_directions_turn_with_the_principal_axes():
     # A rectangle given along y with fibres along its length: on principal axes its long
     # side becomes local x, and so do its fibres.
-    from packing.shapes import prism_shape
+    from chipstack.packing.shapes import prism_shape
 
     outline = np.array([[-2.0, -10.0], [2.0, -10.0], [2.0, 10.0], [-2.0, 10.0]])
     outline = outline @ np.array([[math.cos(0.3), math.sin(0.3)], [-math.sin(0.3), math.cos(0.3)]])
@@ -337,7 +343,7 @@ def test_cylinder_rod_comes_to_rest_on_the_floor():
             "drop": {"drops": 3, "height_mm": 60.0, "tilt_deg": 20.0},
         }
     )
-    from packing.drop import drop_chips
+    from chipstack.packing.drop import drop_chips
 
     result = drop_chips(scenario)
     assert result.settled.all()

@@ -14,13 +14,13 @@ import pytest
 import pyvista
 from conftest import SMALL_SCENARIO, run_cli
 
-from core.arrangement import Arrangement
-from core.schema import ChipSpec
-from meshing.calculix import read_node_prints, run_ccx
-from meshing.calculix_deck import write_contact_deck
-from meshing.contact_model import chip_block, clear_overlaps, contact_model, separation
-from meshing.sections import SolveSpec
-from packing.shapes import make_shape
+from chipstack.core.arrangement import Arrangement
+from chipstack.core.schema import ChipSpec
+from chipstack.meshing.calculix import read_node_prints, run_ccx
+from chipstack.meshing.calculix_deck import write_contact_deck
+from chipstack.meshing.contact_model import chip_block, clear_overlaps, contact_model, separation
+from chipstack.meshing.sections import SolveSpec
+from chipstack.packing.shapes import make_shape
 
 needs_ccx = pytest.mark.skipif(
     shutil.which("ccx") is None and not os.environ.get("CHIPSTACK_REQUIRE_CCX"),
@@ -78,7 +78,7 @@ def test_the_contact_model_has_pairs_platens_and_refuses_a_coarse_element():
     assert model.pairs.tolist() == [[0, 1]] and model.floor_chips.tolist() == [0]
     assert model.bottom.z_mm <= model.points[: model.cells.max() + 1, 2].min() + 1e-9
     assert model.height_mm == pytest.approx(4.0, abs=0.01)
-    from core.errors import InputError
+    from chipstack.core.errors import InputError
 
     with pytest.raises(InputError, match="mesh.element_mm"):
         contact_model(flat_stack([1.0]), element_mm=15.0)
@@ -183,7 +183,7 @@ def test_a_new_press_reuses_the_mesh_and_solves_again(tmp_path):
 
 
 def test_a_contact_model_round_trips_through_its_archive(tmp_path):
-    from meshing.contact_model import load_contact_model, save_contact_model
+    from chipstack.meshing.contact_model import load_contact_model, save_contact_model
 
     model = contact_model(flat_stack([1.0, 3.0]), element_mm=2.0, through_thickness=2)
     back = load_contact_model(save_contact_model(tmp_path / "model.npz", model))
@@ -253,7 +253,7 @@ def test_solve_a_cropped_periodic_volume_of_a_physics_stack(tmp_path):
     # The mean stress of a confined mix lies between the stiffest and the softest confined
     # modulus of its parts x the strain (Voigt and Reuss): the pore space's PA6 and the
     # largest eigenvalue of the chip's stiffness (Mandel form, any orientation).
-    from meshing.files import MATERIALS
+    from chipstack.meshing.files import MATERIALS
 
     c, pa6 = MATERIALS["CHIP"], MATERIALS["PORE"]
     compliance = np.array(

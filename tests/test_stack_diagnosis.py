@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from diagnosis.spec import Condition, DiagnosisSettings, Experiment, QuantityData
-from diagnosis.stacks import diagnose_stacks
-from pipeline.scenario_files import load_scenario
+from chipstack.diagnosis.spec import Condition, DiagnosisSettings, Experiment, QuantityData
+from chipstack.diagnosis.stacks import diagnose_stacks
+from chipstack.pipeline.scenario_files import load_scenario
 
 FRICTION0, RESTITUTION0 = 0.5, 0.3  # the default preset's (the effects' neutral strengths)
 # Per condition: how strongly friction moves the volume fraction and restitution the
@@ -174,7 +174,7 @@ def independent_run_many(_function, calls: list[dict]) -> list[dict]:
 def test_the_share_of_noise_settings_have_in_common_is_measured():
     """Noise that repeats with the seed in every setting is shared (1); noise of each
     setting's own is not (about 0)."""
-    from diagnosis.stacks import StackRuns, StackScores
+    from chipstack.diagnosis.stacks import StackRuns, StackScores
 
     x = experiment()
     data = measured({"friction": 0.8}, np.random.default_rng(4))

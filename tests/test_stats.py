@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from scipy import stats as sps
 
-import geometry.stats as gs
-from core.errors import InputError
-from geometry.stats import (
+import chipstack.geometry.stats as gs
+from chipstack.core.errors import InputError
+from chipstack.geometry.stats import (
     Comparison,
     Summary,
     compare,

@@ -10,7 +10,7 @@ import json
 from conftest import run_cli
 from test_conveyor import short_mat
 
-from pipeline.scenario_files import dumps_toml
+from chipstack.pipeline.scenario_files import dumps_toml
 
 
 def _short_mat_file(tmp_path):

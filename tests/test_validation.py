@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from conftest import run_cli
 
-from packing import scenario_from_dict
-from packing.fill import container_fill
-from packing.scatter import disc_radius, drop_statistics, rayleigh_p
+from chipstack.packing import scenario_from_dict
+from chipstack.packing.fill import container_fill
+from chipstack.packing.scatter import disc_radius, drop_statistics, rayleigh_p
 
 
 def test_drop_statistics_of_points_on_the_diagonals():
@@ -67,7 +67,7 @@ def test_simulated_drops_scatter_along_the_corners():
     """Paper 4.2: the X-shaped scatter points along the chip's corners. 200 drops make the
     4-fold harmonic significant; its axis must be nearer the corners than the sides
     (within 22.5 deg of them)."""
-    from packing.drop import drop_chips
+    from chipstack.packing.drop import drop_chips
 
     scenario = scenario_from_dict({"kind": "drop", "seed": 0, "drop": {"drops": 200}})
     result = drop_chips(scenario)

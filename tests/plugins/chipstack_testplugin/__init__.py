@@ -11,15 +11,15 @@ from typing import ClassVar
 
 import numpy as np
 
-from core.schema import Section, between, key
-from export.figure_kinds import FigureKind
-from geometry.describe import Descriptor
-from meshing.kinds import VoxelKind
-from packing.effects import Effect
-from packing.files import StackWriter
-from packing.kinds import StackKind
-from packing.shapes import ShapeKind, prism_shape
-from packing.sites import SquareTarget
+from chipstack.core.schema import Section, between, key
+from chipstack.export.figure_kinds import FigureKind
+from chipstack.geometry.describe import Descriptor
+from chipstack.meshing.kinds import VoxelKind
+from chipstack.packing.effects import Effect
+from chipstack.packing.files import StackWriter
+from chipstack.packing.kinds import StackKind
+from chipstack.packing.shapes import ShapeKind, prism_shape
+from chipstack.packing.sites import SquareTarget
 
 
 def _triangle(spec, rng=None, size=1.0):
@@ -34,7 +34,7 @@ def _triangle(spec, rng=None, size=1.0):
 
 
 def _triangle_check(spec, key):
-    from core.errors import InputError
+    from chipstack.core.errors import InputError
 
     if spec.thickness_mm >= spec.length_mm:
         raise InputError(f"{key}.thickness_mm: a triangle must be thinner than it is across")
@@ -120,7 +120,7 @@ class RingSite(SquareTarget):
         return np.array([centre + radius * np.cos(angle), radius * np.sin(angle), height])
 
     def no_room(self, scenario, n):
-        from core.errors import InputError
+        from chipstack.core.errors import InputError
 
         return InputError(f"ring.radius_mm: cannot release {n} chips over the disc")
 
