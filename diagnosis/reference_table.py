@@ -65,7 +65,6 @@ NUISANCE_TILT_DEG = (0.0, 20.0)
 # it (benchmarks/bench_table_size.py: 88.2 % with 200, 88.1 % with 100, 86.0 % with 50),
 # but the study's figures were measured with 200.
 DEFAULT_POOL_DROPS = 200
-_NONE = np.zeros((0, 0, 4), dtype=np.float32)  # no stored pool
 _SEED_BASE = 300_000_000  # apart from the diagnosis's (seed * 1000 + ...) and synth's (1e7)
 
 
@@ -203,7 +202,7 @@ class ReferenceTable:
         return dict(
             scenario=self.x.scenario,
             protocol=self._protocol(condition, setting),
-            n=max(self.pool_drops, self._whole.get((condition, setting.model), _NONE).shape[1]),
+            n=max(self.pool_drops, self._stored_drops(condition, setting.model)),
             strengths={} if setting.model == NO_EFFECT else {setting.model: setting.strength},
             seed=self._seed(condition, setting),
         )
@@ -228,6 +227,11 @@ class ReferenceTable:
                     )
                     continue
                 self._keep((c.name, model), stored)
+
+    def _stored_drops(self, condition: str, model: str) -> int:
+        """Drops per pool of the model's stored pools at the condition (0: none stored)."""
+        whole = self._whole.get((condition, model))
+        return 0 if whole is None else whole.shape[1]
 
     def _keep(self, key: tuple[str, str], whole: np.ndarray) -> None:
         self._whole[key] = whole

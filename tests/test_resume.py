@@ -88,21 +88,26 @@ def reference(scenario) -> Path:
     return out
 
 
+def _run_command(scenario: Path, out: Path) -> list[str]:
+    """``pipeline run`` of ``scenario`` into ``out`` in a child interpreter."""
+    return [
+        sys.executable,
+        "-m",
+        "chipstack.pipeline",
+        "run",
+        str(scenario),
+        "--out",
+        str(out),
+        *ARGS,
+    ]
+
+
 def _kill_when(scenario: Path, out: Path, reached) -> dict:
     """Start the run, SIGKILL it as soon as ``reached(journal)`` holds; returns the journal
     at the kill."""
     partial = out.parent / f".{out.name}.partial"
     process = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "chipstack.pipeline",
-            "run",
-            str(scenario),
-            "--out",
-            str(out),
-            *ARGS,
-        ],
+        _run_command(scenario, out),
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
     )
@@ -309,16 +314,7 @@ def test_a_full_disk_keeps_the_batches_and_the_run_resumes_once_there_is_room(
     scenario, reference, tmp_path
 ):
     out = tmp_path / "run"
-    command = [
-        sys.executable,
-        "-m",
-        "chipstack.pipeline",
-        "run",
-        str(scenario),
-        "--out",
-        str(out),
-        *ARGS,
-    ]
+    command = _run_command(scenario, out)
     full = subprocess.run(command, capture_output=True, text=True, preexec_fn=_file_size_limit)
     assert full.returncode == 2, full.stderr
     lines = full.stderr.strip().splitlines()
