@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 IMAGE  := $(VENV)/.image-installed
 
-.PHONY: run test image lint bench docs clean
+.PHONY: run solve test image lint bench docs clean
 
 # The pipeline and its dependencies into .venv: wheels only, nothing compiled, no root.
 # setuptools announces every editable install that maps packages (ours: the root folders
@@ -39,16 +39,19 @@ $(IMAGE): $(STAMP)
 	@PYTHONWARNINGS="ignore:Editable installation" $(BIN)/pip install --quiet -e '.[image]'
 	@touch $(IMAGE)
 
-# The paper scenario through every stage: deposition, descriptors, voxel mesh; then a
-# cropped volume of the same stack pressed in CalculiX (when ccx is on the PATH). Run
-# again, the stage cache reuses what is unchanged (a killed run resumes where it stopped).
+# The paper scenario through every stage: deposition, descriptors, voxel mesh. Run again,
+# the stage cache reuses what is unchanged (a killed run resumes where it stopped).
 run: $(STAMP)
 	@$(BIN)/pipeline run --to mesh --out runs/paper-squares --seed 0
-	@if command -v ccx >/dev/null; then \
-		$(BIN)/pipeline run paper-volume --to solve --out runs/paper-volume --seed 0; \
-	else \
-		echo "make run: CalculiX (ccx) is not on the PATH, so the solve stage is skipped (Debian: apt-get install calculix-ccx)"; \
+
+# A cropped volume of the same stack pressed between platens in CalculiX (ccx on the PATH;
+# Debian: apt-get install calculix-ccx).
+solve: $(STAMP)
+	@if ! command -v ccx >/dev/null; then \
+		echo "make solve: CalculiX (ccx) is not on the PATH (Debian: apt-get install calculix-ccx)"; \
+		exit 2; \
 	fi
+	@$(BIN)/pipeline run paper-volume --to solve --out runs/paper-volume --seed 0
 
 # Lint, format check and every test, the image route's included (so `make test` builds
 # pygalmesh: `make image`). Tests run on every core (-n auto); a module's tests stay on
