@@ -1,10 +1,10 @@
 """How the model choice's cross-validated accuracy depends on the reference table's
 size: pools per effect J (strengths covered) against drops per pool P (datasets cut from
 each), on the study's design (3 conditions x 50 drops), from the study's stored table
-(benchmarks/cache/tables, 16 pools of 200 drops per effect). A pool's first P drops are
+(benchmarks/cache/tables, 32 pools of 200 drops per effect). A pool's first P drops are
 exactly a pool of P drops (a drop depends on its pool's seed and its own index), so
 every P is read from the same pools; nothing is simulated. The table's cost is
-proportional to J x P: this chose the default drops per pool.
+proportional to J x P: this chose the default drops per pool and pools per effect.
 
 Usage: ``python benchmarks/bench_table_size.py [--record]``.
 """
@@ -24,7 +24,18 @@ from chipstack.diagnosis.reference_table import NO_EFFECT, ReferenceTable
 from chipstack.diagnosis.spec import load_experiment
 from chipstack.pipeline.scenario_files import load_scenario
 
-SIZES = [(200, 8), (200, 16), (100, 8), (100, 16), (50, 8), (50, 16)]
+SIZES = [
+    (200, 8),
+    (200, 16),
+    (200, 24),
+    (200, 32),
+    (100, 8),
+    (100, 16),
+    (100, 24),
+    (100, 32),
+    (50, 16),
+    (50, 24),
+]
 SEEDS = (0, 1)  # forest seeds averaged (the folds follow the seed too)
 TREES = 150
 

@@ -49,7 +49,7 @@ class DiagnosisSettings:
     # by refitting every effect to the data ("refit", the earlier method, kept as a
     # cross-check). ``table_pools``: the most pools per effect the reference table grows to.
     method: str = "amortised"
-    table_pools: int = 16
+    table_pools: int = 24
 
 
 @dataclass(frozen=True)
