@@ -173,6 +173,14 @@ def check_mesh(
         "quality_min": float(quality.min()),
         "quality_p1": float(np.percentile(quality, 1)),
         "min_quality": min_quality,
+        "quality_below_min_count": int((quality < min_quality).sum()),
+        # Where the worst element is: its centroid (mm) and its region (a chip's index,
+        # or -1: the pore space).
+        "quality_worst_at_mm": mesh.points[mesh.cells[int(np.argmin(quality))]]
+        .mean(axis=0)
+        .round(3)
+        .tolist(),
+        "quality_worst_region": int(mesh.chip[int(np.argmin(quality))]),
         "chip_volume_error_max": float(relative.max()),
         "chip_tolerance": chip_tolerance,
         "chip_volume_worst": int(np.argmax(relative)),
@@ -210,6 +218,12 @@ def split_warning(report: dict, kind: str) -> str | None:
     )
 
 
+def _region_name(region: int | None) -> str:
+    if region is None:
+        return "the mesh"
+    return "the pore space" if region < 0 else f"chip {region}"
+
+
 def assert_valid(report: dict) -> None:
     """Raise :class:`MeshingError` naming the first criterion ``report`` fails.
 
@@ -220,7 +234,10 @@ def assert_valid(report: dict) -> None:
         (report["min_element_volume_mm3"] > 0, "an element has no positive volume"),
         (
             report["quality_min"] >= report["min_quality"],
-            f"quality {report['quality_min']:.3g} below {report['min_quality']}",
+            f"{report.get('quality_below_min_count', 1)} elements below quality "
+            f"{report['min_quality']}, the worst {report['quality_min']:.3g} in "
+            f"{_region_name(report.get('quality_worst_region'))} at "
+            f"{report.get('quality_worst_at_mm')} mm",
         ),
         (
             report["chip_volume_error_max"] <= report.get("chip_tolerance", 0.02),

@@ -58,7 +58,11 @@ class MeshSpec(Section):
         "REF_X and REF_Y carry the jumps): a representative volume",
     )
     min_quality: float = key(
-        0.1, "", "smallest accepted element quality (SICN) of the conformal mesh", between(0, 1)
+        0.1,
+        "",
+        "smallest accepted element quality (SICN) of the conformal mesh, and of the image "
+        "mesh with image_improve",
+        between(0, 1),
     )
     image_voxel_mm: float = key(
         0.0,
@@ -73,6 +77,13 @@ class MeshSpec(Section):
         "image mesh: perturb and exude slivers after the refinement (about five times the "
         "time, the worst SICN ~0.04 instead of ~0.001; CGAL's optimisers do not give the "
         "same mesh twice, so the run is no longer reproducible)",
+    )
+    image_improve: bool = key(
+        True,
+        "",
+        "image mesh: remove the slivers Mesh_3 leaves (gmsh's optimiser, then nodes on "
+        "interfaces and box sides moved within them; regions, shared faces and volumes "
+        "kept, the same mesh every run), and hold every element to min_quality",
     )
     gap_mm: float = key(
         0.03,
