@@ -173,14 +173,6 @@ def check_mesh(
         "quality_min": float(quality.min()),
         "quality_p1": float(np.percentile(quality, 1)),
         "min_quality": min_quality,
-        "quality_below_min_count": int((quality < min_quality).sum()),
-        # Where the worst element is: its centroid (mm) and its region (a chip's index,
-        # or -1: the pore space).
-        "quality_worst_at_mm": mesh.points[mesh.cells[int(np.argmin(quality))]]
-        .mean(axis=0)
-        .round(3)
-        .tolist(),
-        "quality_worst_region": int(mesh.chip[int(np.argmin(quality))]),
         "chip_volume_error_max": float(relative.max()),
         "chip_tolerance": chip_tolerance,
         "chip_volume_worst": int(np.argmax(relative)),
@@ -193,6 +185,15 @@ def check_mesh(
         "chips_in_pieces_count": int(len(split)),
         "interfaces": interfaces,
     }
+    if (below := int((quality < min_quality).sum())) > 0:
+        # How many, and where the worst is: its centroid (mm) and its region (a chip's
+        # index, or -1: the pore space).
+        worst = int(np.argmin(quality))
+        report["quality_below_min_count"] = below
+        report["quality_worst_at_mm"] = (
+            mesh.points[mesh.cells[worst]].mean(axis=0).round(3).tolist()
+        )
+        report["quality_worst_region"] = int(mesh.chip[worst])
     report["valid"] = bool(
         volumes.min() > 0
         and quality.min() >= min_quality
