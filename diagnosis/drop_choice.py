@@ -24,7 +24,12 @@ from chipstack.diagnosis.model_choice import (
     design_summaries,
     next_experiment,
 )
-from chipstack.diagnosis.reference_table import ReferenceTable, TableStore, pool_drops_for
+from chipstack.diagnosis.reference_table import (
+    NO_EFFECT,
+    ReferenceTable,
+    TableStore,
+    pool_drops_for,
+)
 from chipstack.diagnosis.statistics import interval
 from chipstack.diagnosis.verdicts import off_text, percent
 from chipstack.packing.effects import EFFECTS
@@ -373,6 +378,22 @@ def _verdict(section: dict, check: dict, where: dict, alpha: float) -> dict:
             f"these. Closest: {best} ({strength}).{off_text(where)}",
         )
     calibrated = check["calibrated_p_value"]
+    still = off_text(check["where"])
+    if section["most_probable"] == NO_EFFECT:
+        # The detection finds a gap, yet the classifier finds effect-free datasets the
+        # likeliest source of drops like these: no candidate is the likelier cause, so
+        # none is said to explain it, however well its predictive check fits.
+        text = (
+            f"The most probable model is no effect ({probable}): the gap is not one a "
+            f"candidate effect makes more likely than the simulation without one"
+        )
+        if closes:
+            return dict(
+                kind="partly explained",
+                text=f"{text}; {best} ({strength}) closes {percent(closed)} of it "
+                f"[{percent(closed_lo)}, {percent(check['gap_closed_ci95'][1])}].{still}",
+            )
+        return dict(kind="unexplained", text=f"{text}.{still}")
     # The exact test against the predictive sample is not calibrated for the strength's
     # uncertainty, and the calibrated one is lenient while the table's strengths are
     # coarse (the effect's own datasets, fitted among 16 pools, often fit badly). So an
@@ -391,7 +412,6 @@ def _verdict(section: dict, check: dict, where: dict, alpha: float) -> dict:
                 f" (the 95 % set: {', '.join(named)}; the next experiment below tells them apart)"
             )
         return dict(kind="explained", text=text + ".")
-    still = off_text(check["where"])
     if closes:
         return dict(
             kind="partly explained",

@@ -277,3 +277,43 @@ def test_bad_table_settings_are_refused_in_one_line(tmp_path):
         key = "diagnosis.method" if "guess" in named else "diagnosis.table_pools"
         assert_refused(result, key, tmp_path, before)
         spec.write_text(spec.read_text().replace(named, text))
+
+
+def _section_and_check(probabilities: dict[str, float]) -> tuple[dict, dict]:
+    """A model-choice section and predictive check in which everything fits: the check
+    passes, the data are in distribution, the effect closes the whole gap."""
+    from chipstack.diagnosis.model_choice import smallest_credible_set
+
+    section = dict(
+        probabilities=probabilities,
+        most_probable=max(probabilities, key=probabilities.get),
+        credible_set=smallest_credible_set(probabilities),
+        strengths={"restitution": dict(strength=0.6, strength_ci95=[0.5, 0.7])},
+        out_of_distribution=dict(p_value=0.5, distance=1.0),
+    )
+    check = dict(
+        effect="restitution",
+        strength=0.6,
+        p_value=0.5,
+        calibrated_p_value=0.5,
+        gap_closed=1.0,
+        gap_closed_ci95=[0.8, 1.2],
+        where={"flagged": []},
+    )
+    return section, check
+
+
+def test_no_effect_most_probable_is_never_explained():
+    """A detected gap that the classifier puts with effect-free datasets (here 'no
+    effect' 54 %, restitution 34 %) is not explained by the best effect, however well its
+    check fits; with the effect most probable the same check explains it."""
+    from chipstack.diagnosis.drop_choice import _verdict
+
+    section, check = _section_and_check({NO_EFFECT: 0.54, "restitution": 0.34, "friction": 0.12})
+    verdict = _verdict(section, check, {"flagged": []}, 0.05)
+    assert verdict["kind"] == "partly explained", verdict
+    assert verdict["text"].startswith("The most probable model is no effect (no effect 54 %")
+    check["gap_closed_ci95"] = [-0.1, 1.2]
+    assert _verdict(section, check, {"flagged": []}, 0.05)["kind"] == "unexplained"
+    section, check = _section_and_check({NO_EFFECT: 0.02, "restitution": 0.9, "friction": 0.08})
+    assert _verdict(section, check, {"flagged": []}, 0.05)["kind"] == "explained"
