@@ -20,6 +20,7 @@ from chipstack.diagnosis.drop_where import locate_gap
 from chipstack.diagnosis.model import DropData
 from chipstack.diagnosis.model_choice import (
     ModelChoice,
+    _quiet_parallel,
     build_model_choice,
     design_summaries,
     next_experiment,
@@ -72,6 +73,7 @@ def describe_design(checks: dict, conditions: list[str]) -> str:
     return text
 
 
+@_quiet_parallel
 def choose_effect(
     sims: DropSimulations,
     data: dict,

@@ -25,11 +25,13 @@ key of the design and the code, so a second diagnosis of the design reuses them.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import logging
 import math
 import pickle
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -80,6 +82,23 @@ LEVEL_OFF = 0.01
 DATASETS_PER_POOL = 12
 OOD_NEIGHBOURS = 10
 OOD_COMPONENTS = 20
+
+
+def _quiet_parallel(function):
+    """Run ``function`` without scikit-learn's "delayed should be used with Parallel"
+    UserWarning: the forests' thread pools raise it by the thousand when the scikit-learn
+    configuration is not propagated to a worker thread (scikit-learn issue 32631), which
+    does not change a result; a diagnosis must print no Python warning."""
+
+    @functools.wraps(function)
+    def quiet(*args, **kwargs):
+        with warnings.catch_warnings():
+            warnings.filterwarnings(
+                "ignore", message=r"`sklearn\.utils\.parallel\.delayed` should be used"
+            )
+            return function(*args, **kwargs)
+
+    return quiet
 
 
 def design_summaries(
@@ -308,6 +327,7 @@ class ModelChoice:
         votes = _votes(self.classifier, x[None], len(self.models))
         return self.calibrator.apply(votes, len(self.models))[0]
 
+    @_quiet_parallel
     def choose(self, x: np.ndarray) -> dict:
         """Posterior probabilities, the best effect, the 95 % set, strengths with
         intervals, and the out-of-distribution p-value of one summary vector."""
@@ -418,6 +438,7 @@ class _Design:
         return X, y, groups, strength, tilt
 
 
+@_quiet_parallel
 def build_model_choice(
     experiment: Experiment,
     drops: dict[str, int],
@@ -600,6 +621,7 @@ NEXT_TREES = 100
 NEXT_MIN_GAIN = 0.03  # below this gain in accuracy no next experiment is named
 
 
+@_quiet_parallel
 def next_experiment(
     experiment: Experiment,
     drops: dict[str, int],

@@ -107,11 +107,18 @@ def code_version() -> str:
     return digest.hexdigest()[:16]
 
 
+# The scenario's sections a drop simulation reads (``packing.drop.simulate_drops``: the
+# chip or the mix and the seed its shape is drawn with, the physics, the settling rule,
+# the drop settings); the others (mesh, solve, geometry, ...) change no drop, so a key
+# added to them keeps every stored pool.
+SIMULATED_SECTIONS = ("seed", "chip", "mix", "physics", "settling", "drop")
+
+
 def simulation_key(scenario) -> str:
     """A digest of what a drop simulation of ``scenario`` depends on besides its call:
-    the scenario's every setting but its name, and :func:`code_version`."""
-    settings = scenario_to_dict(scenario)
-    settings.pop("name", None)
+    the scenario's :data:`SIMULATED_SECTIONS` and :func:`code_version`."""
+    everything = scenario_to_dict(scenario)
+    settings = {name: everything.get(name) for name in SIMULATED_SECTIONS}
     text = json.dumps(settings, sort_keys=True, default=str)
     return hashlib.sha256(f"{text}|{code_version()}".encode()).hexdigest()[:16]
 

@@ -317,3 +317,21 @@ def test_no_effect_most_probable_is_never_explained():
     assert _verdict(section, check, {"flagged": []}, 0.05)["kind"] == "unexplained"
     section, check = _section_and_check({NO_EFFECT: 0.02, "restitution": 0.9, "friction": 0.08})
     assert _verdict(section, check, {"flagged": []}, 0.05)["kind"] == "explained"
+
+
+def test_the_simulation_key_follows_only_what_a_drop_simulation_reads():
+    """Stored pools are found by the simulation key: a setting no drop reads (the mesh's,
+    the name) leaves it, so adding such a key keeps every table; one a drop reads (the
+    physics, the chip, the seed its shape is drawn with) changes it."""
+    from dataclasses import replace
+
+    from chipstack.diagnosis.reference_table import simulation_key
+
+    s = load_scenario("single-chip-drop")
+    key = simulation_key(s)
+    assert len(key) == 16
+    unread = replace(s, name="other", mesh=replace(s.mesh, image_improve=not s.mesh.image_improve))
+    assert simulation_key(unread) == key
+    assert simulation_key(replace(s, physics=replace(s.physics, friction=0.3))) != key
+    assert simulation_key(replace(s, chip=replace(s.chip, length_mm=25.0))) != key
+    assert simulation_key(replace(s, seed=s.seed + 1)) != key
