@@ -635,6 +635,56 @@ def next_experiment(
     progress: Callable[[str], None],
     seed: int = 0,
 ) -> dict:
+    """Which extra condition would tell the ``tied`` models apart best
+    (:func:`_score_next_experiment`), kept in ``store`` by a key of the design, the tied
+    models and their pools, so that a second diagnosis of the design scores nothing."""
+    from chipstack.diagnosis.reference_table import simulation_key
+
+    text = json.dumps(
+        dict(
+            version=MODEL_CHOICE_VERSION,
+            sklearn=sklearn.__version__,
+            simulation=simulation_key(experiment.scenario),
+            conditions=[
+                [c.protocol.height_mm, c.protocol.yaw_deg, c.protocol.tilt_deg]
+                for c in experiment.conditions
+            ],
+            release_tilt=experiment.settings.release_tilt,
+            drops=[drops[c.name] for c in experiment.conditions],
+            noise=[experiment.position_sd_mm, experiment.angle_sd_deg],
+            angles=[has_yaw, has_tilt],
+            tied=list(tied),
+            pools=[counts[m] for m in tied],
+            seed=seed,
+            scored=[NEXT_RELEASES, NEXT_CANDIDATES, NEXT_TREES, NEXT_MIN_GAIN, DEFAULT_POOL_DROPS],
+        ),
+        sort_keys=True,
+    )
+    name = f"next-{hashlib.sha256(text.encode()).hexdigest()[:20]}.json"
+    blob = store.load(name)
+    if blob is not None:
+        progress("model choice: next experiment scored before")
+        return json.loads(blob)
+    result = _score_next_experiment(
+        experiment, drops, tied, counts, order, has_yaw, has_tilt, store, run_many, progress, seed
+    )
+    store.save(name, json.dumps(result).encode())
+    return result
+
+
+def _score_next_experiment(
+    experiment: Experiment,
+    drops: dict[str, int],
+    tied: list[str],
+    counts: dict[str, int],
+    order: int,
+    has_yaw: bool,
+    has_tilt: bool,
+    store: TableStore,
+    run_many: Callable[[Callable, list[dict]], list],
+    progress: Callable[[str], None],
+    seed: int = 0,
+) -> dict:
     """Which extra condition would tell the ``tied`` models apart best: for each candidate
     release (and for twice the drops in every condition) the cross-validated accuracy
     among the tied models on simulated datasets of the design with it, against the
