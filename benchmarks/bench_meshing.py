@@ -345,36 +345,36 @@ def record_figures(args, measured: list[tuple[int, dict]]) -> None:
                 command=command,
                 note=f"seed {seed}, {r['elements']:,} elements, peak {r['peak_mb']:.0f} MB",
             )
-        if r["kind"] == "image" and r.get("valid"):
-            where = f"'s middle {2 * args.crop:g} mm" if args.crop else ""
+        if r["kind"] != "image" or "error" in r:
+            continue
+        name = f"image mesh of {stack}" + (f"'s middle {2 * args.crop:g} mm" if args.crop else "")
+        if r["valid"]:
             record(
                 "meshing",
-                f"image mesh of {stack}{where} at {r['voxel_mm']:g} mm voxels, "
-                f"pore space {r['pore_space']}",
+                f"{name} at {r['voxel_mm']:g} mm voxels, pore space {r['pore_space']}",
                 round(r["mesh_s"], 1),
                 "s",
                 command=command,
                 note=f"seed {seed}, {r['elements']:,} tetrahedra, largest chip volume error "
                 f"{100 * r['volume_error_max']:.1f} %",
             )
-        if r["kind"] == "image" and "error" not in r:
-            where = f"'s middle {2 * args.crop:g} mm" if args.crop else ""
-            record(
-                "meshing",
-                f"image mesh of {stack}{where}, pore space {r['pore_space']}: worst SICN",
-                round(r["quality_min"], 4),
-                "",
-                target=">= 0.1",
-                command=command,
-                note=f"seed {seed}, {r['elements']:,} tetrahedra, {r['below_0_1']} under 0.1"
-                + (
-                    f" ({r['slivers']['below_0_1_before']:,} before the sliver removal, worst "
-                    f"{r['slivers']['worst_before']:.4f}; removal {r['slivers']['seconds']:.1f} s)"
-                    if r.get("slivers")
-                    else ""
-                ),
-                headline=True,
-            )
+        slivers = r.get("slivers")
+        record(
+            "meshing",
+            f"{name}, pore space {r['pore_space']}: worst SICN",
+            round(r["quality_min"], 4),
+            "",
+            target=">= 0.1",
+            command=command,
+            note=f"seed {seed}, {r['elements']:,} tetrahedra, {r['below_0_1']} under 0.1"
+            + (
+                f" ({slivers['below_0_1_before']:,} before the sliver removal, worst "
+                f"{slivers['worst_before']:.4f}; removal {slivers['seconds']:.1f} s)"
+                if slivers
+                else ""
+            ),
+            headline=True,
+        )
     for pore in args.pore_space:
         runs = [r for _, r in measured if r["kind"] == "conformal" and r["pore_space"] == pore]
         if not runs:

@@ -160,20 +160,20 @@ def image_mesh(
             f"image mesh: Mesh_3 left out chips {shown} at {voxel:g} mm voxels; use a "
             "smaller mesh.image_voxel_mm"
         )
-    slivers = None
+    slivers, quality = None, None
     if improve:
         from chipstack.meshing.slivers import improve_tetrahedra
 
         improved = improve_tetrahedra(points, cells, chip, seed=seed)
         points, cells, chip = improved.points, improved.cells, improved.labels
-        slivers = improved.info
+        slivers, quality = improved.info, improved.quality
     return VolumeMesh(
         points=points,
         cell_type="tetra",
         cells=cells,
         chip=chip,
         **element_attributes(arrangement, chip, layer_mm),
-        quality=tetra_sicn(points, cells),
+        quality=tetra_sicn(points, cells) if quality is None else quality,
         # Mesh_3 finds flat sides (the conveyor, a crop's sides, the box's top) by
         # bisection, to ~0.01 mm: moving the nodes onto the planes flattened elements at
         # the bevelled edges (tried), so the sets take the nodes within a quarter voxel.

@@ -64,12 +64,14 @@ def tetra_sicn(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class ImprovedTetrahedra:
-    """The improved mesh: ``points`` (n, 3), ``cells`` (m, 4) and ``labels`` (m,) (the
-    input's labels), and what was done (``info``)."""
+    """The improved mesh: ``points`` (n, 3), ``cells`` (m, 4), ``labels`` (m,) (the
+    input's labels) and ``quality`` (m,) (each element's SICN), and what was done
+    (``info``)."""
 
     points: np.ndarray
     cells: np.ndarray
     labels: np.ndarray
+    quality: np.ndarray
     info: dict = field(default_factory=dict)
 
 
@@ -147,7 +149,7 @@ def improve_tetrahedra(
         info["worst"],
         info["seconds"],
     )
-    return ImprovedTetrahedra(points, cells, names[labels], info)
+    return ImprovedTetrahedra(points, cells, names[labels], after, info)
 
 
 def _boundary_faces(cells: np.ndarray, labels: np.ndarray):
