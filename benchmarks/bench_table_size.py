@@ -60,7 +60,7 @@ def main() -> int:
             print(f"P={pool_drops} J={pools}: the stored table holds fewer pools; skipped")
             continue
         design = _Design(experiment, table, drops, order, True, True)
-        X, y, groups, _, _ = design.arrays(_counts(models, pools))
+        X, y, groups, _, _, _ = design.arrays(_counts(models, pools))
         accuracy = np.mean(
             [
                 np.mean(_cross_validated(X, y, groups, len(models), s, TREES).argmax(1) == y)

@@ -105,7 +105,7 @@ def choose_effect(
         seed=seed,
     )
     observed = design_summaries(data, x, sims.order, has_yaw, has_tilt)
-    chosen = choice.choose(observed)
+    chosen = choice.choose(observed, data)
     section = dict(chosen, design=choice.checks, design_text="")
     section["design_text"] = describe_design(choice.checks, [c.name for c in x.conditions])
     best = chosen["best_effect"]

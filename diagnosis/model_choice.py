@@ -45,6 +45,7 @@ from sklearn.model_selection import StratifiedGroupKFold
 from sklearn.neighbors import NearestNeighbors
 from sklearn.preprocessing import StandardScaler
 
+from chipstack.diagnosis.learned_summary import LearnedSummary
 from chipstack.diagnosis.model import DropData, Experiment
 from chipstack.diagnosis.reference_table import (
     DEFAULT_POOL_DROPS,
@@ -67,7 +68,7 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-MODEL_CHOICE_VERSION = 4
+MODEL_CHOICE_VERSION = 5
 TREES = 300
 CURVE_TREES = 60  # the size curve's forests (a comparison between sizes, not the figure)
 FOLDS = 5
@@ -164,6 +165,13 @@ def _clopper_pearson(successes: int, trials: int) -> list[float]:
     return [float(ci.low), float(ci.high)]
 
 
+# The calibration map's bounds. A large smoothing s with a power a is a softmax of the votes
+# at temperature s / a (log(v + s) = log s + v / s for small v / s), which a forest whose
+# votes spread over the models often needs.
+POWER_MAX = 2000.0
+SMOOTHING_MAX = 100.0
+
+
 @dataclass
 class _Calibrator:
     """Votes to probabilities by temperature scaling (Guo et al., ICML 2017): p is
@@ -190,9 +198,15 @@ class _Calibrator:
             p = cls(float(np.exp(params[0])), float(np.exp(params[1]))).apply(votes)
             return float(-np.mean(np.log(np.clip(p[rows, truth], 1e-300, 1.0))))
 
-        best = minimize(loss, x0=np.log([1.0, 1e-2]), method="Nelder-Mead")
+        # Bounded search: a map clipped after an unbounded search is not the best within
+        # the bounds (a power of 200 with a smoothing of 10, clipped to 50 and 1, is a
+        # different and much sharper map).
+        bounds = [(math.log(0.05), math.log(POWER_MAX)), (math.log(1e-6), math.log(SMOOTHING_MAX))]
+        best = minimize(loss, x0=np.log([1.0, 1e-2]), method="Nelder-Mead", bounds=bounds)
         power, smoothing = np.exp(best.x)
-        return cls(float(np.clip(power, 0.05, 50.0)), float(np.clip(smoothing, 1e-6, 1.0)))
+        return cls(
+            float(np.clip(power, 0.05, POWER_MAX)), float(np.clip(smoothing, 1e-6, SMOOTHING_MAX))
+        )
 
 
 class _QuantileForest:
@@ -320,20 +334,26 @@ class ModelChoice:
     strengths: dict[str, _IntervalModel]
     tilts: dict[str, _IntervalModel]
     ood: _OutOfDistribution
+    learned: LearnedSummary
     checks: dict = field(default_factory=dict)
     key: str = ""  # the design's key in the table store
 
-    def probabilities(self, x: np.ndarray) -> np.ndarray:
-        votes = _votes(self.classifier, x[None], len(self.models))
+    def probabilities(self, x: np.ndarray, drops: dict) -> np.ndarray:
+        """Posterior probabilities of the models (in the order of ``models``) for one
+        dataset: its hand-made summary vector ``x`` and its drops per condition."""
+        features = np.concatenate([x, self.learned.transform([drops])[0]])
+        votes = _votes(self.classifier, features[None], len(self.models))
         return self.calibrator.apply(votes, len(self.models))[0]
 
     @_quiet_parallel
-    def choose(self, x: np.ndarray) -> dict:
+    def choose(self, x: np.ndarray, drops: dict) -> dict:
         """Posterior probabilities, the best effect, the 95 % set, strengths with
-        intervals, and the out-of-distribution p-value of one summary vector."""
+        intervals, and the out-of-distribution p-value of one dataset: its summary
+        vector ``x`` (:func:`design_summaries`) and its drops per condition (DropData or
+        (n, 4) arrays), which the learned summary reads."""
         if not np.isfinite(x).all():
             raise ValueError("a summary of the observations is not finite")
-        p = self.probabilities(x)
+        p = self.probabilities(x, drops)
         probabilities = {m: float(v) for m, v in zip(self.models, p, strict=True)}
         effects = {m: v for m, v in probabilities.items() if m != NO_EFFECT}
         best = max(effects, key=effects.get) if effects else None
@@ -421,7 +441,16 @@ class _Design:
         )
         return hashlib.sha256(text.encode()).hexdigest()[:20]
 
+    def learned(self, models: list[str], seed: int) -> LearnedSummary:
+        """An untrained learned summary of the design."""
+        conditions = [(c.name, c.protocol.yaw_deg) for c in self.x.conditions]
+        return LearnedSummary(
+            conditions, len(models), self.order, self.has_yaw, self.has_tilt, seed
+        )
+
     def arrays(self, counts: dict[str, int]):
+        """The design's datasets cut from the table: hand-made summaries (n, k), model
+        labels, pool groups, strengths, release tilts, and the datasets' drops."""
         rng = np.random.default_rng(int(self.key(counts)[:8], 16))
         sets: list[TableDataset] = self.table.datasets(counts, self.drops, rng, DATASETS_PER_POOL)
         models = list(counts)
@@ -435,7 +464,7 @@ class _Design:
         groups = np.array([models.index(d.setting.model) * 10_000 + d.setting.index for d in sets])
         strength = np.array([d.setting.strength for d in sets])
         tilt = np.array([d.setting.tilt_deg for d in sets])
-        return X, y, groups, strength, tilt
+        return X, y, groups, strength, tilt, sets
 
 
 @_quiet_parallel
@@ -480,7 +509,9 @@ def build_model_choice(
     for j in sizes:
         counts = _counts(models, j)
         table.ensure(counts, run_many, progress)
-        X, y, groups, _, _ = design.arrays(counts)
+        X, y, groups, _, _, _ = design.arrays(counts)
+        # The size curve compares sizes on the hand-made summaries alone (the learned
+        # summary's per-drop classifiers would cost a minute per size).
         votes = _cross_validated(X, y, groups, len(models), seed, trees=CURVE_TREES)
         accuracy = float(np.mean(votes.argmax(axis=1) == y))
         curve.append(dict(pools_per_effect=j, datasets=len(y), accuracy=accuracy))
@@ -506,8 +537,25 @@ def _counts(models: list[str], pools: int) -> dict[str, int]:
 
 def _train(design: _Design, counts, models, seed, curve, progress) -> ModelChoice:
     progress("model choice: training and cross-validating the classifier")
-    X, y, groups, strength, tilt = design.arrays(counts)
+    X, y, groups, strength, tilt, sets = design.arrays(counts)
     classes = len(models)
+    # The learned summary of every table dataset out of fold (per-drop classifiers trained
+    # on the other folds' pools, the folds the forest is cross-validated on), so that the
+    # forest learns from summaries as noisy as a new dataset's (stacking, Wolpert 1992).
+    progress("model choice: learning a summary from single drops")
+    slices = np.array([d.part >= 0 for d in sets])
+    learned_oof = None
+    for train, test in _group_folds(y, groups, seed):
+        mine = train[slices[train]] if slices[train].any() else train
+        fold = design.learned(models, seed).fit([sets[i].drops for i in mine], y[mine])
+        part = fold.transform([sets[i].drops for i in test])
+        if learned_oof is None:
+            learned_oof = np.zeros((len(y), part.shape[1]))
+        learned_oof[test] = part
+    mine = np.flatnonzero(slices) if slices.any() else np.arange(len(y))
+    learned = design.learned(models, seed).fit([sets[i].drops for i in mine], y[mine])
+    hand = X
+    X = np.hstack([hand, learned_oof])
     votes = _cross_validated(X, y, groups, classes, seed)
     # The calibration map's own check: fitted on some folds' out-of-fold votes, applied to
     # the others (so the reported calibration error is out of sample twice over).
@@ -523,7 +571,7 @@ def _train(design: _Design, counts, models, seed, curve, progress) -> ModelChoic
         mine = y == k
         progress(f"model choice: strength intervals of {m}")
         strengths[m] = _fit_interval(
-            X[mine], strength[mine], groups[mine], tuple(EFFECTS.get(m).prior), seed
+            hand[mine], strength[mine], groups[mine], tuple(EFFECTS.get(m).prior), seed
         )
     tilts = {}
     if design.table.release_tilt == "fitted":
@@ -531,15 +579,14 @@ def _train(design: _Design, counts, models, seed, curve, progress) -> ModelChoic
 
         for k, m in enumerate(models):
             mine = y == k
-            tilts[m] = _fit_interval(X[mine], tilt[mine], groups[mine], NUISANCE_TILT_DEG, seed)
-    ood = _OutOfDistribution.fit(X, groups, seed)
+            tilts[m] = _fit_interval(hand[mine], tilt[mine], groups[mine], NUISANCE_TILT_DEG, seed)
+    ood = _OutOfDistribution.fit(hand, groups, seed)
     checks = _checks(models, y, groups, strength, votes, calibrated, curve, strengths)
     checks["datasets"] = len(y)
     checks["pools"] = {m: int(c) for m, c in counts.items()}
-    checks["features"] = len(design.feature_names)
-    return ModelChoice(
-        models, design.feature_names, forest, calibrator, strengths, tilts, ood, checks
-    )
+    checks["features"] = X.shape[1]
+    names = design.feature_names + learned.names(models)
+    return ModelChoice(models, names, forest, calibrator, strengths, tilts, ood, learned, checks)
 
 
 def _checks(models, y, groups, strength, votes, calibrated, curve, strengths) -> dict:
