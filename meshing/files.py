@@ -16,6 +16,7 @@ import numpy as np
 from chipstack.core.registry import Registry
 from chipstack.export.figure_kinds import FIGURES, FigureKind
 from chipstack.meshing.boundaries import FACET_TAGS, boundary_facets
+from chipstack.meshing.interfaces import find_interfaces
 from chipstack.meshing.mesh import PORE, VolumeMesh
 
 __all__ = ["MESH_FORMATS", "write_mesh", "to_meshio", "MATERIALS", "facets", "FACET_TAGS"]
@@ -56,7 +57,9 @@ def _format(name: str):
 
 def to_meshio(mesh: VolumeMesh):
     """The mesh as a ``meshio.Mesh`` with cell data chip, batch, layer, fibre_1, fibre_2,
-    quality (one value or vector per element)."""
+    normal (the chip's material frame: its plies' in-plane directions and its normal, in
+    the world frame; zeros in the pore space), quality (one value or vector per
+    element)."""
     import meshio
 
     return meshio.Mesh(
@@ -68,18 +71,45 @@ def to_meshio(mesh: VolumeMesh):
             "layer": [np.asarray(mesh.layer, dtype=np.int32)],
             "fibre_1": [np.asarray(mesh.fibres[:, 0], dtype=float)],
             "fibre_2": [np.asarray(mesh.fibres[:, 1], dtype=float)],
+            "normal": [np.asarray(mesh.normals, dtype=float)],
             "quality": [np.asarray(mesh.quality, dtype=float)],
+        },
+    )
+
+
+def interface_surface(mesh: VolumeMesh):
+    """The faces chips share as a ``meshio.Mesh`` (triangles or quads) with cell data
+    interface (its tag), chip_a and chip_b, or None when no chips touch."""
+    import meshio
+
+    found = find_interfaces(mesh)
+    if not len(found.pairs):
+        return None
+    return meshio.Mesh(
+        np.asarray(mesh.points, dtype=float),
+        [(_MESHIO_FACET[found.faces.shape[1]], found.faces.astype(np.int64))],
+        cell_data={
+            "interface": [found.tags[found.pair].astype(np.int32)],
+            "chip_a": [found.pairs[found.pair, 0].astype(np.int32)],
+            "chip_b": [found.pairs[found.pair, 1].astype(np.int32)],
         },
     )
 
 
 @_format("vtu")
 def write_vtu(path: Path, mesh: VolumeMesh) -> list[Path]:
-    """VTK unstructured grid (binary, compressed) and a one-step .pvd beside it."""
+    """VTK unstructured grid (binary, compressed) and a one-step .pvd beside it; the
+    faces chips share as a surface mesh in ``<stem>_interfaces.vtu`` (cell data
+    interface, chip_a, chip_b; see :func:`interface_surface`)."""
     import meshio
 
     path = Path(path)
     meshio.write(path, to_meshio(mesh), file_format="vtu", binary=True)
+    written = [path]
+    if (surface := interface_surface(mesh)) is not None:
+        shared = path.with_name(f"{path.stem}_interfaces.vtu")
+        meshio.write(shared, surface, file_format="vtu", binary=True)
+        written.append(shared)
     pvd = path.with_suffix(".pvd")
     pvd.write_text(
         '<?xml version="1.0"?>\n'
@@ -87,7 +117,7 @@ def write_vtu(path: Path, mesh: VolumeMesh) -> list[Path]:
         f'  <Collection>\n    <DataSet timestep="0" part="0" file="{path.name}"/>\n'
         "  </Collection>\n</VTKFile>\n"
     )
-    return [path, pvd]
+    return [*written, pvd]
 
 
 _GMSH_TYPE = {"tetra": 4, "hexahedron": 5}  # gmsh and VTK share these node orders
@@ -105,7 +135,9 @@ def facets(mesh: VolumeMesh) -> dict[str, np.ndarray]:
 def write_msh(path: Path, mesh: VolumeMesh) -> list[Path]:
     """gmsh 4.1 (binary): one discrete volume and physical group per chip (tag k + 1,
     named chip_K) and one for the pores (tag n + 1, named pore); the boundary faces on each
-    side of the domain as a physical surface (tags and names in ``FACET_TAGS``)."""
+    side of the domain as a physical surface (tags and names in ``FACET_TAGS``); the
+    faces each pair of touching chips shares as a physical surface named interface_A_B
+    (tags from ``INTERFACE_TAG_START``)."""
     from chipstack.meshing.conformal import GmshSession
 
     path = Path(path)
@@ -141,6 +173,18 @@ def write_msh(path: Path, mesh: VolumeMesh) -> list[Path]:
             )  # fmt: skip
             first += len(faces)
             model.setPhysicalName(2, model.addPhysicalGroup(2, [tag], tag), side)
+        shared = find_interfaces(mesh)
+        for k, (tag, part) in enumerate(zip(shared.tags.tolist(), shared.parts(), strict=True)):
+            faces = shared.faces[part]
+            model.addDiscreteEntity(2, tag)
+            model.mesh.addElementsByType(
+                tag,
+                _GMSH_FACET[faces.shape[1]],
+                np.arange(first, first + len(faces)),
+                (faces + 1).ravel(),
+            )
+            first += len(faces)
+            model.setPhysicalName(2, model.addPhysicalGroup(2, [tag], tag), shared.name(k))
         gmsh.option.setNumber("Mesh.Binary", 1)
         gmsh.write(str(path))
     return [path]
@@ -149,23 +193,29 @@ def write_msh(path: Path, mesh: VolumeMesh) -> list[Path]:
 @_format("xdmf")
 def write_xdmf(path: Path, mesh: VolumeMesh) -> list[Path]:
     """XDMF with its heavy data in HDF5 (.h5 beside it), as FEniCS reads it; the facet
-    tags (``facet_tag``, values in ``FACET_TAGS``) in ``<stem>_facets.xdmf`` beside it."""
+    tags (``facet_tag``: the domain's sides, values in ``FACET_TAGS``, and the faces each
+    pair of touching chips shares, tags from ``INTERFACE_TAG_START`` as listed in the
+    interface table) in ``<stem>_facets.xdmf`` beside it."""
     import meshio
 
     path = Path(path)
     meshio.write(path, to_meshio(mesh), file_format="xdmf")
     written = [path, path.with_suffix(".h5")]
-    found = facets(mesh)
-    if found:
+    tagged = [
+        (faces, np.full(len(faces), FACET_TAGS[side], np.int32))
+        for side, faces in facets(mesh).items()
+    ]
+    shared = find_interfaces(mesh)
+    if len(shared.pairs):
+        tagged.append((shared.faces, shared.tags[shared.pair].astype(np.int32)))
+    if tagged:
         by_size: dict[int, list] = {}
-        for side, faces in found.items():
-            by_size.setdefault(faces.shape[1], []).append((side, faces))
+        for faces, tag in tagged:
+            by_size.setdefault(faces.shape[1], []).append((faces, tag))
         cells, tags = [], []
         for size, groups in sorted(by_size.items()):
-            cells.append((_MESHIO_FACET[size], np.concatenate([f for _, f in groups])))
-            tags.append(
-                np.concatenate([np.full(len(f), FACET_TAGS[side], np.int32) for side, f in groups])
-            )
+            cells.append((_MESHIO_FACET[size], np.concatenate([f for f, _ in groups])))
+            tags.append(np.concatenate([t for _, t in groups]))
         facet_path = path.with_name(f"{path.stem}_facets.xdmf")
         meshio.write(
             facet_path,
@@ -190,9 +240,12 @@ def _write_ids(f, ids: np.ndarray) -> None:
 def write_inp(path: Path, mesh: VolumeMesh) -> list[Path]:
     """Abaqus / CalculiX input: nodes, elements, an element set and a material orientation
     per chip (local 1 along its first fibre direction, 2 along the second), node sets
-    for the platens (BOTTOM, TOP) and the sides (XMIN ... YMAX, LATERAL), sections and
-    materials (MPa, mm); for a periodic box, the reference nodes REF_X, REF_Y and the
-    *EQUATION ties of opposite sides. Analysis steps are the user's."""
+    for the platens (BOTTOM, TOP) and the sides (XMIN ... YMAX, LATERAL), each pair of
+    touching chips' shared faces as two element-based surfaces IF_AAAA_BBBB_A and
+    IF_AAAA_BBBB_B (the faces of chip A's and of chip B's elements: a tie, contact or
+    cohesive pair), sections and materials (MPa, mm); for a periodic box, the reference
+    nodes REF_X, REF_Y and the *EQUATION ties of opposite sides. Analysis steps are the
+    user's."""
     path = Path(path)
     with open(path, "w") as f:
         f.write("** chipstack mesh: units mm, N, MPa\n*HEADING\nchip stack\n*NODE, NSET=NALL\n")
@@ -211,6 +264,7 @@ def write_inp(path: Path, mesh: VolumeMesh) -> list[Path]:
         for name, nodes in mesh.node_sets.items():
             f.write(f"*NSET, NSET={name.upper()}\n")
             _write_ids(f, nodes)
+        _write_interfaces(f, mesh)
         if mesh.periodic is not None:
             _write_periodic(f, mesh)
         chip_material = MATERIALS["CHIP"]
@@ -235,6 +289,18 @@ def write_inp(path: Path, mesh: VolumeMesh) -> list[Path]:
                 f"*SOLID SECTION, ELSET=CHIP_{chip:04d}, MATERIAL=CHIP, ORIENTATION=OR_{chip:04d}\n"
             )
     return [path]
+
+
+def _write_interfaces(f, mesh: VolumeMesh) -> None:
+    """Both sides of every interface as element-based surfaces (face label S1 ... S6)."""
+    shared = find_interfaces(mesh)
+    for (a, b), part in zip(shared.pairs.tolist(), shared.parts(), strict=True):
+        for side, elements, faces in (
+            ("A", shared.element_a[part], shared.face_a[part]),
+            ("B", shared.element_b[part], shared.face_b[part]),
+        ):
+            f.write(f"*SURFACE, NAME=IF_{a:04d}_{b:04d}_{side}, TYPE=ELEMENT\n")
+            f.writelines(f"{e + 1}, S{s + 1}\n" for e, s in zip(elements, faces, strict=True))
 
 
 def _write_periodic(f, mesh: VolumeMesh) -> None:

@@ -140,6 +140,11 @@ def write_volume_mesh(
         files += draw_figures("mesh", folder, MeshPicture(stem, built.mesh))
     (folder / f"{stem}_checks.json").write_text(json.dumps(report, indent=2) + "\n")
     files.append(f"{stem}_checks.json")
+    from chipstack.meshing.interfaces import find_interfaces, write_interface_table
+
+    table = folder / f"{stem}_interfaces.csv"
+    write_interface_table(table, find_interfaces(built.mesh), built.extra.get("contact_classes"))
+    files.append(table.name)
     mesh = built.mesh
     return {
         "elements": mesh.n_elements,

@@ -21,7 +21,6 @@ from chipstack.packing.kinds import stack_kinds
 if TYPE_CHECKING:
     import numpy as np
 
-    from chipstack.core.arrangement import Arrangement
 
 __all__ = ["MeshStage", "STAGE", "check_formats"]
 
@@ -93,17 +92,22 @@ class MeshStage(Stage):
 
     def compute(self, inputs: StageInputs) -> MeshedStack:
         from chipstack.core.arrangement import stack_history
+        from chipstack.geometry.contacts import find_contacts
 
         arrangement = stack_history(inputs.result("packing"))[-1]
         scenario = inputs.scenario
         kinds = mesh_kinds(scenario.mesh.kind)
         result = MeshedStack(scratch=tempfile.TemporaryDirectory(prefix="chipstack-mesh-"))
-        pairs: list[np.ndarray] = []
+        found: list = []
+
+        def contacts():
+            if not found:
+                g = scenario.geometry
+                found.append(find_contacts(arrangement, g.contact_gap_mm, g.contact_extent_mm))
+            return found[0]
 
         def surface_pairs() -> np.ndarray:
-            if not pairs:
-                pairs.append(_surface_pairs(arrangement, scenario))
-            return pairs[0]
+            return _surface_pairs(contacts(), scenario)
 
         report = inputs.options.progress
         for done, kind in enumerate(kinds):
@@ -119,6 +123,7 @@ class MeshStage(Stage):
                 result.errors[kind.name] = str(exc)
                 continue
             result.reports[kind.name] = kind.check(built, arrangement, scenario, surface_pairs)
+            built.extra["contact_classes"] = contact_classes(contacts())
             result.built[kind.name] = built
         if report is not None:
             report(self.name, len(kinds), len(kinds), {})
@@ -178,16 +183,27 @@ def check_formats(formats: tuple[str, ...], key: str) -> None:
             )
 
 
-def _surface_pairs(arrangement: Arrangement, scenario: Scenario) -> np.ndarray:
-    """(k, 2) the chip pairs in surface contact, whose meshes must share faces; a crop
-    keeps those whose patch lies inside it, two voxels clear of its sides (a patch the
-    crop cuts to a sliver may keep no whole voxel face)."""
+def contact_classes(table) -> dict[tuple[int, int], str]:
+    """(lower chip, upper chip) -> the contact's class (point, line, surface) for every
+    pair of chips in contact (``table``: ``geometry.contacts.find_contacts``)."""
+    from chipstack.geometry.contacts import KINDS
+
+    out = {}
+    rows = zip(table.chip_a.tolist(), table.chip_b.tolist(), table.kind.tolist(), strict=True)
+    for a, b, kind in rows:
+        if a >= 0 and b >= 0:
+            out[min(a, b), max(a, b)] = KINDS[kind]
+    return out
+
+
+def _surface_pairs(table, scenario: Scenario) -> np.ndarray:
+    """(k, 2) the chip pairs in surface contact (``table``: the stack's contacts), whose
+    meshes must share faces; a crop keeps those whose patch lies inside it, two voxels
+    clear of its sides (a patch the crop cuts to a sliver may keep no whole voxel face)."""
     import numpy as np
 
-    from chipstack.geometry.contacts import KINDS, find_contacts
+    from chipstack.geometry.contacts import KINDS
 
-    g = scenario.geometry
-    table = find_contacts(arrangement, g.contact_gap_mm, g.contact_extent_mm)
     checked = (table.chip_b >= 0) & (table.kind == KINDS.index("surface"))
     if (region := crop_region(scenario)) is not None:
         x0, x1, y0, y1 = region
