@@ -267,7 +267,6 @@ def _move_boundary_nodes(points, cells, labels, floor, passes, tries, max_turn, 
     node_tris = _incidence(tris, n)
     lo_box, hi_box = points.min(axis=0), points.max(axis=0)
     cos_turn = np.cos(np.radians(max_turn))
-    cos_line = np.cos(np.radians(max_turn))
     stride = int(labels.max()) + 2  # a pair of regions (the outside -1) as one integer
     moved = 0
 
@@ -298,12 +297,14 @@ def _move_boundary_nodes(points, cells, labels, floor, passes, tries, max_turn, 
             return None  # where interfaces meet within one plane: the node stays on both
         if len(planes) == 2:
             # Where two flat boundaries meet (a chip's edge, two interfaces): along the
-            # line they share, when both are flat within a third of the turn (a move
-            # along a bent edge changes the volumes more than one within a bent face).
+            # line they share, when they are not nearly parallel (a step of the image)
+            # and the faces themselves, whatever pair they bound, fall into just those
+            # two planes (a move along a bent edge changes the volumes).
             line = np.cross(planes[0], planes[1])
             if np.linalg.norm(line) < np.sin(np.radians(max_turn)):
                 return None
-            if _planes(normals, cos_line) is None or len(_planes(normals, cos_line)) != 2:
+            faces_planes = _planes(normals, cos_turn)
+            if faces_planes is None or len(faces_planes) != 2:
                 return None
         return planes
 
