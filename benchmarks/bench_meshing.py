@@ -174,9 +174,14 @@ else:
             mesh, resolution.arrangement, np.array(surface).reshape(-1, 2), 0.1,
             region_mm=mesh.info.get("region_mm"),
         )
+        solid = mesh.chip >= 0
         result.update(
             elements=mesh.n_elements, nodes=len(mesh.points),
-            quality_min=report["quality_min"], volume_error_max=report["chip_volume_error_max"],
+            pore_elements=int((~solid).sum()),
+            quality_min=report["quality_min"], quality_p1=report["quality_p1"],
+            below_0_1=int((mesh.quality < 0.1).sum()), below_0_2=int((mesh.quality < 0.2).sum()),
+            volume_error_max=report["chip_volume_error_max"],
+            chips_meshed=int(len(np.unique(mesh.chip[solid]))), chips=int(mesh.n_chips),
             valid=report["valid"], shared_missing=report["interfaces"].get("missing"),
             surface_pairs=len(surface), region_mm=mesh.info.get("region_mm"),
         )
@@ -240,8 +245,11 @@ def describe(seed: int, r: dict) -> str:
     if r.get("region_mm"):
         head += " crop x {:g} to {:g}, y {:g} to {:g} mm".format(*r["region_mm"])
     return (
-        f"{head} {'valid' if r['valid'] else 'NOT VALID'}: {r['elements']:,} tetrahedra, SICN min "
-        f"{r['quality_min']:.3f}, chip volume error max {100 * r['volume_error_max']:.2f} %, "
+        f"{head} {'valid' if r['valid'] else 'NOT VALID'}: {r['elements']:,} tetrahedra "
+        f"({r['pore_elements']:,} of the pore space), {r['chips_meshed']} of {r['chips']} chips, "
+        f"SICN min {r['quality_min']:.3f} (1st percentile {r['quality_p1']:.3f}; "
+        f"{r['below_0_1']} under 0.1, {r['below_0_2']} under 0.2), "
+        f"chip volume error max {100 * r['volume_error_max']:.2f} %, "
         f"{r['surface_pairs']} surface contacts share faces (missing: {r['shared_missing'] or 0}); "
         f"resolution {r['resolve_s']:.1f} s (moves <= {res['max_translation_mm']:.3f} mm, "
         f"{res['max_rotation_deg']:.2f} deg; snapped {res['snapped_chip_chip']} + "
@@ -375,6 +383,32 @@ def record_figures(args, measured: list[tuple[int, dict]]) -> None:
             ),
             headline=True,
         )
+    for seed, r in measured:
+        # The whole stack with its pore space, per seed (issue 56): every figure the
+        # consolidation model's user asks of it, the time as the value.
+        if r["kind"] != "conformal" or r["pore_space"] != "box" or args.crop:
+            continue
+        if "error" in r:
+            note = f"FAILED after {r['seconds']:.1f} s: {r['error'][:200]}"
+        else:
+            shared = r["surface_pairs"] - len(r["shared_missing"] or [])
+            note = (
+                f"{'valid' if r['valid'] else 'NOT VALID'}; {r['elements']:,} tetrahedra "
+                f"({r['pore_elements']:,} pore space); SICN worst {r['quality_min']:.3f}, 1st "
+                f"percentile {r['quality_p1']:.3f}, {r['below_0_1']} under 0.1; chips "
+                f"{r['chips_meshed']} of {r['chips']}; chip volume error max "
+                f"{100 * r['volume_error_max']:.2f} %; surface contacts sharing faces "
+                f"{shared} of {r['surface_pairs']}; resolution {r['resolve_s']:.1f} s"
+            )
+        record(
+            "meshing",
+            f"whole {stack.removeprefix('the ')} with the pore space (conformal), seed {seed}",
+            round(r["seconds"], 1),
+            "s",
+            target="<= 180",
+            command=command,
+            note=f"{note}; peak {r['peak_mb']:.0f} MB (target 4096)",
+        )
     for pore in args.pore_space:
         runs = [r for _, r in measured if r["kind"] == "conformal" and r["pore_space"] == pore]
         if not runs:
@@ -388,7 +422,7 @@ def record_figures(args, measured: list[tuple[int, dict]]) -> None:
             f"conformal mesh of {stack} (resolution + mesh, {what}{crop}), worst seed",
             round(max(seconds), 1),
             "s",
-            target="<= 60",
+            target="<= 60" if pore == "none" else "<= 180",
             command=command,
             note=f"{valid} of {len(runs)} seeds valid, {min(seconds):.1f} to {max(seconds):.1f} s",
             headline=pore == "none" and not args.crop and not args.scenario,

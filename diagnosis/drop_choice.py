@@ -35,7 +35,7 @@ from chipstack.diagnosis.statistics import interval
 from chipstack.diagnosis.verdicts import off_text, percent
 from chipstack.packing.effects import EFFECTS
 
-__all__ = ["choose_effect", "describe_design"]
+__all__ = ["choose_effect", "describe_design", "design_model_choice"]
 
 # A posterior probability of the best effect at least this high lets it be "explained"
 # though the exact (uncalibrated) predictive test rejects it.
@@ -74,6 +74,50 @@ def describe_design(checks: dict, conditions: list[str]) -> str:
 
 
 @_quiet_parallel
+def design_model_choice(
+    sims: DropSimulations,
+    data: dict,
+    models: list[str],
+    store: TableStore,
+    run_many: Callable,
+    progress: Callable[[str], None],
+    seed: int,
+) -> ModelChoice:
+    """The experiment's design's trained model choice (from ``store`` when trained
+    before; else its reference table simulated and the classifier trained)."""
+    first = next(iter(data.values()))
+    return build_model_choice(
+        sims.x,
+        {c: d.n for c, d in data.items()},
+        models,
+        sims.order,
+        first.yaw_deg is not None,
+        first.tilt_deg is not None,
+        store,
+        run_many,
+        progress,
+        max_pools=sims.x.settings.table_pools,
+        seed=seed,
+    )
+
+
+@_quiet_parallel
+def learned_detection(choice: ModelChoice, sims: DropSimulations, data: dict) -> dict:
+    """The learned test of a gap: the data's posterior probability of "no effect" against
+    the same probability of effect-free simulated datasets of the design."""
+    first = next(iter(data.values()))
+    observed = design_summaries(
+        data, sims.x, sims.order, first.yaw_deg is not None, first.tilt_deg is not None
+    )
+    probability = float(choice.probabilities(observed, data)[choice.models.index(NO_EFFECT)])
+    return dict(
+        probability_no_effect=probability,
+        p_value=choice.detection_p_value(probability),
+        null_datasets=len(choice.no_effect_null),
+    )
+
+
+@_quiet_parallel
 def choose_effect(
     sims: DropSimulations,
     data: dict,
@@ -85,25 +129,16 @@ def choose_effect(
     progress: Callable[[str], None],
     rng: np.random.Generator,
     seed: int,
+    choice: ModelChoice | None = None,
 ) -> tuple[dict, dict]:
-    """The "model_choice" section of the report and the verdict."""
+    """The "model_choice" section of the report and the verdict. ``choice``: the design's
+    trained model choice when the caller has it (the detection's), else built here."""
     x = sims.x
     first = next(iter(data.values()))
     has_yaw, has_tilt = first.yaw_deg is not None, first.tilt_deg is not None
     drops = {c: d.n for c, d in data.items()}
-    choice: ModelChoice = build_model_choice(
-        x,
-        drops,
-        models,
-        sims.order,
-        has_yaw,
-        has_tilt,
-        store,
-        run_many,
-        progress,
-        max_pools=x.settings.table_pools,
-        seed=seed,
-    )
+    if choice is None:
+        choice = design_model_choice(sims, data, models, store, run_many, progress, seed)
     observed = design_summaries(data, x, sims.order, has_yaw, has_tilt)
     chosen = choice.choose(observed, data)
     section = dict(chosen, design=choice.checks, design_text="")

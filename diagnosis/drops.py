@@ -11,8 +11,11 @@ Three questions, answered with numbers and intervals:
    difference in every condition. Each condition also gets its energy test (Holm across
    conditions), and every member of the family a Westfall-Young max-T adjusted p-value
    from the same permutations: the observables and regions named beyond the noise, with
-   their direction and size, keep the family-wise error at alpha. Without a significant
-   overall gap the diagnosis stops there.
+   their direction and size, keep the family-wise error at alpha. With the amortised
+   method the detection also asks the model choice (``[diagnosis] detection =
+   "combined"``, the default): the data's posterior probability of "no effect" against
+   effect-free simulated datasets of the design, the two tests joined by Simes's rule.
+   Without a significant gap the diagnosis stops there.
 2. Which: the refitted baseline (its release tilt range) and every candidate effect,
    each fitted on calibration drops and scored drop by drop on held-out ones (halves of
    every condition's drops, or whole conditions left out: ``[diagnosis] held_out``),
@@ -36,7 +39,11 @@ from collections.abc import Callable
 import numpy as np
 
 from chipstack.core.schema import Scenario
-from chipstack.diagnosis.drop_choice import choose_effect
+from chipstack.diagnosis.drop_choice import (
+    choose_effect,
+    design_model_choice,
+    learned_detection,
+)
 from chipstack.diagnosis.drop_effects import TILT_GRID_DEG, EffectRanking, Fold, how_far_best
 from chipstack.diagnosis.drop_simulations import Dataset, DropSimulations
 from chipstack.diagnosis.drop_where import locate_gap
@@ -108,6 +115,7 @@ class _DropDiagnosis:
             self.tables,
         )
         self.rng = np.random.default_rng([seed, 11])
+        self.choice = None  # the design's trained model choice, once the detection has it
 
     def run(self, detect_only: bool = False) -> dict:
         conditions = [c.name for c in self.x.conditions]
@@ -116,56 +124,107 @@ class _DropDiagnosis:
             self.sims.set_metric(c, self.data[c])
         full = dict(zip(conditions, self._datasets([(c, None) for c in conditions]), strict=True))
         where = locate_gap(full, self.sims, self.rng, self.settings.alpha)
-        p = where["overall"]["p_value"]
-        if not where["overall"]["significant"] or detect_only:
+        detection = self._detection(where)
+        p = detection["p_value"]
+        if not detection["significant"] or detect_only:
             # Nothing (more) to do: no effect is fitted, which keeps an effect-free
-            # experiment's diagnosis to seconds.
-            if where["overall"]["significant"]:
+            # experiment's diagnosis short.
+            if detection["significant"]:
                 carried = where["overall"]["carried_by"]
                 verdict = dict(
                     kind="gap detected",
-                    text=f"Overall test p = {p:.3g} (largest statistic: {carried}); no "
-                    f"effect fitted.{off_text(where)}",
+                    text=f"Detection p = {p:.3g} ({detection['text']}; largest statistic "
+                    f"of the exact test: {carried}); no effect fitted.{off_text(where)}",
                 )
             else:
                 verdict = dict(
                     kind="no significant gap",
-                    text="The experiment is consistent with the baseline simulation: the "
-                    "overall test of every condition's drops (the energy statistics of "
-                    "position, yaw and tilt and every observable, alone and summed over the "
-                    f"conditions, by max-T) gives p = {p:.3g} >= {self.settings.alpha}.",
+                    text="The experiment is consistent with the baseline simulation: "
+                    f"{detection['text']}, detection p = {p:.3g} >= {self.settings.alpha}.",
                 )
-            return self._report(where, [], full, None, {}, verdict)
+            return self._report(where, [], full, None, {}, verdict, detection)
         if self.settings.method == "amortised":
-            return self._amortised(where, full)
+            return self._amortised(where, full, detection)
         folds = self._folds(full)
         which = EffectRanking(self.sims, folds, full, self.rng).run()
         how_far = how_far_best(which, folds, self.sims, self.rng)
         return self._report(
-            where, folds, full, which, how_far, self._verdict(where, which, how_far)
+            where,
+            folds,
+            full,
+            which,
+            how_far,
+            self._verdict(where, which, how_far),
+            detection,
         )
 
-    def _amortised(self, where: dict, full: dict[str, Dataset]) -> dict:
-        """Which effect by the amortised model choice, judged by its predictive check."""
+    def _models(self) -> tuple[list[str], dict[str, str]]:
         effects, skipped = applicable_effects(self.x)
+        return [NO_EFFECT, *effects], skipped
+
+    def _detection(self, where: dict) -> dict:
+        """Whether there is a gap: the exact max-T test alone, or joined with the model
+        choice's learned test by Simes's rule (p = min(2 min(p1, p2), max(p1, p2)); a
+        valid level under the positive dependence of two tests of the same data; Simes,
+        Biometrika 73, 1986), which keeps the family-wise false alarm at alpha."""
+        exact = float(where["overall"]["p_value"])
+        alpha = self.settings.alpha
+        models, _ = self._models()
+        learned = None
+        if (
+            self.settings.method == "amortised"
+            and self.settings.detection == "combined"
+            and len(models) > 1
+        ):
+            self.choice = design_model_choice(
+                self.sims, self.data, models, self.tables, self.run_many, self.progress, self.seed
+            )
+            learned = learned_detection(self.choice, self.sims, self.data)
+        if learned is None:
+            return dict(
+                rule="exact",
+                p_value=exact,
+                exact_p_value=exact,
+                learned=None,
+                significant=bool(where["overall"]["significant"]),
+                text=f"the exact max-T test gives p = {exact:.3g}",
+            )
+        q = learned["p_value"]
+        p = min(1.0, 2.0 * min(exact, q), max(exact, q))
+        return dict(
+            rule="simes",
+            p_value=p,
+            exact_p_value=exact,
+            learned=learned,
+            significant=bool(p < alpha),
+            text=f"the exact max-T test gives p = {exact:.3g} and the learned test (posterior "
+            f"probability of no effect {learned['probability_no_effect']:.3g}, against "
+            f"{learned['null_datasets']} effect-free simulated datasets) p = {q:.3g}, "
+            "joined by Simes's rule",
+        )
+
+    def _amortised(self, where: dict, full: dict[str, Dataset], detection: dict) -> dict:
+        """Which effect by the amortised model choice, judged by its predictive check."""
+        models, skipped = self._models()
         section, verdict = choose_effect(
             self.sims,
             self.data,
             full,
             where,
-            [NO_EFFECT, *effects],
+            models,
             self.tables,
             self.run_many,
             self.progress,
             self.rng,
             self.seed,
+            choice=self.choice,
         )
         section["not_applicable"] = skipped
         gap = [t["condition"] for t in where["tests"] if t["significant"]]
         verdict["text"] = (
             f"Gap in {', '.join(gap) or 'the conditions taken together'}. " + (verdict["text"])
         )
-        report = self._report(where, [], full, None, {}, verdict)
+        report = self._report(where, [], full, None, {}, verdict, detection)
         check = section.get("predictive_check")
         if check:
             keys = check.pop("keys")
@@ -176,11 +235,12 @@ class _DropDiagnosis:
         report["model_choice"] = section
         return report
 
-    def _report(self, where, folds, full, which, how_far, verdict) -> dict:
+    def _report(self, where, folds, full, which, how_far, verdict, detection) -> dict:
         best = which["best"] if which else None
         return {
             "scatter": self._scatter(folds, full, best),
             **self._description(),
+            "detection": detection,
             "where": where,
             "which": which,
             "how_far": how_far,

@@ -50,6 +50,13 @@ class DiagnosisSettings:
     # cross-check). ``table_pools``: the most pools per effect the reference table grows to.
     method: str = "amortised"
     table_pools: int = 24
+    # Drop experiments, amortised method: how a gap is detected. "combined" (the default):
+    # the exact max-T test and the model choice's learned test (the posterior probability
+    # of "no effect" against effect-free simulated datasets of the design) joined by
+    # Simes's rule, so an effect the hand-made observables miss is found when the learned
+    # summary sees it; it needs the design's reference table even when there is no gap.
+    # "exact": the max-T test alone (no table unless a gap is found).
+    detection: str = "combined"
 
 
 @dataclass(frozen=True)

@@ -335,8 +335,22 @@ class ModelChoice:
     tilts: dict[str, _IntervalModel]
     ood: _OutOfDistribution
     learned: LearnedSummary
+    # The posterior probability of "no effect" of every effect-free table dataset, out of
+    # fold (forest and calibration map): the null distribution of the learned detection.
+    no_effect_null: np.ndarray = field(default_factory=lambda: np.zeros(0))
     checks: dict = field(default_factory=dict)
     key: str = ""  # the design's key in the table store
+
+    def detection_p_value(self, probability_no_effect: float) -> float:
+        """The learned detection's p-value of a dataset whose posterior probability of
+        "no effect" is ``probability_no_effect``: the share of effect-free table datasets
+        (held out of the classifier's training) that look at most as effect-free, a Monte
+        Carlo test with the simulation as its null (1 when the design has no effect-free
+        datasets)."""
+        null = self.no_effect_null
+        if len(null) == 0:
+            return 1.0
+        return float((1 + np.sum(null <= probability_no_effect + 1e-12)) / (1 + len(null)))
 
     def probabilities(self, x: np.ndarray, drops: dict) -> np.ndarray:
         """Posterior probabilities of the models (in the order of ``models``) for one
@@ -496,6 +510,16 @@ def build_model_choice(
         if blob is not None:
             trained = pickle.loads(blob)
             progress(f"model choice: trained before ({trained.checks['datasets']} datasets)")
+            if "no_effect_null" not in vars(trained):
+                # Trained before the learned detection kept its null: the same out-of-fold
+                # predictions again (the folds of the training's seed), kept with it.
+                progress("model choice: the learned detection's null (once for this design)")
+                counts = json.loads(plan)
+                oof = _out_of_fold(
+                    design, counts, models, trained.checks.get("seed", seed), progress
+                )
+                trained.no_effect_null = oof.no_effect_null(models)
+                store.save(f"choice-{trained.key}.pkl", pickle.dumps(trained))
             return trained
     effects = [m for m in models if m != NO_EFFECT] or models
     existing = min(table.count(m) for m in effects)
@@ -535,8 +559,34 @@ def _counts(models: list[str], pools: int) -> dict[str, int]:
     return {m: (max(4, pools // 2) if m == NO_EFFECT else pools) for m in models}
 
 
-def _train(design: _Design, counts, models, seed, curve, progress) -> ModelChoice:
-    progress("model choice: training and cross-validating the classifier")
+@dataclass
+class _OutOfFold:
+    """The table's datasets of one design and size with their out-of-fold predictions."""
+
+    hand: np.ndarray  # hand-made summaries
+    learned: np.ndarray  # learned summaries, out of fold
+    y: np.ndarray
+    groups: np.ndarray
+    strength: np.ndarray
+    tilt: np.ndarray
+    sets: list
+    votes: np.ndarray  # the forest's votes, out of fold
+    calibrated: np.ndarray  # the votes calibrated by maps fitted on other folds
+
+    @property
+    def features(self) -> np.ndarray:
+        return np.hstack([self.hand, self.learned])
+
+    def no_effect_null(self, models: list[str]) -> np.ndarray:
+        """The out-of-fold posterior probability of "no effect" of every effect-free
+        dataset, sorted (the learned detection's null distribution)."""
+        if NO_EFFECT not in models:
+            return np.zeros(0)
+        k = models.index(NO_EFFECT)
+        return np.sort(self.calibrated[self.y == k, k])
+
+
+def _out_of_fold(design: _Design, counts, models, seed, progress) -> _OutOfFold:
     X, y, groups, strength, tilt, sets = design.arrays(counts)
     classes = len(models)
     # The learned summary of every table dataset out of fold (per-drop classifiers trained
@@ -552,16 +602,24 @@ def _train(design: _Design, counts, models, seed, curve, progress) -> ModelChoic
         if learned_oof is None:
             learned_oof = np.zeros((len(y), part.shape[1]))
         learned_oof[test] = part
-    mine = np.flatnonzero(slices) if slices.any() else np.arange(len(y))
-    learned = design.learned(models, seed).fit([sets[i].drops for i in mine], y[mine])
-    hand = X
-    X = np.hstack([hand, learned_oof])
-    votes = _cross_validated(X, y, groups, classes, seed)
+    votes = _cross_validated(np.hstack([X, learned_oof]), y, groups, classes, seed)
     # The calibration map's own check: fitted on some folds' out-of-fold votes, applied to
     # the others (so the reported calibration error is out of sample twice over).
     calibrated = np.zeros_like(votes)
     for train, test in _group_folds(y, groups, seed + 1):
         calibrated[test] = _Calibrator.fit(votes[train], y[train]).apply(votes[test], classes)
+    return _OutOfFold(X, learned_oof, y, groups, strength, tilt, sets, votes, calibrated)
+
+
+def _train(design: _Design, counts, models, seed, curve, progress) -> ModelChoice:
+    progress("model choice: training and cross-validating the classifier")
+    oof = _out_of_fold(design, counts, models, seed, progress)
+    hand, y, groups, strength, tilt = oof.hand, oof.y, oof.groups, oof.strength, oof.tilt
+    sets, votes, calibrated = oof.sets, oof.votes, oof.calibrated
+    X = oof.features
+    slices = np.array([d.part >= 0 for d in sets])
+    mine = np.flatnonzero(slices) if slices.any() else np.arange(len(y))
+    learned = design.learned(models, seed).fit([sets[i].drops for i in mine], y[mine])
     calibrator = _Calibrator.fit(votes, y)
     forest = _forest(seed).fit(X, y)
     strengths = {}
@@ -581,12 +639,16 @@ def _train(design: _Design, counts, models, seed, curve, progress) -> ModelChoic
             mine = y == k
             tilts[m] = _fit_interval(hand[mine], tilt[mine], groups[mine], NUISANCE_TILT_DEG, seed)
     ood = _OutOfDistribution.fit(hand, groups, seed)
+    no_effect_null = oof.no_effect_null(models)
     checks = _checks(models, y, groups, strength, votes, calibrated, curve, strengths)
     checks["datasets"] = len(y)
+    checks["seed"] = seed
     checks["pools"] = {m: int(c) for m, c in counts.items()}
     checks["features"] = X.shape[1]
     names = design.feature_names + learned.names(models)
-    return ModelChoice(models, names, forest, calibrator, strengths, tilts, ood, learned, checks)
+    return ModelChoice(
+        models, names, forest, calibrator, strengths, tilts, ood, learned, no_effect_null, checks
+    )
 
 
 def _checks(models, y, groups, strength, votes, calibrated, curve, strengths) -> dict:

@@ -30,7 +30,7 @@ def report_markdown(result: dict) -> str:
     """The report as Markdown."""
     lines = _summary(result)
     drop = result["kind"] == "drop"
-    lines += _where_section(result["where"], drop)
+    lines += _where_section(result["where"], drop, result.get("detection"))
     if result.get("model_choice"):
         lines += _model_choice_section(result["model_choice"])
     else:
@@ -58,8 +58,19 @@ def _interval(pair, show=_fmt) -> str:
 
 
 # -- 1. where --------------------------------------------------------------------------
-def _where_section(where: dict, drop: bool) -> list[str]:
+def _where_section(where: dict, drop: bool, detection: dict | None = None) -> list[str]:
     lines = ["## 1. Where the gap lies", ""]
+    if detection and detection.get("rule") == "simes":
+        learned = detection["learned"]
+        lines += [
+            f"Detection: p = {_fmt(detection['p_value'])}, {detection['text']}. The learned "
+            'test asks the model choice (section 2) how probable "no effect" is for these '
+            "drops; a probability as low as theirs in "
+            f"{_fmt(100 * learned['p_value'])} % of effect-free simulated datasets of the "
+            "design. It finds effects the observables below miss; where the gap lies is "
+            "told by the exact test's family.",
+            "",
+        ]
     if "overall" in where:
         o = where["overall"]
         if "family_size" in o:

@@ -235,6 +235,13 @@ def _settings(data: dict, kind: str) -> DiagnosisSettings:
                 f"{', '.join(map(repr, METHODS))}"
             )
         values["method"] = data["method"]
+    if "detection" in data:
+        if data["detection"] not in DETECTIONS:
+            raise InputError(
+                f"diagnosis.detection: {data['detection']!r} is not one of "
+                f"{', '.join(map(repr, DETECTIONS))}"
+            )
+        values["detection"] = data["detection"]
     if "table_pools" in data:
         values["table_pools"] = _integer(data["table_pools"], "diagnosis.table_pools", 4, 400)
     if "effects" in data:
@@ -253,6 +260,7 @@ def _settings(data: dict, kind: str) -> DiagnosisSettings:
 
 HELD_OUT = ("halves", "conditions")
 METHODS = ("amortised", "refit")
+DETECTIONS = ("combined", "exact")
 
 
 def _held_out(value, kind: str) -> str:

@@ -182,7 +182,6 @@ def conformal_mesh(
     layer_mm: float = 2.0,
     min_quality: float = 0.1,
     threads: int = 1,
-    msh_path=None,
     region_mm: tuple[float, float, float, float] | None = None,
 ) -> VolumeMesh:
     """Tetrahedral mesh of the stack (see the module docstring).
@@ -191,8 +190,7 @@ def conformal_mesh(
     mesh every time; more are faster but not reproducible). min_quality: the smallest
     acceptable SICN (gmsh's signed inverse condition number, 1 for a regular
     tetrahedron); a mesh with a worse
-    element raises :class:`MeshingError` naming the chips that hold them. msh_path: where
-    to write the gmsh 4 file (with physical groups) once the mesh is accepted.
+    element raises :class:`MeshingError` naming the chips that hold them.
     region_mm: (x_min, x_max, y_min, y_max) of a crop: the chips are cut at its sides
     (OpenCASCADE intersections, so the cut faces are exact planes) and, with the pore
     space, the box spans the whole region, so each side is one full plane face.
@@ -220,10 +218,8 @@ def conformal_mesh(
         geometry_s = time.perf_counter() - start
         _generate(gmsh, arrangement, owner, min_quality)
         mesh = _extract(gmsh, arrangement, owner, n, layer_mm)
-        _check_quality(mesh, min_quality)
-        if msh_path is not None:
-            gmsh.option.setNumber("Mesh.Binary", 1)
-            gmsh.write(str(msh_path))
+    mesh = _move_sliver_nodes(mesh)
+    _check_quality(mesh, min_quality)
     info = dict(mesh.info)
     info.update(
         size_mm=size_mm,
@@ -819,6 +815,34 @@ def _corners_near_edges(gmsh, reach_mm: float) -> tuple[dict[int, float], dict[i
                     for edge in [curve, *(c for c in curves if point in ends[c])]:
                         near_curves[edge] = min(near_curves.get(edge, np.inf), d)
     return near, near_curves
+
+
+# Elements under this SICN after gmsh's polish have their nodes moved (meshing.slivers).
+SLIVER_FLOOR = 0.2
+
+
+def _move_sliver_nodes(mesh: VolumeMesh) -> VolumeMesh:
+    """The slivers gmsh's polish leaves (a few, in the pore space's thin gaps between
+    chips: 8 of 170,000 elements under 0.1 on a 24-chip stack; 19 of 3.96 million under
+    0.2 on the reference stack) have their nodes moved: inside a region freely, on a
+    face of a chip or an interface within its plane, on an edge along it, corners kept
+    (:func:`meshing.slivers.improve_tetrahedra` without its gmsh step: the volumes were
+    optimised already). No element is added or reconnected; every chip's faces stay in
+    their planes, so the volumes and the shared faces are kept. A move is kept only when
+    it raises the worst of the node's elements, so the worst element never gets worse."""
+    quality = np.asarray(mesh.quality)
+    if not (quality < SLIVER_FLOOR).any():
+        return mesh
+    from chipstack.meshing.slivers import improve_tetrahedra
+
+    improved = improve_tetrahedra(
+        mesh.points, mesh.cells, mesh.chip, floor=SLIVER_FLOOR, rounds=1, optimise=False
+    )
+    # The node sets stand: a node on a side of the box moves within that side.
+    info = dict(mesh.info, slivers=improved.info)
+    return VolumeMesh(
+        **{**mesh.__dict__, "points": improved.points, "quality": improved.quality, "info": info}
+    )
 
 
 def _check_quality(mesh: VolumeMesh, min_quality: float) -> None:

@@ -245,10 +245,9 @@ class ConformalKind(MeshKind):
         from chipstack.meshing.conformal import MeshingError, chips_near, conformal_mesh
 
         spec, g = scenario.mesh, scenario.geometry
-        native = {}
-        if "msh" in spec.formats:  # written by gmsh itself, physical groups and all
-            native["msh"] = scratch / f"stack_{self.name}.msh"
-
+        # The .msh is written like every kind's (meshing.files): a physical volume per
+        # chip and the pore space, the sides, and a physical surface per interface; the
+        # gmsh session's own file knows no interfaces.
         region = crop_region(scenario)
         gap_key, gap = "mesh.gap_mm", spec.gap_mm
         if spec.pore_space != "none":
@@ -284,7 +283,6 @@ class ConformalKind(MeshKind):
                 spec.pore_space,
                 g.layer_mm,
                 spec.min_quality,
-                msh_path=native.get("msh"),
                 region_mm=region,
             )
             return resolution, mesh
@@ -314,7 +312,7 @@ class ConformalKind(MeshKind):
             info["resolution"]["touching_lines_failed"] = fell_back
         info["mesh_time_s"] = round(info["mesh_time_s"] + resolution.seconds, 3)
         mesh = type(mesh)(**{**mesh.__dict__, "info": info})
-        return Built(mesh, native, {"resolution": resolution})
+        return Built(mesh, {}, {"resolution": resolution})
 
     def check(self, built, arrangement, scenario, surface_pairs):
         import numpy as np

@@ -216,6 +216,62 @@ def test_checks_catch_a_broken_mesh(conformal_layup):
     assert check_mesh(dup, a)["duplicate_nodes"] == 1
 
 
+def _with_a_sliver(mesh, chip: int):
+    """``mesh`` with one element of ``chip`` made flat (SICN under 0.1): a node pulled
+    towards the plane of the element's other three, every element still positive (the
+    first such move found, in a fixed order)."""
+    from chipstack.meshing.slivers import tetra_sicn
+
+    cells = mesh.cells
+    mine = np.flatnonzero(mesh.chip == chip)
+    quality = tetra_sicn(mesh.points, cells)
+    for element in mine[np.argsort(-quality[mine], kind="stable")][:20]:
+        for j in range(4):
+            base = mesh.points[np.delete(cells[element], j)].mean(axis=0)
+            for pull in (0.3, 0.2, 0.1, 0.05):
+                points = mesh.points.copy()
+                corner = cells[element, j]
+                points[corner] = base + pull * (mesh.points[corner] - base)
+                moved = tetra_sicn(points, cells)
+                if moved.min() > 0 and moved[element] < 0.1:
+                    return type(mesh)(**{**mesh.__dict__, "points": points, "quality": moved})
+    raise AssertionError(f"no node of chip {chip} flattens an element alone")
+
+
+def test_checks_catch_a_sliver_and_an_interface_that_is_not_shared(conformal_layup):
+    """The two other ways a mesh fails a consolidation solver: a flat element (the
+    report names how many, the worst, its region and where), and two chips in surface
+    contact whose faces are copies rather than shared (the pair is named as missing)."""
+    from chipstack.meshing.checks import assert_valid
+
+    a, mesh = layup(), conformal_layup
+    pairs = surface_pairs(a)
+    sound = check_mesh(mesh, a, pairs)
+    assert sound["valid"] and sound["interfaces"]["sharing_faces"] == len(pairs) > 10
+    flat = _with_a_sliver(mesh, chip=16)
+    report = check_mesh(flat, a, pairs)
+    assert not report["valid"] and report["quality_below_min_count"] >= 1
+    assert report["quality_min"] < 0.1 and report["quality_worst_region"] == 16
+    with pytest.raises(MeshingError, match=r"elements below quality 0.1, the worst .* in chip 16"):
+        assert_valid(report)
+    # An interface not shared: chip b's nodes on its contact with chip a copied, so the
+    # two chips touch in space but not in the mesh.
+    cells = mesh.cells
+    chip_a, chip_b = (int(v) for v in pairs[0])
+    nodes_a = np.unique(cells[mesh.chip == chip_a])
+    mine = mesh.chip == chip_b
+    common = np.intersect1d(nodes_a, np.unique(cells[mine]))
+    copy = {int(n): len(mesh.points) + k for k, n in enumerate(common)}
+    apart = cells.copy()
+    apart[mine] = np.vectorize(lambda n: copy.get(int(n), int(n)))(cells[mine])
+    split = type(mesh)(
+        **{**mesh.__dict__, "points": np.vstack([mesh.points, mesh.points[common]]), "cells": apart}
+    )
+    report = check_mesh(split, a, pairs)
+    assert not report["valid"]
+    assert sorted([chip_a, chip_b]) in report["interfaces"]["missing"]
+
+
 def test_a_chip_in_pieces_joined_at_an_edge_is_not_valid():
     """A steeply tilted chip voxelised at its own thickness falls apart into pieces that
     touch only along edges: a mechanism in a solver, so the report must not say valid."""

@@ -5,6 +5,7 @@ real design simulated with PyBullet."""
 from __future__ import annotations
 
 import math
+import pickle
 from pathlib import Path
 
 import numpy as np
@@ -140,13 +141,27 @@ def test_a_table_stored_with_longer_pools_serves_shorter_ones_exactly():
 
 
 @pytest.mark.slow
+def _drops(x, rows: list[dict]) -> dict[str, DropData]:
+    """Synthesised rows as the diagnosis reads them, per condition."""
+    return {
+        c.name: DropData(
+            np.array([[r["x_mm"], r["y_mm"]] for r in rows if r["condition"] == c.name]),
+            np.array([r["yaw_deg"] for r in rows if r["condition"] == c.name]),
+            np.array([r["tilt_deg"] for r in rows if r["condition"] == c.name]),
+        )
+        for c in x.conditions
+    }
+
+
 def test_the_model_choice_names_a_withheld_effect_and_is_reused(tmp_path):
     """Two conditions x 20 drops, no effect against restitution and friction: the
     design's own cross-validation tells them apart well above chance (1 in 3; a friction
     near the baseline's own is no effect, so a small table's ceiling is about 0.7), the
     probabilities are calibrated,
     synthetic drops made with restitution 0.7 are given restitution with its strength
-    in the interval, and a second call trains nothing and simulates nothing."""
+    in the interval, the learned detection finds them (and not a fresh effect-free
+    dataset), and a second call trains nothing and simulates nothing; a model stored
+    without the detection's null gets it once."""
     x = _experiment(effects=("restitution", "friction"))
     store = MemoryStore()
     models = [NO_EFFECT, "restitution", "friction"]
@@ -157,15 +172,7 @@ def test_the_model_choice_names_a_withheld_effect_and_is_reused(tmp_path):
     assert checks["expected_calibration_error"] < 0.15, checks
     assert set(checks["strength_interval_coverage"]) == {"restitution", "friction"}
     assert checks["confusion"]["models"] == models
-    rows = synthesize_drops(x, {"restitution": 0.7}, seed=3, drops=20)
-    data = {
-        c.name: DropData(
-            np.array([[r["x_mm"], r["y_mm"]] for r in rows if r["condition"] == c.name]),
-            np.array([r["yaw_deg"] for r in rows if r["condition"] == c.name]),
-            np.array([r["tilt_deg"] for r in rows if r["condition"] == c.name]),
-        )
-        for c in x.conditions
-    }
+    data = _drops(x, synthesize_drops(x, {"restitution": 0.7}, seed=3, drops=20))
     chosen = choice.choose(design_summaries(data, x, 4, True, True), data)
     assert sum(chosen["probabilities"].values()) == pytest.approx(1.0)
     assert chosen["best_effect"] == "restitution", chosen["probabilities"]
@@ -178,11 +185,47 @@ def test_the_model_choice_names_a_withheld_effect_and_is_reused(tmp_path):
     far = choice.choose(design_summaries(scaled, x, 4, True, True), scaled)
     assert far["out_of_distribution"]["p_value"] < 0.01
 
+    # The learned detection: restitution's drops are unlike the effect-free datasets of
+    # the design (their p-value at the floor of its null), a fresh effect-free dataset
+    # of the design is not.
+    null = choice.no_effect_null
+    # Every effect-free dataset of the table, once (the confusion's first row counts them).
+    assert len(null) == sum(checks["confusion"]["counts"][0]) and np.all(np.diff(null) >= 0)
+    probability = chosen["probabilities"][NO_EFFECT]
+    assert choice.detection_p_value(probability) <= 0.05, (probability, null)
+    clean = _drops(x, synthesize_drops(x, {}, seed=5, drops=20))
+    clean_p = choice.probabilities(design_summaries(clean, x, 4, True, True), clean)[0]
+    assert choice.detection_p_value(clean_p) > 0.05, (clean_p, null)
+
     def refuse(function, calls):
         raise AssertionError("a second diagnosis of the design simulated again")
 
     again = build_model_choice(*args, refuse, lambda m: None, max_pools=8, seed=0, pool_drops=80)
     assert again.checks == checks
+    np.testing.assert_array_equal(again.no_effect_null, null)
+    # A model trained before the detection kept its null gets it once, from the same
+    # out-of-fold predictions, and keeps it.
+    (name,) = [n for n in store.blobs if n.startswith("choice-") and n.endswith(".pkl")]
+    del again.no_effect_null
+    store.save(name, pickle.dumps(again))
+    backfilled = build_model_choice(
+        *args, refuse, lambda m: None, max_pools=8, seed=0, pool_drops=80
+    )
+    np.testing.assert_array_equal(backfilled.no_effect_null, null)
+    assert "no_effect_null" in vars(pickle.loads(store.load(name)))
+
+
+def test_the_learned_detection_p_value_counts_the_null_at_least_as_extreme():
+    """(1 + #{null <= t}) / (1 + n): the Monte Carlo p-value, ties counted as extreme."""
+    from chipstack.diagnosis.model_choice import ModelChoice
+
+    choice = ModelChoice.__new__(ModelChoice)
+    choice.no_effect_null = np.array([0.1, 0.2, 0.2, 0.5, 0.9])
+    assert choice.detection_p_value(0.05) == pytest.approx(1 / 6)
+    assert choice.detection_p_value(0.2) == pytest.approx(4 / 6)
+    assert choice.detection_p_value(1.0) == pytest.approx(1.0)
+    choice.no_effect_null = np.zeros(0)
+    assert choice.detection_p_value(0.0) == 1.0
 
 
 @pytest.mark.slow
@@ -249,6 +292,13 @@ def test_pipeline_diagnose_names_the_effect_by_model_choice_and_reuses_the_table
     assert choice["design"]["confusion"]["models"] == ["no effect", "restitution", "friction"]
     text = (tmp_path / "first" / "diagnosis.md").read_text()
     assert "## 2. Which effect" in text and "of the time" in text and "nan" not in text
+    # The detection joined the exact test and the learned one.
+    detection = first["detection"]
+    assert detection["rule"] == "simes" and detection["significant"], detection
+    assert detection["p_value"] <= 2 * min(
+        detection["exact_p_value"], detection["learned"]["p_value"]
+    )
+    assert "Detection: p =" in text
     assert second["model_choice"]["probabilities"] == choice["probabilities"]
     assert second["verdict"] == first["verdict"]
     assert any(p.name.startswith("choice-") for p in tables.iterdir())
@@ -270,11 +320,18 @@ def test_bad_table_settings_are_refused_in_one_line(tmp_path):
     for text, named in (
         ('method = "amortised"', 'method = "guess"'),
         ('method = "amortised"', 'method = "amortised"\ntable_pools = 2'),
+        ('method = "amortised"', 'method = "amortised"\ndetection = "learned"'),
     ):
         spec.write_text(spec.read_text().replace(*((text, named))))
         before = tree(tmp_path)
         result = run_cli("diagnose", str(spec), "--out", str(tmp_path / "o"))
-        key = "diagnosis.method" if "guess" in named else "diagnosis.table_pools"
+        key = (
+            "diagnosis.method"
+            if "guess" in named
+            else "diagnosis.detection"
+            if "detection" in named
+            else "diagnosis.table_pools"
+        )
         assert_refused(result, key, tmp_path, before)
         spec.write_text(spec.read_text().replace(named, text))
 
