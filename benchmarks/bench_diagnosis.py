@@ -226,7 +226,8 @@ def case_plan(part: str, index: int) -> dict:
     if part == "ties":  # a tie case is its effects case (same truth, seeds and data)
         return {**case_plan("effects", index), "part": "ties"}
     if part == "nulls-designs":  # an effects case's design, no effect, another seed
-        design = case_plan("effects", index // NULLS_PER_DESIGN)
+        # Case k takes design k mod 35: the first 35 cases cover every design once.
+        design = case_plan("effects", index % PLANNED["effects"])
         return {
             **design,
             "part": part,

@@ -19,7 +19,6 @@ import os
 import re
 import sys
 import tempfile
-import threading
 import time
 
 import numpy as np
@@ -32,6 +31,7 @@ from chipstack.core.arrangement import Arrangement
 from chipstack.core.errors import ChipstackError, InputError
 from chipstack.core.overlap import penetrating_pairs
 from chipstack.meshing.boundaries import side_node_sets
+from chipstack.meshing.gmsh_session import GmshSession
 from chipstack.meshing.mesh import PORE, VolumeMesh, element_attributes
 
 __all__ = [
@@ -43,45 +43,12 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-_LOCK = threading.Lock()
 _ON_PLANE_MM = 1e-6
 _TOUCHING_MM = 1e-7  # OpenCASCADE's own tolerance: closer surfaces are one
 
 
 class MeshingError(ChipstackError):
     """The stack cannot be meshed as asked (the message names the chips involved)."""
-
-
-class GmshSession:
-    """``with GmshSession() as gmsh:`` a fresh gmsh model, finalised on exit even on error.
-
-    gmsh keeps one global state per process, so sessions cannot nest or overlap.
-    """
-
-    def __init__(self, threads: int = 1) -> None:
-        self.threads = threads
-
-    def __enter__(self):
-        import gmsh
-
-        if not _LOCK.acquire(blocking=False):
-            raise RuntimeError("a gmsh session is already open in this process")
-        try:
-            gmsh.initialize(readConfigFiles=False, interruptible=False)
-            gmsh.option.setNumber("General.Terminal", 0)
-            gmsh.option.setNumber("General.NumThreads", self.threads)
-            gmsh.model.add("stack")
-        except Exception:
-            _LOCK.release()
-            raise
-        self._gmsh = gmsh
-        return gmsh
-
-    def __exit__(self, *exc: object) -> None:
-        try:
-            self._gmsh.finalize()
-        finally:
-            _LOCK.release()
 
 
 def _box_centres(arrangement: Arrangement) -> tuple[np.ndarray, np.ndarray]:

@@ -138,7 +138,7 @@ def write_msh(path: Path, mesh: VolumeMesh) -> list[Path]:
     side of the domain as a physical surface (tags and names in ``FACET_TAGS``); the
     faces each pair of touching chips shares as a physical surface named interface_A_B
     (tags from ``INTERFACE_TAG_START``)."""
-    from chipstack.meshing.conformal import GmshSession
+    from chipstack.meshing.gmsh_session import GmshSession
 
     path = Path(path)
     physical = np.where(mesh.chip >= 0, mesh.chip + 1, mesh.n_chips + 1).astype(np.int64)

@@ -216,26 +216,34 @@ def test_checks_catch_a_broken_mesh(conformal_layup):
     assert check_mesh(dup, a)["duplicate_nodes"] == 1
 
 
-def _with_a_sliver(mesh, chip: int):
-    """``mesh`` with one element of ``chip`` made flat (SICN under 0.1): a node pulled
-    towards the plane of the element's other three, every element still positive (the
-    first such move found, in a fixed order)."""
+def _flattened(points: np.ndarray, cells: np.ndarray, candidates: np.ndarray) -> np.ndarray:
+    """``points`` with one of the ``candidates`` elements made flat (SICN under 0.1): a
+    node pulled towards the plane of the element's other three, every element still
+    positive (the first such move found, in a fixed order)."""
     from chipstack.meshing.slivers import tetra_sicn
 
-    cells = mesh.cells
-    mine = np.flatnonzero(mesh.chip == chip)
-    quality = tetra_sicn(mesh.points, cells)
-    for element in mine[np.argsort(-quality[mine], kind="stable")][:20]:
+    quality = tetra_sicn(points, cells)
+    for element in candidates[np.argsort(-quality[candidates], kind="stable")][:20]:
         for j in range(4):
-            base = mesh.points[np.delete(cells[element], j)].mean(axis=0)
+            base = points[np.delete(cells[element], j)].mean(axis=0)
             for pull in (0.3, 0.2, 0.1, 0.05):
-                points = mesh.points.copy()
+                moved = points.copy()
                 corner = cells[element, j]
-                points[corner] = base + pull * (mesh.points[corner] - base)
-                moved = tetra_sicn(points, cells)
-                if moved.min() > 0 and moved[element] < 0.1:
-                    return type(mesh)(**{**mesh.__dict__, "points": points, "quality": moved})
-    raise AssertionError(f"no node of chip {chip} flattens an element alone")
+                moved[corner] = base + pull * (points[corner] - base)
+                sicn = tetra_sicn(moved, cells)
+                if sicn.min() > 0 and sicn[element] < 0.1:
+                    return moved
+    raise AssertionError("no node flattens an element alone")
+
+
+def _with_a_sliver(mesh, chip: int):
+    """``mesh`` with one element of ``chip`` made flat (:func:`_flattened`)."""
+    from chipstack.meshing.slivers import tetra_sicn
+
+    points = _flattened(mesh.points, mesh.cells, np.flatnonzero(mesh.chip == chip))
+    return type(mesh)(
+        **{**mesh.__dict__, "points": points, "quality": tetra_sicn(points, mesh.cells)}
+    )
 
 
 def test_checks_catch_a_sliver_and_an_interface_that_is_not_shared(conformal_layup):
@@ -658,6 +666,70 @@ def test_run_to_mesh_writes_checked_files(tmp_path, small_scenario):
     assert manifest["mesh"]["voxel"]["chip_volume_error_max"] < 0.02
     grid = pyvista.read(out / "mesh/stack_voxel.vtu")
     assert set(np.unique(grid.cell_data["chip"])) == set(range(24))
+
+
+WHOLE_STACK = """
+name = "whole"
+seed = 4
+[chip]
+length_mm = 20.0
+width_mm = 20.0
+thickness_mm = 2.0
+[deposition]
+chips = 8
+batch_size = 8
+target_size_mm = 50.0
+release_height_mm = [30.0, 60.0]
+[mesh]
+kind = "conformal"
+pore_space = "box"
+formats = ["msh", "inp", "vtu", "xdmf"]
+"""
+
+
+def test_a_whole_stack_with_its_pore_space_reads_back_solver_grade(tmp_path):
+    """The whole-stack model as a user makes it (``pipeline run --to mesh``, the exact
+    route with the pore space) read back from its .msh by meshio and audited by code that
+    shares nothing with the project's check (benchmarks/bench_whole_stack.py): every
+    element's SICN >= 0.1, every chip one region of its own within 2 % of its exact
+    volume, the pore space a region, the interfaces those of the table; and the audit
+    calls a written mesh with a sliver not valid."""
+    import sys
+    from pathlib import Path
+
+    from conftest import run_cli
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+    from bench_whole_stack import _exact_volumes, audit_msh
+
+    scenario = tmp_path / "whole.toml"
+    scenario.write_text(WHOLE_STACK)
+    out = tmp_path / "run"
+    result = run_cli("run", str(scenario), "--to", "mesh", "--out", str(out), "--quiet")
+    assert result.returncode == 0, result.stderr
+    mesh_dir = out / "mesh"
+    exact = _exact_volumes(out)
+    audit = audit_msh(
+        mesh_dir / "stack_conformal.msh", exact, mesh_dir / "stack_conformal_interfaces.csv"
+    )
+    assert audit["valid"], audit
+    assert audit["chips_present"] == 8 and audit["pore_space"] and audit["sicn_min"] >= 0.1
+    import json
+
+    checks = json.loads((mesh_dir / "stack_conformal_checks.json").read_text())
+    assert checks["valid"] and checks["elements"] == audit["elements"]
+    assert checks["quality_min"] == pytest.approx(audit["sicn_min"], abs=1e-9)
+    # The same audit on the file with one element of chip 0 made flat: not valid.
+    back = meshio.read(mesh_dir / "stack_conformal.msh")
+    blocks = [k for k, block in enumerate(back.cells) if block.type == "tetra"]
+    tets = np.concatenate([back.cells[k].data for k in blocks])
+    physical = np.concatenate([back.cell_data["gmsh:physical"][k] for k in blocks])
+    mine = np.flatnonzero(physical == back.field_data["chip_0"][0])
+    back.points = _flattened(back.points, tets, mine)
+    broken = tmp_path / "broken.msh"
+    meshio.write(broken, back, file_format="gmsh22", binary=False)
+    audit = audit_msh(broken, exact, mesh_dir / "stack_conformal_interfaces.csv")
+    assert not audit["valid"] and audit["below_min"] >= 1, audit
 
 
 def test_unknown_format_lists_the_valid_ones(tmp_path, small_scenario):
