@@ -383,32 +383,8 @@ def record_figures(args, measured: list[tuple[int, dict]]) -> None:
             ),
             headline=True,
         )
-    for seed, r in measured:
-        # The whole stack with its pore space, per seed (issue 56): every figure the
-        # consolidation model's user asks of it, the time as the value.
-        if r["kind"] != "conformal" or r["pore_space"] != "box" or args.crop:
-            continue
-        if "error" in r:
-            note = f"FAILED after {r['seconds']:.1f} s: {r['error'][:200]}"
-        else:
-            shared = r["surface_pairs"] - len(r["shared_missing"] or [])
-            note = (
-                f"{'valid' if r['valid'] else 'NOT VALID'}; {r['elements']:,} tetrahedra "
-                f"({r['pore_elements']:,} pore space); SICN worst {r['quality_min']:.3f}, 1st "
-                f"percentile {r['quality_p1']:.3f}, {r['below_0_1']} under 0.1; chips "
-                f"{r['chips_meshed']} of {r['chips']}; chip volume error max "
-                f"{100 * r['volume_error_max']:.2f} %; surface contacts sharing faces "
-                f"{shared} of {r['surface_pairs']}; resolution {r['resolve_s']:.1f} s"
-            )
-        record(
-            "meshing",
-            f"whole {stack.removeprefix('the ')} with the pore space (conformal), seed {seed}",
-            round(r["seconds"], 1),
-            "s",
-            target="<= 180",
-            command=command,
-            note=f"{note}; peak {r['peak_mb']:.0f} MB (target 4096)",
-        )
+    # The whole stack with its pore space per seed is recorded by bench_whole_stack.py
+    # (the user's command, the written file audited); here only the worst seed's time.
     for pore in args.pore_space:
         runs = [r for _, r in measured if r["kind"] == "conformal" and r["pore_space"] == pore]
         if not runs:

@@ -33,6 +33,7 @@ questions 2 and 3 in ``diagnosis.drop_effects``.
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections.abc import Callable
 
@@ -158,7 +159,10 @@ class _DropDiagnosis:
             detection,
         )
 
-    def _models(self) -> tuple[list[str], dict[str, str]]:
+    @functools.cached_property
+    def _candidates(self) -> tuple[list[str], dict[str, str]]:
+        """ "No effect" and the applicable effects, and why the others do not apply
+        (the detection and the choice both ask)."""
         effects, skipped = applicable_effects(self.x)
         return [NO_EFFECT, *effects], skipped
 
@@ -169,7 +173,7 @@ class _DropDiagnosis:
         Biometrika 73, 1986), which keeps the family-wise false alarm at alpha."""
         exact = float(where["overall"]["p_value"])
         alpha = self.settings.alpha
-        models, _ = self._models()
+        models, _ = self._candidates
         learned = None
         if (
             self.settings.method == "amortised"
@@ -205,7 +209,7 @@ class _DropDiagnosis:
 
     def _amortised(self, where: dict, full: dict[str, Dataset], detection: dict) -> dict:
         """Which effect by the amortised model choice, judged by its predictive check."""
-        models, skipped = self._models()
+        models, skipped = self._candidates
         section, verdict = choose_effect(
             self.sims,
             self.data,

@@ -228,20 +228,9 @@ def _settings(data: dict, kind: str) -> DiagnosisSettings:
         values["release_tilt"] = _release_tilt(data["release_tilt"], kind)
     if "alpha" in data:
         values["alpha"] = _number(data["alpha"], "diagnosis.alpha", 1e-6, 0.5)
-    if "method" in data:
-        if data["method"] not in METHODS:
-            raise InputError(
-                f"diagnosis.method: {data['method']!r} is not one of "
-                f"{', '.join(map(repr, METHODS))}"
-            )
-        values["method"] = data["method"]
-    if "detection" in data:
-        if data["detection"] not in DETECTIONS:
-            raise InputError(
-                f"diagnosis.detection: {data['detection']!r} is not one of "
-                f"{', '.join(map(repr, DETECTIONS))}"
-            )
-        values["detection"] = data["detection"]
+    for name, allowed in (("method", METHODS), ("detection", DETECTIONS)):
+        if name in data:
+            values[name] = _one_of(data[name], f"diagnosis.{name}", allowed)
     if "table_pools" in data:
         values["table_pools"] = _integer(data["table_pools"], "diagnosis.table_pools", 4, 400)
     if "effects" in data:
@@ -256,6 +245,12 @@ def _settings(data: dict, kind: str) -> DiagnosisSettings:
                 )
         values["effects"] = tuple(dict.fromkeys(effects))
     return DiagnosisSettings(**values)
+
+
+def _one_of(value, key: str, allowed: tuple[str, ...]) -> str:
+    if value not in allowed:
+        raise InputError(f"{key}: {value!r} is not one of {', '.join(map(repr, allowed))}")
+    return value
 
 
 HELD_OUT = ("halves", "conditions")
