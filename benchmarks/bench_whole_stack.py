@@ -12,9 +12,16 @@ chip's volume against its exact solid (the packed shape's), and the interfaces (
 two chips share, named ``interface_A_B``) against the interface table written beside
 the mesh. The first case is run twice: the same seed must give the same file.
 
+With ``--solve`` each valid case is then pressed in CalculiX by the solve stage's volume
+model (``pipeline run SCENARIO --to solve``: the mesh reused, the pore space bonded and
+softer than the chips, whole-face platens), and so is the voxel volume of the same stack
+(1 mm voxels, pore space filled): their effective moduli (platen force over the box's
+area and strain, each over its own box) must agree within 5 %.
+
     .venv/bin/python benchmarks/bench_whole_stack.py                         # every case
     .venv/bin/python benchmarks/bench_whole_stack.py --case paper-squares --seeds 0 1
     .venv/bin/python benchmarks/bench_whole_stack.py --no-record
+    .venv/bin/python benchmarks/bench_whole_stack.py --case paper-squares --seeds 0 --solve
 
 The figures are recorded per case (``pipeline.measured.record``, area ``meshing``):
 time (target <= 180 s for the reference stack), peak memory (<= 4 GB), and in the note
@@ -44,6 +51,14 @@ CASES = {
     "paper-rectangles": [0],
     "conveyor-line": [0],
 }
+# The voxel volume the whole stack's press is compared with.
+VOXEL = {
+    "mesh.kind": "voxel",
+    "mesh.voxel_mm": 1.0,
+    "mesh.pore_space": "box",
+    "mesh.formats": ["inp"],
+}
+MODULUS_TOLERANCE = 0.05
 MIN_SICN = 0.1
 VOLUME_TOLERANCE = 0.02
 # Runs the command in a child and reports its own peak memory (the run's, not ours).
@@ -159,6 +174,57 @@ def _exact_volumes(run: Path) -> np.ndarray:
     return np.array([s.volume_mm3 for s in arrangement.shapes])[arrangement.shape_index]
 
 
+def _pipeline_run(spec: Path, stage: str, seed: int, out: Path, overwrite: bool):
+    """``pipeline run`` in a child: (exit code, seconds, peak MB of the run, stderr)."""
+    command = [sys.executable, "-m", "chipstack.pipeline", "run", str(spec), "--to", stage]
+    command += ["--seed", str(seed), "--out", str(out), "--quiet"]
+    command += ["--overwrite"] if overwrite else []
+    done = subprocess.run([sys.executable, "-c", RUNNER, *command], capture_output=True, text=True)
+    code, seconds, peak_mb = done.stdout.split()
+    return int(code), float(seconds), float(peak_mb), done.stderr.strip()
+
+
+def _modulus(run: Path, stem: str) -> dict:
+    """The pressed box's effective modulus (MPa): platen force over its area and strain."""
+    solve = json.loads((run / "manifest.json").read_text())["solve"]
+    checks = json.loads((run / "mesh" / f"{stem}_checks.json").read_text())
+    (x0, y0, z0), (x1, y1, z1) = checks["bounds_mm"]
+    strain = solve["press_mm"] / (z1 - z0)
+    return dict(
+        force_n=solve["force_n"],
+        modulus_mpa=solve["force_n"] / ((x1 - x0) * (y1 - y0)) / strain,
+        solver_s=solve.get("solver_wall_time_s"),
+        elements=checks["elements"],
+    )
+
+
+def press_case(scenario: str, seed: int, folder: Path, result: dict) -> None:
+    """The solve stage's volume model on the case's mesh (reused) and on the voxel volume
+    of the same stack; the figures go into ``result``."""
+    from chipstack.pipeline.scenario_files import dumps_toml, load_scenario, with_overrides
+
+    out = folder / f"{scenario}-{seed}"
+    code, seconds, peak_mb, err = _pipeline_run(
+        folder / f"{scenario}.toml", "solve", seed, out, False
+    )
+    result["press"] = dict(seconds=seconds, peak_mb=peak_mb)
+    if code != 0:
+        result["press"]["error"] = err.splitlines()[-1] if err else str(code)
+        return
+    result["press"].update(_modulus(out, "stack_conformal"))
+    spec = folder / f"{scenario}-voxel.toml"
+    spec.write_text(dumps_toml(with_overrides(load_scenario(scenario), VOXEL)))
+    voxel_out = folder / f"{scenario}-{seed}-voxel"
+    code, seconds, peak_mb, err = _pipeline_run(spec, "solve", seed, voxel_out, True)
+    result["voxel_press"] = dict(seconds=seconds, peak_mb=peak_mb)
+    if code != 0:
+        result["voxel_press"]["error"] = err.splitlines()[-1] if err else str(code)
+        return
+    result["voxel_press"].update(_modulus(voxel_out, "stack_voxel"))
+    conformal, voxel = result["press"]["modulus_mpa"], result["voxel_press"]["modulus_mpa"]
+    result["modulus_difference"] = abs(conformal - voxel) / voxel
+
+
 def run_case(scenario: str, seed: int, folder: Path) -> dict:
     """``pipeline run`` of one case in a child, then the audit of what it wrote."""
     from chipstack.pipeline.scenario_files import dumps_toml, load_scenario, with_overrides
@@ -166,20 +232,17 @@ def run_case(scenario: str, seed: int, folder: Path) -> dict:
     spec = folder / f"{scenario}.toml"
     spec.write_text(dumps_toml(with_overrides(load_scenario(scenario), MESH)))
     out = folder / f"{scenario}-{seed}"
-    command = [sys.executable, "-m", "chipstack.pipeline", "run", str(spec), "--to", "mesh"]
-    command += ["--seed", str(seed), "--out", str(out), "--quiet", "--overwrite"]
     load = os.getloadavg()[0]  # a shared machine: the time says how busy it was
-    done = subprocess.run([sys.executable, "-c", RUNNER, *command], capture_output=True, text=True)
-    code, seconds, peak_mb = done.stdout.split()
+    code, seconds, peak_mb, err = _pipeline_run(spec, "mesh", seed, out, True)
     result = dict(
         scenario=scenario,
         seed=seed,
-        seconds=float(seconds),
-        peak_mb=float(peak_mb),
+        seconds=seconds,
+        peak_mb=peak_mb,
         load=round(load, 1),
     )
-    if int(code) != 0:
-        result["error"] = done.stderr.strip().splitlines()[-1] if done.stderr.strip() else code
+    if code != 0:
+        result["error"] = err.splitlines()[-1] if err else str(code)
         return result
     manifest = json.loads((out / "manifest.json").read_text())
     info = manifest["stages"]["mesh"]["summary"]["conformal"]["info"]
@@ -209,6 +272,53 @@ def describe(r: dict) -> str:
         f"{'' if r['interfaces_match_table'] else ' (NOT as in the table)'}; "
         f"{r['seconds']:.1f} s (target 180 s: {r['seconds'] / 180:.2f}), peak "
         f"{r['peak_mb']:.0f} MB (target 4096 MB: {r['peak_mb'] / 4096:.2f})"
+    )
+
+
+def describe_press(r: dict) -> str:
+    head = f"{r['scenario']} seed {r['seed']} pressed:"
+    press, voxel = r["press"], r.get("voxel_press", {})
+    for name, part in (("the conformal model", press), ("the voxel volume", voxel)):
+        if "error" in part:
+            return f"{head} {name} FAILED after {part['seconds']:.1f} s: {part['error']}"
+    return (
+        f"{head} {press['elements']:,} tetrahedra, {press['force_n']:,.0f} N, effective "
+        f"modulus {press['modulus_mpa']:,.0f} MPa against {voxel['modulus_mpa']:,.0f} MPa on "
+        f"the {voxel['elements']:,} hexahedra of the 1 mm voxel volume "
+        f"({100 * r['modulus_difference']:.2f} % apart, target 5 %); CalculiX "
+        f"{press['solver_s']:.0f} s, the solve run {press['seconds']:.0f} s, peak "
+        f"{press['peak_mb']:.0f} MB (voxel: {voxel['solver_s']:.0f} s, peak "
+        f"{voxel['peak_mb']:.0f} MB)"
+    )
+
+
+def record_press(r: dict) -> None:
+    from chipstack.pipeline.measured import record
+
+    command = (
+        f"python benchmarks/bench_whole_stack.py --case {r['scenario']} --seeds {r['seed']} --solve"
+    )
+    name = f"whole {r['scenario']} stack pressed in CalculiX, seed {r['seed']}: "
+    if "modulus_difference" not in r:  # a failure: what ran, and how long, with why
+        part = r.get("voxel_press", r["press"])
+        record(
+            "meshing",
+            name + "solve run time",
+            round(part["seconds"], 1),
+            "s",
+            command=command,
+            note="FAILED: " + describe_press(r)[:300],
+        )
+        return
+    record(
+        "meshing",
+        name + "modulus against the voxel volume",
+        round(100 * r["modulus_difference"], 2),
+        "% apart",
+        target="<= 5",
+        command=command,
+        note=describe_press(r),
+        headline=r["scenario"] == "paper-squares",
     )
 
 
@@ -260,6 +370,9 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=None)
     parser.add_argument("--no-repeat", action="store_true", help="skip the repeated first run")
     parser.add_argument("--no-record", action="store_true")
+    parser.add_argument(
+        "--solve", action="store_true", help="also press each valid case and its voxel volume"
+    )
     args = parser.parse_args()
     cases = [(c, s) for c in args.case or CASES for s in (args.seeds or CASES[c])]
     results = []
@@ -271,11 +384,17 @@ def main() -> None:
                 r["reproducible"] = again.get("sha256") == r["sha256"]
                 print(f"{scenario} seed {seed} again: same .msh: {r['reproducible']}", flush=True)
             print(describe(r), flush=True)
+            if args.solve and r.get("valid"):
+                press_case(scenario, seed, Path(tmp), r)
+                print(describe_press(r), flush=True)
             results.append(r)
     ok = [r for r in results if r.get("valid")]
     print(f"{len(ok)} of {len(results)} cases valid by the audit of the written .msh")
     if not args.no_record:
         record_figures(results)
+        for r in results:
+            if "press" in r:
+                record_press(r)
 
 
 if __name__ == "__main__":

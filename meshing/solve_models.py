@@ -69,7 +69,10 @@ def solve_model(scenario: Scenario) -> SolveModel:
             if model.accepts(scenario):
                 return model
     needs = " or ".join(SOLVE_MODELS.get(n).needs for n in SOLVE_MODELS.in_order())
-    raise InputError(f"--to solve: needs {needs}; mesh.kind is {scenario.mesh.kind!r}")
+    raise InputError(
+        f"--to solve: needs {needs}; mesh.kind is {scenario.mesh.kind!r}, "
+        f"mesh.pore_space {scenario.mesh.pore_space!r}"
+    )
 
 
 class ContactPress(SolveModel):
@@ -101,13 +104,13 @@ class ContactPress(SolveModel):
 
 
 class VolumePress(SolveModel):
-    """A cropped volume (voxel or image mesh), pore space and all, between whole-face
-    platens."""
+    """A box-shaped volume (voxel, image or conformal mesh), pore space and all, between
+    whole-face platens: a crop of the stack, or the whole stack in the box over its
+    footprint."""
 
     name = "volume"
     needs = (
-        "a cropped volume (mesh.kind = 'voxel', 'image' or 'conformal', mesh.crop, "
-        "mesh.pore_space = 'box')"
+        "a box-shaped volume (mesh.kind = 'voxel', 'image' or 'conformal', mesh.pore_space = 'box')"
     )
 
     @staticmethod
@@ -123,7 +126,7 @@ class VolumePress(SolveModel):
 
         spec = scenario.mesh
         pressable = any(self.name in kind.solve_models for kind in mesh_kinds(spec.kind))
-        return pressable and spec.crop != "none" and spec.pore_space == "box"
+        return pressable and spec.pore_space == "box"
 
     def check(self, scenario):
         if "inp" not in scenario.mesh.formats:

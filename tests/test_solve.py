@@ -210,8 +210,8 @@ def test_solve_refuses_a_model_it_cannot_run(tmp_path):
     assert result.returncode == 2
     assert result.stderr.strip().splitlines() == [
         "pipeline: error: --to solve: needs the contact model (mesh.kind = 'contact') or a "
-        "cropped volume (mesh.kind = 'voxel', 'image' or 'conformal', mesh.crop, "
-        "mesh.pore_space = 'box'); mesh.kind is 'voxel'"
+        "box-shaped volume (mesh.kind = 'voxel', 'image' or 'conformal', "
+        "mesh.pore_space = 'box'); mesh.kind is 'voxel', mesh.pore_space 'none'"
     ]
     assert not (tmp_path / "run").exists()
 
