@@ -394,6 +394,47 @@ def test_the_simulation_key_follows_only_what_a_drop_simulation_reads():
     assert simulation_key(replace(s, seed=s.seed + 1)) != key
 
 
+def test_the_simulation_version_names_what_a_drop_simulation_returns(tmp_path):
+    """The table's pools are keyed by SIMULATION_VERSION, not by the source's bytes, so a
+    refactor of ``packing`` keeps every stored pool; a change that changes a drop must
+    raise the version. The drops the version names, simulated again, are those stored for
+    it; and the comparison fails on a changed drop (its broken case)."""
+    import json
+
+    from chipstack.diagnosis.reference_table import (
+        code_version,
+        fingerprint_drops,
+        write_fingerprint,
+    )
+
+    stored = json.loads((Path(__file__).parent / "data" / "drop_fingerprint.json").read_text())
+    scenario = load_scenario("single-chip-drop")
+    again = fingerprint_drops(scenario)
+
+    def differing(drops: dict) -> list[str]:
+        return [
+            m
+            for m in sorted(set(drops) | set(stored["drops"]))
+            if m not in drops
+            or m not in stored["drops"]
+            or not np.allclose(drops[m], stored["drops"][m], rtol=0, atol=1e-6)
+        ]
+
+    changed = differing(again)
+    assert stored["version"] == code_version() and not changed, (
+        f"the drops of {changed} differ from those stored for simulation version "
+        f"{stored['version']} (now {code_version()}): raise SIMULATION_VERSION in "
+        "diagnosis/reference_table.py and write tests/data/drop_fingerprint.json again "
+        "(reference_table.write_fingerprint)"
+    )
+    assert len(again) >= 5 and all(np.shape(d) == (3, 4) for d in again.values())
+    moved = {m: d for m, d in again.items()}
+    moved["friction"] = (np.asarray(moved["friction"]) + [1e-3, 0, 0, 0]).tolist()
+    assert differing(moved) == ["friction"]
+    written = json.loads(write_fingerprint(scenario, tmp_path / "f.json").read_text())
+    assert written == {"version": code_version(), "drops": again}
+
+
 def _joint_drops(rng, n, together: bool) -> np.ndarray:
     """Drops whose distance and tilt have the same marginals either way: tied together
     (a far slide ends flat, a short one tilted) or independent."""
