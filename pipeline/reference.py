@@ -222,6 +222,22 @@ def layers_markdown() -> str:
     return "\n".join(lines)
 
 
+def sites_markdown() -> str:
+    rows = [(n, _first_line(type(SITES.get(n)).__doc__)) for n in SITES.in_order()]
+    return _table(("deposition site", "what holds the chips"), rows)
+
+
+def quantity_measures_markdown() -> str:
+    from chipstack.diagnosis.stacks import QUANTITY_MEASURES
+
+    rows = [
+        (n, _first_line(QUANTITY_MEASURES.get(n).__doc__)) for n in QUANTITY_MEASURES.in_order()
+    ]
+    return _table(
+        ("quantity measure", "what a deposition of that scenario kind is reduced to"), rows
+    )
+
+
 def presets_markdown() -> str:
     rows = [(n, PRESETS.get(n).description) for n in PRESETS.in_order()]
     return _table(("preset", "what it is"), rows)
@@ -241,6 +257,8 @@ GENERATED: dict[str, Callable[[], str]] = {
     "solve_models": solve_models_markdown,
     "effects": effects_markdown,
     "presets": presets_markdown,
+    "sites": sites_markdown,
+    "quantity_measures": quantity_measures_markdown,
     "experiment_kinds": experiment_kinds_markdown,
 }
 

@@ -204,3 +204,40 @@ def test_a_broken_plugin_names_itself_every_time(tmp_path, monkeypatch):
     clashing.register("built", object())
     with pytest.raises(RuntimeError, match="the name is already a widget"):
         clashing.names()
+
+
+def test_the_contract_kit_lists_the_plugin_entries_and_they_pass_it(tmp_path):
+    """The contract kit (tests/test_contracts.py) with the plugin installed: its ids list
+    every entry the plugin adds, generated from the registries, and those entries keep
+    every contract (a docs row; the stack writer's, descriptor's and mesh kind's runs;
+    the effect neutral at its neutral strength)."""
+    kit = str(Path(__file__).resolve().parent / "test_contracts.py")
+    listed = run(["-m", "pytest", kit, "--collect-only", "-q", "-p", "no:cacheprovider"], tmp_path)
+    assert listed.returncode == 0, listed.stdout[-2000:]
+    added = {
+        "shape": "triangle",
+        "descriptor": "centre_height",
+        "mesh kind": "coarse_voxel",
+        "effect": "crosswind",
+        "scenario kind": "ring",
+        "deposition site": "ring",
+        "stack writer": "centres",
+        "figure": "top_view",
+    }
+    for kind, name in added.items():
+        assert f"[{kind}:{name}]" in listed.stdout, (kind, name)
+    for test, name in (
+        ("test_every_stack_writer_writes_files_that_read_back", "centres"),
+        ("test_every_descriptor_writes_its_section_of_finite_numbers", "centre_height"),
+        ("test_every_mesh_kind_meshes_a_small_stack_valid", "coarse_voxel"),
+        ("test_every_effect_changes_nothing_at_its_neutral_strength", "crosswind"),
+    ):
+        assert f"{test}[{name}]" in listed.stdout, (test, name)
+    without = run(
+        ["-m", "pytest", kit, "--collect-only", "-q", "-p", "no:cacheprovider"], tmp_path, False
+    )
+    assert "[shape:triangle]" not in without.stdout
+    chosen = " or ".join(sorted(set(added.values())))
+    result = run(["-m", "pytest", kit, "-q", "-p", "no:cacheprovider", "-k", chosen], tmp_path)
+    assert result.returncode == 0, result.stdout[-3000:]
+    assert "12 passed" in result.stdout, result.stdout[-500:]
