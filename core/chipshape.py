@@ -8,7 +8,7 @@ import numpy as np
 
 from chipstack.core.schema import ChipSpec
 
-__all__ = ["ChipShape", "DEFAULT_FIBRES_DEG"]
+__all__ = ["ALONG_AXIS_DEG", "ChipShape", "WOVEN_DEG"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -99,13 +99,19 @@ def _frozen(array: np.ndarray) -> np.ndarray:
     return array
 
 
-DEFAULT_FIBRES_DEG = {"beam": (0.0,), "fibre": (0.0,)}  # others: woven twill (0, 90)
+# The fibre directions a shape builder gives when the spec names none: a woven twill
+# plate's warp and weft, or a slender chip's fibres along its axis.
+WOVEN_DEG = (0.0, 90.0)
+ALONG_AXIS_DEG = (0.0,)
 
 
-def _fibres(spec: ChipSpec, kind: str, axes: np.ndarray | None = None) -> np.ndarray:
-    """Unit fibre directions in the chip frame; ``axes`` (2, 2): the frame's x and y axes
-    (columns) in the coordinates the directions are given in."""
-    degrees = spec.fibre_directions_deg or DEFAULT_FIBRES_DEG.get(kind, (0.0, 90.0))
+def _fibres(
+    spec: ChipSpec, default_deg: tuple[float, ...], axes: np.ndarray | None = None
+) -> np.ndarray:
+    """Unit fibre directions in the chip frame: the spec's, else the shape builder's
+    ``default_deg``; ``axes`` (2, 2): the frame's x and y axes (columns) in the
+    coordinates the directions are given in."""
+    degrees = spec.fibre_directions_deg or default_deg
     angles = np.radians(np.asarray(degrees, dtype=float))
     plane = np.column_stack([np.cos(angles), np.sin(angles)])
     if axes is not None:

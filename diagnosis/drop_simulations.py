@@ -327,13 +327,16 @@ def _longest_first(run_many: Callable[[Callable, list[dict]], list]):
     of a batch keeps one worker busy while the other waits (longest processing time
     first). Each call carries its own seed, so the order changes no result. The cost
     estimate: drops, times the flight (the square root of the height) plus the bounces,
-    twice with air drag (its per-step loads)."""
+    times the costliest effect's declared ``simulation_cost``."""
 
     def cost(call: dict) -> float:
         protocol = call.get("protocol")
         height = getattr(protocol, "height_mm", 0.0)
-        air = 2.0 if (call.get("strengths") or {}).get("air_drag") else 1.0
-        return call.get("n", 1) * (1.0 + math.sqrt(max(height, 0.0) / 200.0)) * air
+        strengths = call.get("strengths") or {}
+        factor = max(
+            [EFFECTS.get(name).simulation_cost for name, v in strengths.items() if v], default=1.0
+        )
+        return call.get("n", 1) * (1.0 + math.sqrt(max(height, 0.0) / 200.0)) * factor
 
     def ordered(function: Callable, calls: list[dict]) -> list:
         order = sorted(range(len(calls)), key=lambda k: -cost(calls[k]))

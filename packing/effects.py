@@ -75,6 +75,10 @@ class Effect:
     prior: tuple[float, float] = (0.0, 1.0)
     kinds: tuple[str, ...] = ("drop", "stack", "container")
     justification: str = ""
+    # How long a simulation with the effect takes against the baseline's (schedulers
+    # submit the long calls first): drop pools of the study's table, 6 CPU s a pool
+    # without an effect, 19.4 with air drag, 27.5 with warp (bench_table_cost.py).
+    simulation_cost: float = 1.0
 
     def neutral(self, contact: ContactModel) -> float:
         """The strength at which the effect is absent (the baseline's own value)."""
@@ -145,6 +149,7 @@ class AirDrag(Effect):
     parameter = "air density over that of still air at 20 C"
     unit = ""
     prior = (0.0, 4.0)
+    simulation_cost = 3.2  # its loads, computed every step in flight
     kinds = ("drop", "stack", "container")
     justification = (
         "A plate falling through air feels drag (coefficient 1.4 - cos 2a: 2.4 broadside, "
@@ -242,14 +247,26 @@ class ReleasePerturbation(Effect):
 
 
 def _prism_outline(shape: ChipShape, effect: str) -> tuple[np.ndarray, float]:
-    """The convex outline (n, 2) mm and thickness of a flat chip, or a clear refusal."""
-    if shape.kind not in ("box", "polygon") or len(shape.convex_pieces) != 1:
-        raise InputError(
-            f"effect {effect!r}: supports flat convex chips (box, polygon), "
-            f"not {shape.kind!r} chips"
-        )
+    """The convex outline (n, 2) mm and thickness of a flat convex prism, or a clear
+    refusal. What the chip can take is read from its geometry, whatever its kind: one
+    convex piece whose corners all lie on its two faces, the top outline above the
+    bottom one (a box, a regular or convex random polygon, a box-section beam, a plugin's
+    flat triangle); a star, a round fibre or a mesh from a file is refused."""
     half = shape.thickness_mm / 2
-    bottom = shape.vertices[np.isclose(shape.vertices[:, 2], -half)][:, :2]
+    z = shape.vertices[:, 2]
+    bottom = shape.vertices[np.isclose(z, -half)][:, :2]
+    top = shape.vertices[np.isclose(z, half)][:, :2]
+    prism = (
+        len(shape.convex_pieces) == 1
+        and len(bottom) + len(top) == len(z)
+        and len(bottom) == len(top) >= 3
+        and np.allclose(np.sort(bottom, axis=0), np.sort(top, axis=0))
+    )
+    if not prism:
+        raise InputError(
+            f"effect {effect!r}: supports flat convex chips (a convex outline extruded "
+            f"through the thickness), not {shape.kind!r} chips"
+        )
     hull = ConvexHull(bottom)
     return bottom[hull.vertices], 2 * half
 
@@ -365,6 +382,7 @@ class Warp(Effect):
     parameter = "bow of the chip: rise of its ends above its middle"
     unit = "mm"
     prior = (0.0, 3.0)
+    simulation_cost = 4.5  # 8 wedge pieces in a compound collision shape
     justification = (
         "Chips cut from a consolidated laminate relax residual stresses and warp, and "
         "reheated chips curl; a bowed chip rocks on landing and rests on its ends. Modelled "

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from chipstack.core.chipshape import ChipShape, _fibres, _frozen
+from chipstack.core.chipshape import WOVEN_DEG, ChipShape, _fibres, _frozen
 from chipstack.core.errors import InputError, brief, printable
 from chipstack.core.files import check_geometry_file
 from chipstack.core.schema import LENGTH_UNITS_MM, ChipSpec
@@ -199,7 +199,7 @@ def shape_from_file(spec: ChipSpec, size: float = 1.0):
         vertices=_frozen(vertices),
         faces=tuple(tuple(int(v) for v in f) for f in faces),
         convex_pieces=pieces,
-        fibre_directions=_frozen(_fibres(spec, "file")),
+        fibre_directions=_frozen(_fibres(spec, WOVEN_DEG)),
         volume_mm3=volume * size * size,
         inertia_mm2=_frozen(inertia),
         half_extents=_frozen((hi - lo) / 2),

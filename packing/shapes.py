@@ -23,7 +23,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from chipstack.core.chipshape import DEFAULT_FIBRES_DEG, ChipShape, _fibres, _frozen
+from chipstack.core.chipshape import (
+    ALONG_AXIS_DEG,
+    WOVEN_DEG,
+    ChipShape,
+    _fibres,
+    _frozen,
+)
 from chipstack.core.errors import InputError, printable
 from chipstack.core.registry import Registry
 from chipstack.core.schema import MAX_LENGTH_MM, ChipSpec
@@ -48,7 +54,6 @@ __all__ = [
     "prism_shape",
     "shape_from_record",
     "shape_record",
-    "DEFAULT_FIBRES_DEG",
 ]
 
 CYLINDER_SIDES = 24  # polygon standing for a round fibre in the exact geometry
@@ -84,12 +89,14 @@ def prism_shape(
     collision: str = "hull",
     radius_mm: float = 0.0,
     principal: bool = True,
+    default_fibres_deg: tuple[float, ...] = WOVEN_DEG,
 ) -> ChipShape:
     """A flat chip: the plane ``outline`` (n, 2) mm extruded through ``thickness_mm``.
 
     The outline is centred on its centroid and (``principal``) turned to its principal
-    axes; fibre directions are turned with it, so they keep their meaning in the outline
-    as given.
+    axes; fibre directions (the spec's, else ``default_fibres_deg``: a woven plate's
+    warp and weft) are turned with it, so they keep their meaning in the outline as
+    given.
     """
     outline = counter_clockwise(check_simple(outline, f"{name}: outline"))
     area, centroid, (ixx, iyy, ixy) = _polygon_moments(outline)
@@ -128,7 +135,7 @@ def prism_shape(
         vertices=_frozen(vertices),
         faces=tuple(faces),
         convex_pieces=pieces,
-        fibre_directions=_frozen(_fibres(spec, kind, axes)),
+        fibre_directions=_frozen(_fibres(spec, default_fibres_deg, axes)),
         volume_mm3=float(area * thickness_mm),
         inertia_mm2=_frozen(inertia),
         half_extents=_frozen((hi - lo) / 2),
@@ -142,8 +149,11 @@ def _rectangle(length: float, width: float) -> np.ndarray:
     return np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=float) * [length / 2, width / 2]
 
 
-def _box(name: str, kind: str, length: float, width: float, thickness: float, spec: ChipSpec):
-    return prism_shape(name, kind, _rectangle(length, width), thickness, spec, collision="box")
+def _box(name, kind, length, width, thickness, spec, fibres_deg=WOVEN_DEG) -> ChipShape:
+    outline = _rectangle(length, width)
+    return prism_shape(
+        name, kind, outline, thickness, spec, collision="box", default_fibres_deg=fibres_deg
+    )
 
 
 def box_shape(spec: ChipSpec, rng: np.random.Generator | None = None, size: float = 1.0):
@@ -186,7 +196,7 @@ def _slender(kind: str):
         length = spec.length_mm * size
         if spec.section == "box":
             name = f"{kind} {length:g}x{spec.width_mm:g}x{spec.thickness_mm:g}"
-            return _box(name, kind, length, spec.width_mm, spec.thickness_mm, spec)
+            return _box(name, kind, length, spec.width_mm, spec.thickness_mm, spec, ALONG_AXIS_DEG)
         # A round rod along local x. The exact geometry is a prism of CYLINDER_SIDES sides
         # with the circle's area, the physics a true PyBullet cylinder.
         diameter = spec.thickness_mm
@@ -206,7 +216,7 @@ def _slender(kind: str):
             vertices=_frozen(vertices),
             faces=tuple(faces),
             convex_pieces=(_frozen(vertices),),
-            fibre_directions=_frozen(_fibres(spec, kind)),
+            fibre_directions=_frozen(_fibres(spec, ALONG_AXIS_DEG)),
             volume_mm3=float(np.pi * r2 * length),
             inertia_mm2=_frozen(inertia),
             half_extents=_frozen((hi - lo) / 2),

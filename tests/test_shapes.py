@@ -364,3 +364,31 @@ def test_deposit_of_a_single_box_shape_is_unchanged_by_the_registry():
     )
     stack = deposit(scenario)
     assert len(stack.shapes) == 1 and stack.shapes[0].name == "box 20x20x2"
+
+
+def test_effects_that_reshape_a_chip_ask_its_geometry_not_its_name():
+    """Edge rounding and warp take any flat convex prism, whatever its kind is called (a
+    triangle under a new name, a convex random polygon, a box-section beam) and refuse a
+    star and a round fibre by what they are; a slender chip's fibres lie along its axis
+    and a plate's are woven, by what each builder declares."""
+    from chipstack.packing.effects import shaped
+    from chipstack.packing.shapes import prism_shape
+
+    side = 20.0
+    outline = side / np.sqrt(3) * np.array([[0.0, 1.0], [-0.866, -0.5], [0.866, -0.5]])
+    triangle = prism_shape("t", "a_new_name", outline, 2.0, ChipSpec())
+    convex = make_shape(
+        ChipSpec(shape="random_polygon", sides=7, convex=True), np.random.default_rng(1)
+    )
+    beam = make_shape(ChipSpec(shape="beam", section="box", length_mm=30, width_mm=4))
+    for shape in (triangle, convex, beam):
+        rounded = shaped(shape, {"edge_rounding": 0.4})
+        assert rounded.volume_mm3 < shape.volume_mm3
+        assert len(shaped(shape, {"warp": 1.5}).convex_pieces) > 1
+    star = make_shape(ChipSpec(shape="star", sides=5))
+    fibre = make_shape(ChipSpec(shape="fibre", section="cylinder", length_mm=10, thickness_mm=1))
+    for shape in (star, fibre):
+        with pytest.raises(InputError, match="supports flat convex chips"):
+            shaped(shape, {"edge_rounding": 0.4})
+    assert len(beam.fibre_directions) == 1 and len(fibre.fibre_directions) == 1
+    assert len(triangle.fibre_directions) == 2
