@@ -42,6 +42,10 @@ __all__ = ["choose_effect", "describe_design", "design_model_choice"]
 CONFIDENT = 0.9
 # Below this out-of-distribution p-value the data look like none of the simulated datasets.
 OOD_ALPHA = 0.01
+# The largest 95 % set whose best effect can be said to explain the gap: with more models
+# in it the drops do not single the cause out (the study counts an effect identified when
+# it is alone or in a set of two).
+EXPLAINED_SET = 2
 
 
 def describe_design(checks: dict, conditions: list[str]) -> str:
@@ -438,7 +442,8 @@ def _verdict(section: dict, check: dict, where: dict, alpha: float) -> dict:
     # says datasets like these came from that effect (calibrated probabilities); a cause
     # outside the library leaves the probability split over several imitators.
     exact_ok = check["p_value"] >= alpha or p[best] >= CONFIDENT
-    if calibrated >= alpha and exact_ok:
+    singled_out = len(named) <= EXPLAINED_SET
+    if calibrated >= alpha and exact_ok and singled_out:
         text = (
             f"{best} at {strength} explains the gap: the drops fit its posterior "
             f"predictive distribution as well as drops it makes do (calibrated "
@@ -449,6 +454,20 @@ def _verdict(section: dict, check: dict, where: dict, alpha: float) -> dict:
                 f" (the 95 % set: {', '.join(named)}; the next experiment below tells them apart)"
             )
         return dict(kind="explained", text=text + ".")
+    if calibrated >= alpha and exact_ok:  # it fits, but so may others: no single cause
+        closing = (
+            f" and closes {percent(closed)} of the gap [{percent(closed_lo)}, "
+            f"{percent(check['gap_closed_ci95'][1])}]"
+            if closes
+            else ""
+        )
+        return dict(
+            kind="partly explained",
+            text=f"{best} ({strength}) is the most probable effect{closing} and its "
+            f"predictive check passes (calibrated p = {calibrated:.3g}), but the drops do "
+            f"not single it out: the 95 % set holds {len(named)} models ({probable}); the "
+            f"next experiment below tells them apart.{still}",
+        )
     if closes:
         return dict(
             kind="partly explained",

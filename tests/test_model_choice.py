@@ -376,6 +376,23 @@ def test_no_effect_most_probable_is_never_explained():
     assert _verdict(section, check, {"flagged": []}, 0.05)["kind"] == "explained"
 
 
+def test_an_effect_in_a_set_of_three_or_more_is_not_said_to_explain_the_gap():
+    """Everything fits, but the 95 % set holds three models (restitution 56 %, friction,
+    no effect): the drops do not single the cause out, so the gap is partly explained and
+    the text names the set; with two models in the set the same check explains it."""
+    from chipstack.diagnosis.drop_choice import _verdict
+
+    three = {"restitution": 0.56, "friction": 0.3, NO_EFFECT: 0.12, "warp": 0.02}
+    section, check = _section_and_check(three)
+    assert len(section["credible_set"]) == 3
+    verdict = _verdict(section, check, {"flagged": []}, 0.05)
+    assert verdict["kind"] == "partly explained", verdict
+    assert "do not single it out: the 95 % set holds 3 models" in verdict["text"]
+    section, check = _section_and_check({"restitution": 0.7, "friction": 0.28, "warp": 0.02})
+    assert len(section["credible_set"]) == 2
+    assert _verdict(section, check, {"flagged": []}, 0.05)["kind"] == "explained"
+
+
 def test_the_simulation_key_follows_only_what_a_drop_simulation_reads():
     """Stored pools are found by the simulation key: a setting no drop reads (the mesh's,
     the name) leaves it, so adding such a key keeps every table; one a drop reads (the
