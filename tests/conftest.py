@@ -71,6 +71,17 @@ def run_cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
     )
 
 
+def run_scenario(text: str, folder: Path, to: str, name: str = "scenario") -> Path:
+    """``pipeline run`` of the scenario ``text`` (written into ``folder``) up to stage
+    ``to``; asserts it succeeded and returns its run directory."""
+    scenario = folder / f"{name}.toml"
+    scenario.write_text(text)
+    out = folder / f"{name}-run"
+    result = run_cli("run", str(scenario), "--to", to, "--out", str(out), "--quiet")
+    assert result.returncode == 0, result.stderr
+    return out
+
+
 def _content(path: Path):
     """A file's bytes; for the sparse giants of the bad-input catalogue, its size and mtime
     (reading 10 GB of zeros would take the test a minute)."""

@@ -88,36 +88,15 @@ def test_the_kit_finds_a_missing_row_an_empty_one_and_a_nan():
     assert _finite({"a": [1.0, {"b": 2}]}) and not _finite({"a": [1.0, {"b": math.nan}]})
 
 
-SMALL = """
-name = "contracts"
-seed = 3
-[chip]
-length_mm = 20.0
-width_mm = 20.0
-thickness_mm = 2.0
-[deposition]
-chips = 12
-batch_size = 6
-target_size_mm = 60.0
-release_height_mm = [40.0, 80.0]
-[mesh]
-kind = "voxel"
-voxel_mm = 1.0
-"""
+SMALL_MESHED = '[mesh]\nkind = "voxel"\nvoxel_mm = 1.0\n'
 
 
 @pytest.fixture(scope="module")
 def small_run(tmp_path_factory) -> Path:
-    """A small stack through packing, geometry and the voxel mesh in every format."""
-    from conftest import run_cli
+    """The small stack through packing, geometry and the voxel mesh in every format."""
+    from conftest import SMALL_SCENARIO, run_scenario
 
-    folder = tmp_path_factory.mktemp("contracts")
-    scenario = folder / "small.toml"
-    scenario.write_text(SMALL)
-    out = folder / "run"
-    result = run_cli("run", str(scenario), "--to", "mesh", "--out", str(out), "--quiet")
-    assert result.returncode == 0, result.stderr
-    return out
+    return run_scenario(SMALL_SCENARIO + SMALL_MESHED, tmp_path_factory.mktemp("kit"), "mesh")
 
 
 def _read_back(path: Path) -> None:
@@ -199,17 +178,13 @@ def test_every_mesh_kind_meshes_a_small_stack_valid(tmp_path, name):
     written and its own check valid (the image kind needs CGAL, which CI installs)."""
     import os
 
-    from conftest import run_cli
+    from conftest import run_scenario
 
     from chipstack.meshing.image import cgal_available
 
     if name == "image" and not (cgal_available() or os.environ.get("CHIPSTACK_REQUIRE_CGAL")):
         pytest.skip("the image mesh kind needs pygalmesh (make image)")
-    scenario = tmp_path / "tiny.toml"
-    scenario.write_text(TINY.format(kind=name))
-    out = tmp_path / "run"
-    result = run_cli("run", str(scenario), "--to", "mesh", "--out", str(out), "--quiet")
-    assert result.returncode == 0, result.stderr
+    out = run_scenario(TINY.format(kind=name), tmp_path, "mesh")
     summary = json.loads((out / "manifest.json").read_text())["stages"]["mesh"]["summary"]
     assert summary[name].get("valid", True), summary[name]
     written = [p for p in (out / "mesh").iterdir() if p.name.startswith(f"stack_{name}")]

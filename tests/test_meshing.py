@@ -692,15 +692,9 @@ formats = ["msh", "inp", "vtu", "xdmf"]
 def whole_stack_run(tmp_path_factory):
     """The whole 8-chip stack with its pore space, meshed by the exact route and pressed
     in CalculiX (``pipeline run --to solve``): the run directory."""
-    from conftest import run_cli
+    from conftest import run_scenario
 
-    folder = tmp_path_factory.mktemp("whole")
-    scenario = folder / "whole.toml"
-    scenario.write_text(WHOLE_STACK)
-    out = folder / "run"
-    result = run_cli("run", str(scenario), "--to", "solve", "--out", str(out), "--quiet")
-    assert result.returncode == 0, result.stderr
-    return out
+    return run_scenario(WHOLE_STACK, tmp_path_factory.mktemp("whole"), "solve")
 
 
 def test_a_whole_stack_with_its_pore_space_reads_back_solver_grade(tmp_path, whole_stack_run):
@@ -748,7 +742,7 @@ def test_calculix_presses_the_whole_stack_as_stiff_as_its_voxel_volume(tmp_path,
     voxel volume pressed the same way: the same effective modulus (platen force over the
     box's area and strain, each over its own box) within 5 % (issue 56; measured 1.0 %).
     The reference stack: benchmarks/bench_whole_stack.py --solve."""
-    from conftest import run_cli
+    from conftest import run_scenario
 
     def modulus(run, stem):
         solve = json.loads((run / "manifest.json").read_text())["solve"]
@@ -757,15 +751,12 @@ def test_calculix_presses_the_whole_stack_as_stiff_as_its_voxel_volume(tmp_path,
         assert solve["force_n"] > 0
         return solve["force_n"] / ((x1 - x0) * (y1 - y0)) / (solve["press_mm"] / (z1 - z0))
 
-    scenario = tmp_path / "voxel.toml"
-    scenario.write_text(
-        WHOLE_STACK.replace('kind = "conformal"', 'kind = "voxel"\nvoxel_mm = 1.0').replace(
-            'formats = ["msh", "inp", "vtu", "xdmf"]', 'formats = ["inp"]'
-        )
+    voxel_stack = WHOLE_STACK.replace('kind = "conformal"', 'kind = "voxel"\nvoxel_mm = 1.0')
+    out = run_scenario(
+        voxel_stack.replace('formats = ["msh", "inp", "vtu", "xdmf"]', 'formats = ["inp"]'),
+        tmp_path,
+        "solve",
     )
-    out = tmp_path / "voxel"
-    result = run_cli("run", str(scenario), "--to", "solve", "--out", str(out), "--quiet")
-    assert result.returncode == 0, result.stderr
     exact, voxel = modulus(whole_stack_run, "stack_conformal"), modulus(out, "stack_voxel")
     assert exact == pytest.approx(voxel, rel=0.05), (exact, voxel)
 
