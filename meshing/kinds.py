@@ -284,6 +284,7 @@ class ConformalKind(MeshKind):
                 g.layer_mm,
                 spec.min_quality,
                 region_mm=region,
+                pore_size_mm=spec.pore_size_mm,
             )
             return resolution, mesh
 

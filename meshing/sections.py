@@ -100,6 +100,14 @@ class MeshSpec(Section):
         "size_mm or more (0: a tenth of the thinnest chip dimension, the largest allowed)",
         between(0.0, 10.0),
     )
+    pore_size_mm: float = key(
+        0.0,
+        "mm",
+        "conformal mesh with the pore space: largest element edge of the pore space away "
+        "from the chips, graded from size_mm at their faces (0: four times size_mm; "
+        "size_mm: no grading)",
+        between(0.0, 100.0),
+    )
     snap_angle_deg: float = key(
         3.0,
         "deg",

@@ -189,6 +189,37 @@ def test_conformal_pore_space_fills_the_box(conformal_layup):
     assert volumes[mesh.chip >= 0].sum() == pytest.approx(17 * 800.0, rel=1e-9)
 
 
+def _longest_edges(mesh) -> np.ndarray:
+    x = mesh.points[mesh.cells]
+    pairs = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
+    return np.max([np.linalg.norm(x[:, a] - x[:, b], axis=1) for a, b in pairs], axis=0)
+
+
+def test_the_pore_space_coarsens_away_from_the_chips_and_the_chips_do_not():
+    """Two piles 80 mm apart under a box 16 mm high: the open pore between them is
+    meshed with elements up to four times the chips' size (the default), the chips and
+    the pore at their faces at the chips' size; volumes exact either way, quality held,
+    and fewer elements than the ungraded mesh (``pore_size_mm = size_mm``)."""
+    a = arrange([((-40, 0, 1.0), 0.0), ((40, 0, 1.0), 0.0), ((40, 0, 15.0), 30.0)])
+    graded = conformal_mesh(a, size_mm=2.0, pore_space="box")
+    even = conformal_mesh(a, size_mm=2.0, pore_space="box", pore_size_mm=2.0)
+    assert graded.info["pore_size_mm"] == 8.0 and even.info["pore_size_mm"] == 2.0
+    for mesh in (graded, even):
+        volumes = mesh.element_volumes()
+        assert volumes[mesh.chip >= 0].sum() == pytest.approx(3 * 800.0, rel=1e-9)
+        assert volumes.sum() == pytest.approx(np.prod(np.ptp(mesh.points, axis=0)), rel=1e-9)
+        assert mesh.quality.min() >= 0.1
+    edges = {id(m): _longest_edges(m) for m in (graded, even)}
+    pore = {id(m): m.chip < 0 for m in (graded, even)}
+    # Coarse far from the chips: the graded pore's longest edges twice the even one's.
+    assert edges[id(graded)][pore[id(graded)]].max() > 2 * edges[id(even)][pore[id(even)]].max()
+    # The chips meshed as without the grading (their elements' count and longest edges).
+    chips = [edges[id(m)][~pore[id(m)]] for m in (graded, even)]
+    assert len(chips[0]) == pytest.approx(len(chips[1]), rel=0.05)
+    assert np.percentile(chips[0], 99) == pytest.approx(np.percentile(chips[1], 99), rel=0.05)
+    assert graded.n_elements < 0.5 * even.n_elements
+
+
 def test_conformal_failure_names_the_chips_and_suggests_voxels():
     # two chips 0.0001 mm apart across a tilted corner: a sliver the mesher cannot resolve
     tilt = Rotation.from_euler("xy", (0.02, 0.01), degrees=True)
