@@ -236,6 +236,15 @@ def _write_ids(f, ids: np.ndarray) -> None:
         f.write(", ".join(map(str, ids[start : start + 16])) + "\n")
 
 
+def _write_rows(f, rows: np.ndarray, row_format: str, chunk: int = 65536) -> None:
+    """``rows`` as text, ``row_format`` per row: the bytes ``np.savetxt`` writes, formatted
+    a chunk of rows at a time rather than row by row (8.6 s for a 1.5 million element
+    deck's nodes and elements with savetxt)."""
+    for start in range(0, len(rows), chunk):
+        part = rows[start : start + chunk]
+        f.write((row_format * len(part)) % tuple(part.ravel().tolist()))
+
+
 @_format("inp")
 def write_inp(path: Path, mesh: VolumeMesh) -> list[Path]:
     """Abaqus / CalculiX input: nodes, elements, an element set and a material orientation
@@ -250,10 +259,10 @@ def write_inp(path: Path, mesh: VolumeMesh) -> list[Path]:
     with open(path, "w") as f:
         f.write("** chipstack mesh: units mm, N, MPa\n*HEADING\nchip stack\n*NODE, NSET=NALL\n")
         rows = np.column_stack([np.arange(1, len(mesh.points) + 1), mesh.points])
-        np.savetxt(f, rows, fmt=["%d", "%.9g", "%.9g", "%.9g"], delimiter=", ")
+        _write_rows(f, rows, "%d, %.9g, %.9g, %.9g\n")
         f.write(f"*ELEMENT, TYPE={_INP_ELEMENT[mesh.cell_type]}, ELSET=EALL\n")
         cells = np.column_stack([np.arange(1, mesh.n_elements + 1), mesh.cells + 1])
-        np.savetxt(f, cells, fmt="%d", delimiter=", ")
+        _write_rows(f, cells, ", ".join(["%d"] * cells.shape[1]) + "\n")
         order = np.argsort(mesh.chip, kind="stable")
         chips, starts = np.unique(mesh.chip[order], return_index=True)
         groups = np.split(order, starts[1:])
