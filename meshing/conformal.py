@@ -728,15 +728,17 @@ def _grade_thin_faces(
         if level in points:
             model.mesh.field.setNumbers(distance, "PointsList", sorted(set(points[level])))
         model.mesh.field.setNumber(distance, "Sampling", 20)
-        threshold = model.mesh.field.add("Threshold")
-        model.mesh.field.setNumber(threshold, "InField", distance)
-        model.mesh.field.setNumber(threshold, "SizeMin", width)
-        model.mesh.field.setNumber(threshold, "SizeMax", size_mm)
-        model.mesh.field.setNumber(threshold, "DistMin", width)
-        model.mesh.field.setNumber(threshold, "DistMax", width + 1.5 * (size_mm - width))
-        if pore_mm is not None:  # beyond its reach the chips' field below rules
-            model.mesh.field.setNumber(threshold, "StopAtDistMax", 1)
-        fields.append(threshold)
+        # With the pore graded, beyond its reach the chips' field below rules.
+        fields.append(
+            _threshold(
+                model,
+                distance,
+                (width, size_mm),
+                (width, width + 1.5 * (size_mm - width)),
+                stop_at_reach=pore_mm is not None,
+            )
+        )
+    widths = len(fields)
     if pore_mm is not None:
         fields.append(_pore_grading(gmsh, size_mm, pore_mm, chip_volumes))
     if fields:
@@ -747,7 +749,7 @@ def _grade_thin_faces(
         gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
     log.info(
         "conformal mesh: %d width classes of thin faces graded, %d corners near an edge",
-        len(fields),
+        widths,
         sum(len(v) for v in points.values()),
     )
 
@@ -762,12 +764,23 @@ def _pore_grading(gmsh, size_mm: float, pore_mm: float, chip_volumes) -> int:
     # Samples a third of an element apart on a 30 mm face: the distance is meant to within
     # a fraction of the element, and sets where the sizes start growing, not the faces'.
     model.mesh.field.setNumber(distance, "Sampling", 60)
-    threshold = model.mesh.field.add("Threshold")
-    model.mesh.field.setNumber(threshold, "InField", distance)
-    model.mesh.field.setNumber(threshold, "SizeMin", size_mm)
-    model.mesh.field.setNumber(threshold, "SizeMax", pore_mm)
-    model.mesh.field.setNumber(threshold, "DistMin", size_mm)
-    model.mesh.field.setNumber(threshold, "DistMax", size_mm + (pore_mm - size_mm) / PORE_GROWTH)
+    reach = (size_mm, size_mm + (pore_mm - size_mm) / PORE_GROWTH)
+    return _threshold(model, distance, (size_mm, pore_mm), reach)
+
+
+def _threshold(model, distance: int, sizes, reach, stop_at_reach: bool = False) -> int:
+    """A gmsh Threshold field on ``distance``: size ``sizes[0]`` up to ``reach[0]``,
+    growing linearly to ``sizes[1]`` at ``reach[1]`` (and beyond, unless
+    ``stop_at_reach``: then no size of its own there)."""
+    field = model.mesh.field
+    threshold = field.add("Threshold")
+    field.setNumber(threshold, "InField", distance)
+    field.setNumber(threshold, "SizeMin", sizes[0])
+    field.setNumber(threshold, "SizeMax", sizes[1])
+    field.setNumber(threshold, "DistMin", reach[0])
+    field.setNumber(threshold, "DistMax", reach[1])
+    if stop_at_reach:
+        field.setNumber(threshold, "StopAtDistMax", 1)
     return threshold
 
 
@@ -897,6 +910,8 @@ def _polish(gmsh, min_quality: float) -> None:
     model = gmsh.model
     counts = [0, 0]  # elements below the bar, all elements (at the last look)
 
+    per_volume: dict[int, tuple[int, int]] = {}  # volume: (elements, below the bar)
+
     def poor() -> list[tuple[int, int]]:
         out = []
         counts[:] = [0, 0]
@@ -904,7 +919,8 @@ def _polish(gmsh, min_quality: float) -> None:
             _, tags, _ = model.mesh.getElements(3, volume)
             if tags and len(tags[0]):
                 quality = model.mesh.getElementQualities(np.concatenate(tags), "minSICN")
-                counts[0] += int(np.sum(quality < min_quality))
+                per_volume[volume] = (len(quality), int(np.sum(quality < min_quality)))
+                counts[0] += per_volume[volume][1]
                 counts[1] += len(quality)
                 if np.min(quality) < min_quality:
                     out.append((3, volume))
@@ -936,12 +952,12 @@ def _polish(gmsh, min_quality: float) -> None:
     # pore, which the node moves took to 0.20 in 13 s).
     # A cluster of slivers is beyond the node moves (reference stack, seed 4: 138 elements
     # under 0.1 near one chip, worst 0.0005, after them), so only a few are left to them.
-    large = []
-    for dim, volume in volumes:
-        tags = np.concatenate(model.mesh.getElements(3, volume)[1])
-        below = np.sum(model.mesh.getElementQualities(tags, "minSICN") < min_quality)
-        if len(tags) > _DELAUNAY_MAX_ELEMENTS and below <= _LEFT_TO_MOVES:
-            large.append((dim, volume))
+    large = [
+        (dim, volume)
+        for dim, volume in volumes
+        if per_volume[volume][0] > _DELAUNAY_MAX_ELEMENTS
+        and per_volume[volume][1] <= _LEFT_TO_MOVES
+    ]
     if large:
         log.info(
             "conformal mesh: %d volumes of more than %d elements left to the node moves "
