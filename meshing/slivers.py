@@ -143,13 +143,32 @@ def improve_tetrahedra(
         moved=0,
     )
     after = before
+    box = points.min(axis=0), points.max(axis=0)
     for _ in range(rounds):
         if optimise:
             points, cells, labels = _gmsh_optimise(points, cells, labels)
             after = tetra_sicn(points, cells)
-        points, after, moved = _move_boundary_nodes(
-            points, cells, labels, after, floor, passes, tries, max_turn_deg, side_tolerance_mm, rng
+        # Only the elements near the slivers take part: finding the region boundaries of
+        # the whole mesh took 9 of the 15 s of a pass over the reference stack's 1.5
+        # million elements that held none. The result is the same as over the whole mesh.
+        near = _around(cells, after < floor, passes)
+        if not len(near):
+            break
+        points, moved_quality, moved = _move_boundary_nodes(
+            points,
+            cells[near],
+            labels[near],
+            after[near],
+            floor,
+            passes,
+            tries,
+            max_turn_deg,
+            side_tolerance_mm,
+            rng,
+            box,
         )
+        after = after.copy()
+        after[near] = moved_quality
         info["moved"] += moved
     info.update(
         elements=len(cells),
@@ -166,6 +185,19 @@ def improve_tetrahedra(
         info["seconds"],
     )
     return ImprovedTetrahedra(points, cells, names[labels], after, info)
+
+
+def _around(cells: np.ndarray, chosen: np.ndarray, rings: int) -> np.ndarray:
+    """Indices, in order, of the elements within ``rings`` + 1 rings of the ``chosen``
+    elements (bool, per element): every node that ``rings`` passes of node moves can
+    reach (a pass moves the nodes of the elements under the floor; a moved node's
+    elements can fall under it) keeps all its elements, so its region boundaries and its
+    moves are those it has in the whole mesh."""
+    inside = chosen.copy()
+    for _ in range(rings + 1):
+        nodes = np.unique(cells[inside])
+        inside = np.isin(cells, nodes).any(axis=1)
+    return np.flatnonzero(inside)
 
 
 def _boundary_faces(cells: np.ndarray, labels: np.ndarray):
@@ -271,17 +303,21 @@ def _planes(normals: np.ndarray, cos_turn: float) -> np.ndarray | None:
     return np.array(means)
 
 
-def _move_boundary_nodes(points, cells, labels, quality, floor, passes, tries, max_turn, tol, rng):
+def _move_boundary_nodes(
+    points, cells, labels, quality, floor, passes, tries, max_turn, tol, rng, box
+):
     """Step 2 of the module docstring, given every element's SICN (``quality``): returns
     the moved points, their elements' SICN and the number of moves. Only the elements
-    of a moved node are measured again (a mesh of millions holds a few slivers)."""
+    of a moved node are measured again (a mesh of millions holds a few slivers).
+    ``cells`` may be a part of the mesh (see :func:`_around`); ``box`` is the whole
+    mesh's (lowest, highest corner), whose sides the nodes on them keep to."""
     points = points.copy()
     quality = quality.copy()
     tris, low, high = _boundary_faces(cells, labels)
     n = len(points)
     node_cells = _incidence(cells, n)
     node_tris = _incidence(tris, n)
-    lo_box, hi_box = points.min(axis=0), points.max(axis=0)
+    lo_box, hi_box = box
     cos_turn = np.cos(np.radians(max_turn))
     stride = int(labels.max()) + 2  # a pair of regions (the outside -1) as one integer
     moved = 0
