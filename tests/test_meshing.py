@@ -220,6 +220,36 @@ def test_the_pore_space_coarsens_away_from_the_chips_and_the_chips_do_not():
     assert graded.n_elements < 0.5 * even.n_elements
 
 
+def test_the_whole_stack_box_clears_a_nearly_upright_edge_at_its_side():
+    """A chip tilted 0.002 deg at the stack's edge: a side through its outermost corner
+    passes 0.07 um from the corner below it, a wedge of pore no mesher fills with sound
+    elements (reference stack, seeds 4, 6 and 9). The box's sides move out to clear every
+    corner by a quarter element, and the mesh holds the quality floor."""
+    tilt = Rotation.from_euler("y", 0.002, degrees=True)
+    a = arrange([((0.0, 0.0, 1.2), tilt), ((30.0, 0.0, 1.0), 0.0)])
+    corners = np.concatenate(
+        [
+            s.vertices @ r.T + p
+            for s, r, p in zip(
+                [a.shapes[k] for k in a.shape_index], a.rotations, a.positions, strict=True
+            )
+        ]
+    )
+    mesh = conformal_mesh(a, size_mm=1.5, pore_space="box")
+    low, high = mesh.points.min(axis=0), mesh.points.max(axis=0)
+    clearance = 1.5 / 4
+    # The tilted chip's side: moved out. Every side passes a corner by the clearance or
+    # lies on it (a whole face on the side, as the flat chip's at x = 40: no wedge).
+    assert corners[:, 0].min() - low[0] >= clearance - 1e-9
+    for axis in (0, 1):
+        for side in (low[axis], high[axis]):
+            distance = np.abs(corners[:, axis] - side)
+            assert np.all((distance < 1e-6) | (distance >= clearance - 1e-9)), distance.min()
+    volumes = mesh.element_volumes()
+    assert volumes[mesh.chip >= 0].sum() == pytest.approx(2 * 800.0, rel=1e-9)
+    assert mesh.quality.min() >= 0.1
+
+
 def test_conformal_failure_names_the_chips_and_suggests_voxels():
     # two chips 0.0001 mm apart across a tilted corner: a sliver the mesher cannot resolve
     tilt = Rotation.from_euler("xy", (0.02, 0.01), degrees=True)
