@@ -194,9 +194,10 @@ def _around(cells: np.ndarray, chosen: np.ndarray, rings: int) -> np.ndarray:
     elements can fall under it) keeps all its elements, so its region boundaries and its
     moves are those it has in the whole mesh."""
     inside = chosen.copy()
+    reached = np.zeros(int(cells.max()) + 1, dtype=bool)
     for _ in range(rings + 1):
-        nodes = np.unique(cells[inside])
-        inside = np.isin(cells, nodes).any(axis=1)
+        reached[cells[inside]] = True
+        inside = reached[cells].any(axis=1)
     return np.flatnonzero(inside)
 
 
