@@ -4,7 +4,7 @@ For every seed asked for, deposits the reference stack, then in a fresh process 
 peak memory is its own) times
 
 * ``voxel_mesh`` at 0.5 mm (target <= 10 s);
-* the conformal route: contact resolution (``geometry.resolve``) and ``conformal_mesh``
+* the conformal route: contact resolution (``meshing.resolution``) and ``conformal_mesh``
   at 1.5 mm, chips only and with the pore space (``--pore-space``), each checked by
   ``meshing.checks.check_mesh`` (every chip present, volumes within 2 %, SICN >= 0.1,
   every snapped surface contact sharing faces). Targets: resolution plus mesh <= 60 s and
@@ -99,7 +99,7 @@ elif kind == "image":
     result["seconds"] = time.perf_counter() - start
 else:
     from chipstack.geometry.contacts import KINDS, find_contacts
-    from chipstack.geometry.resolve import UnresolvedError, resolve_contacts
+    from chipstack.meshing.resolution import UnresolvedError, resolve_contacts
     from chipstack.meshing import MeshingError, check_mesh, conformal_mesh
     before = find_contacts(arrangement)
     # As the conformal kind does: line contacts touching for a mesh of the chips alone,
@@ -113,7 +113,7 @@ else:
     from chipstack.meshing.sections import MeshSpec
     gap = MeshSpec().gap_mm if pore == "none" else pore_gap_mm(MeshSpec(), arrangement)
     def attempt(touching):
-        from chipstack.geometry.resolve import resolve_chips
+        from chipstack.meshing.resolution import resolve_chips
         from chipstack.meshing.conformal import chips_near
         if region is None:
             resolution = resolve_contacts(

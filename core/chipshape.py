@@ -8,7 +8,13 @@ import numpy as np
 
 from chipstack.core.schema import ChipSpec
 
-__all__ = ["ALONG_AXIS_DEG", "ChipShape", "WOVEN_DEG"]
+__all__ = [
+    "ALONG_AXIS_DEG",
+    "ChipShape",
+    "WOVEN_DEG",
+    "frozen_array",
+    "spec_fibre_directions",
+]
 
 
 @dataclass(frozen=True, eq=False)
@@ -93,7 +99,8 @@ class ChipShape:
         return 1
 
 
-def _frozen(array: np.ndarray) -> np.ndarray:
+def frozen_array(array: np.ndarray) -> np.ndarray:
+    """A read-only float copy of ``array`` (shapes are shared between chips)."""
     array = np.array(array, dtype=float)
     array.setflags(write=False)
     return array
@@ -105,7 +112,7 @@ WOVEN_DEG = (0.0, 90.0)
 ALONG_AXIS_DEG = (0.0,)
 
 
-def _fibres(
+def spec_fibre_directions(
     spec: ChipSpec, default_deg: tuple[float, ...], axes: np.ndarray | None = None
 ) -> np.ndarray:
     """Unit fibre directions in the chip frame: the spec's, else the shape builder's

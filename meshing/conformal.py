@@ -33,6 +33,7 @@ from chipstack.core.overlap import penetrating_pairs
 from chipstack.meshing.boundaries import side_node_sets
 from chipstack.meshing.gmsh_session import GmshSession
 from chipstack.meshing.mesh import PORE, VolumeMesh, element_attributes
+from chipstack.meshing.resolution import convex_pieces, place_chip, separation_between
 
 __all__ = [
     "GmshSession",
@@ -64,8 +65,6 @@ def _pairs_closer_than(arrangement: Arrangement, inflate_mm: float, depth_mm: fl
     """Pairs (i, j) of chips that interpenetrate by more than ``depth_mm`` once each is
     grown by ``inflate_mm`` (mm): exact for boxes (separating axes on the boxes), and for
     other chips the boxes' test refined by the separating axes of their convex pieces."""
-    from chipstack.geometry._rigid import _pieces, _place, _separation
-
     centres, half = _box_centres(arrangement)
     pairs, depth = penetrating_pairs(centres, arrangement.quaternions, half + inflate_mm)
     boxes = np.array([_fills_box(arrangement.shapes[k]) for k in arrangement.shape_index])
@@ -75,14 +74,16 @@ def _pairs_closer_than(arrangement: Arrangement, inflate_mm: float, depth_mm: fl
     def world(k: int):
         if k not in placed:
             shape = arrangement.shapes[arrangement.shape_index[k]]
-            placed[k] = _place(_pieces(shape), arrangement.rotations[k], arrangement.positions[k])
+            placed[k] = place_chip(
+                convex_pieces(shape), arrangement.rotations[k], arrangement.positions[k]
+            )
         return placed[k]
 
     for (i, j), d in zip(pairs.tolist(), depth, strict=True):
         if boxes[i] and boxes[j]:
             if d > depth_mm:
                 kept.append((i, j))
-        elif -_separation(world(i), world(j)) + 2 * inflate_mm > depth_mm:
+        elif -separation_between(world(i), world(j)) + 2 * inflate_mm > depth_mm:
             kept.append((i, j))
     return kept
 

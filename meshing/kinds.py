@@ -231,19 +231,19 @@ class ConformalKind(MeshKind):
 
     @property
     def failures(self):
-        from chipstack.geometry.resolve import UnresolvedError
         from chipstack.meshing.conformal import MeshingError
+        from chipstack.meshing.resolution import UnresolvedError
 
         return (MeshingError, UnresolvedError)
 
     def build(self, arrangement, scenario, scratch):
-        from chipstack.geometry.resolve import (
+        from chipstack.meshing.conformal import MeshingError, chips_near, conformal_mesh
+        from chipstack.meshing.resolution import (
             UnresolvedError,
             check_settings,
             resolve_chips,
             resolve_contacts,
         )
-        from chipstack.meshing.conformal import MeshingError, chips_near, conformal_mesh
 
         spec, g = scenario.mesh, scenario.geometry
         # The .msh is written like every kind's (meshing.files): a physical volume per

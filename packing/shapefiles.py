@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from chipstack.core.chipshape import WOVEN_DEG, ChipShape, _fibres, _frozen
+from chipstack.core.chipshape import WOVEN_DEG, ChipShape, frozen_array, spec_fibre_directions
 from chipstack.core.errors import InputError, brief, printable
 from chipstack.core.files import check_geometry_file
 from chipstack.core.schema import LENGTH_UNITS_MM, ChipSpec
@@ -189,20 +189,20 @@ def shape_from_file(spec: ChipSpec, size: float = 1.0):
     vertices, faces, pieces, volume, inertia = _read(path, mtime, spec.units)
     scale = np.array([size, size, 1.0])
     vertices = vertices * scale
-    pieces = tuple(_frozen(p * scale) for p in pieces)
+    pieces = tuple(frozen_array(p * scale) for p in pieces)
     lo, hi = vertices.min(axis=0), vertices.max(axis=0)
     name = f"file {Path(path).name}" + (f" x{size:.4g}" if size != 1.0 else "")
     inertia = inertia * np.array([size**2, size**2, size**2])  # in-plane scaling, roughly
     return ChipShape(
         name=name,
         kind="file",
-        vertices=_frozen(vertices),
+        vertices=frozen_array(vertices),
         faces=tuple(tuple(int(v) for v in f) for f in faces),
         convex_pieces=pieces,
-        fibre_directions=_frozen(_fibres(spec, WOVEN_DEG)),
+        fibre_directions=frozen_array(spec_fibre_directions(spec, WOVEN_DEG)),
         volume_mm3=volume * size * size,
-        inertia_mm2=_frozen(inertia),
-        half_extents=_frozen((hi - lo) / 2),
-        box_centre=_frozen((hi + lo) / 2),
+        inertia_mm2=frozen_array(inertia),
+        half_extents=frozen_array((hi - lo) / 2),
+        box_centre=frozen_array((hi + lo) / 2),
         collision="hull",
     )

@@ -27,8 +27,8 @@ from chipstack.core.chipshape import (
     ALONG_AXIS_DEG,
     WOVEN_DEG,
     ChipShape,
-    _fibres,
-    _frozen,
+    frozen_array,
+    spec_fibre_directions,
 )
 from chipstack.core.errors import InputError, printable
 from chipstack.core.registry import Registry
@@ -121,7 +121,7 @@ def prism_shape(
     faces = [tuple(range(n - 1, -1, -1)), tuple(range(n, 2 * n))]
     faces += [(i, (i + 1) % n, n + (i + 1) % n, n + i) for i in range(n)]
     pieces = tuple(
-        _frozen(np.vstack([_at_height(p, -half_t), _at_height(p, half_t)]))
+        frozen_array(np.vstack([_at_height(p, -half_t), _at_height(p, half_t)]))
         for p in convex_partition(outline)
     )
     lo, hi = vertices.min(axis=0), vertices.max(axis=0)
@@ -132,14 +132,14 @@ def prism_shape(
     return ChipShape(
         name=name,
         kind=kind,
-        vertices=_frozen(vertices),
+        vertices=frozen_array(vertices),
         faces=tuple(faces),
         convex_pieces=pieces,
-        fibre_directions=_frozen(_fibres(spec, default_fibres_deg, axes)),
+        fibre_directions=frozen_array(spec_fibre_directions(spec, default_fibres_deg, axes)),
         volume_mm3=float(area * thickness_mm),
-        inertia_mm2=_frozen(inertia),
-        half_extents=_frozen((hi - lo) / 2),
-        box_centre=_frozen((hi + lo) / 2),
+        inertia_mm2=frozen_array(inertia),
+        half_extents=frozen_array((hi - lo) / 2),
+        box_centre=frozen_array((hi + lo) / 2),
         collision=collision,
         radius_mm=radius_mm,
     )
@@ -213,14 +213,14 @@ def _slender(kind: str):
         return ChipShape(
             name=f"{kind} {length:g}xd{diameter:g}",
             kind=kind,
-            vertices=_frozen(vertices),
+            vertices=frozen_array(vertices),
             faces=tuple(faces),
-            convex_pieces=(_frozen(vertices),),
-            fibre_directions=_frozen(_fibres(spec, ALONG_AXIS_DEG)),
+            convex_pieces=(frozen_array(vertices),),
+            fibre_directions=frozen_array(spec_fibre_directions(spec, ALONG_AXIS_DEG)),
             volume_mm3=float(np.pi * r2 * length),
-            inertia_mm2=_frozen(inertia),
-            half_extents=_frozen((hi - lo) / 2),
-            box_centre=_frozen((hi + lo) / 2),
+            inertia_mm2=frozen_array(inertia),
+            half_extents=frozen_array((hi - lo) / 2),
+            box_centre=frozen_array((hi + lo) / 2),
             collision="cylinder",
             radius_mm=diameter / 2,
         )
@@ -354,7 +354,7 @@ def shape_from_record(record: dict, where: str) -> ChipShape:
     try:
         vertices = np.array(record["vertices"], dtype=float).reshape(-1, 3)
         pieces = tuple(
-            _frozen(np.array(p, dtype=float).reshape(-1, 3)) for p in record["convex_pieces"]
+            frozen_array(np.array(p, dtype=float).reshape(-1, 3)) for p in record["convex_pieces"]
         )
         faces = tuple(tuple(int(v) for v in f) for f in record["faces"])
         fibres = np.array(record["fibre_directions"], dtype=float).reshape(-1, 3)
@@ -387,14 +387,14 @@ def shape_from_record(record: dict, where: str) -> ChipShape:
     return ChipShape(
         name=name,
         kind=kind,
-        vertices=_frozen(vertices),
+        vertices=frozen_array(vertices),
         faces=faces,
         convex_pieces=pieces,
-        fibre_directions=_frozen(fibres),
+        fibre_directions=frozen_array(fibres),
         volume_mm3=volume,
-        inertia_mm2=_frozen(inertia),
-        half_extents=_frozen((hi - lo) / 2),
-        box_centre=_frozen((hi + lo) / 2),
+        inertia_mm2=frozen_array(inertia),
+        half_extents=frozen_array((hi - lo) / 2),
+        box_centre=frozen_array((hi + lo) / 2),
         collision=collision,
         radius_mm=radius,
     )

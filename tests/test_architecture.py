@@ -165,6 +165,82 @@ def test_the_layer_check_finds_an_upward_import():
     )
 
 
+def _package_of(name: str) -> str:
+    """The package a module belongs to (a package is its own)."""
+    path = ROOT.joinpath(*name.split(".")[1:]) if name != "chipstack" else ROOT / "chipstack"
+    if name.split(".")[1:2] and name.split(".")[1] not in PACKAGES:
+        return name
+    return name if path.is_dir() else name.rsplit(".", 1)[0]
+
+
+def _private_imports(sources: dict[str, str]) -> list[str]:
+    """``importer: module._name`` for every private name (one underscore) a module
+    imports from a module of another package (``sources``: module name -> its code)."""
+    found = []
+    for name, code in sources.items():
+        for node in ast.walk(ast.parse(code)):
+            if not (isinstance(node, ast.ImportFrom) and node.level == 0 and node.module):
+                continue
+            if node.module.split(".")[0] != "chipstack":
+                continue
+            for alias in node.names:
+                private = alias.name.startswith("_") and not alias.name.startswith("__")
+                if private and _package_of(node.module) != _package_of(name):
+                    found.append(f"{name}: {node.module}.{alias.name}")
+    return sorted(found)
+
+
+def _project_sources() -> dict[str, str]:
+    return {
+        _module_name(p): p.read_text()
+        for package in PACKAGES
+        for p in (ROOT / package).rglob("*.py")
+    }
+
+
+def test_no_private_name_is_imported_across_packages():
+    """A package uses another through its public names only (the conformal mesher uses
+    the contact resolution's ``convex_pieces``, ``place_chip`` and ``separation_between``,
+    not its private helpers)."""
+    assert _private_imports(_project_sources()) == []
+
+
+def test_the_private_import_check_finds_one():
+    cross = "from chipstack.meshing.resolution.rigid import _cross"
+    sources = {
+        "chipstack.meshing.conformal": cross,
+        "chipstack.meshing.resolution.relax": cross,
+        "chipstack.meshing.kinds": "from chipstack.meshing.conformal import _fills_box",
+    }
+    assert _private_imports(sources) == [
+        "chipstack.meshing.conformal: chipstack.meshing.resolution.rigid._cross"
+    ]
+
+
+def _long_functions(code: str, limit: int = 120) -> list[str]:
+    """``name (lines)`` of every function or method in ``code`` longer than ``limit``."""
+    return [
+        f"{node.name} ({node.end_lineno - node.lineno + 1})"
+        for node in ast.walk(ast.parse(code))
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef)
+        and node.end_lineno - node.lineno + 1 > limit
+    ]
+
+
+def test_no_function_of_the_contact_resolution_is_over_120_lines():
+    package = ROOT / "meshing" / "resolution"
+    modules = sorted(package.glob("*.py"))
+    assert len(modules) >= 6
+    long = {p.name: _long_functions(p.read_text()) for p in modules}
+    assert {name: found for name, found in long.items() if found} == {}
+
+
+def test_the_length_check_finds_a_long_function():
+    body = "\n".join(f"        x{k} = {k}" for k in range(130))
+    code = f"def short():\n    return 1\n\n\nclass A:\n    def long(self):\n{body}\n"
+    assert _long_functions(code) == ["long (131)"]
+
+
 def test_pybullet_only_in_one_module():
     users = [
         p.relative_to(ROOT).as_posix()

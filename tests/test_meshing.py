@@ -878,8 +878,8 @@ def test_line_contacts_kept_touching_fall_back_to_the_gap_when_the_mesh_fails(
     and the report says so."""
     import chipstack.meshing.conformal as conformal
     from chipstack.core.schema import Scenario
-    from chipstack.geometry.resolve import separation_mm
     from chipstack.meshing.kinds import MESH_KINDS
+    from chipstack.meshing.resolution import separation_mm
 
     real, calls = conformal.conformal_mesh, []
 

@@ -1,4 +1,4 @@
-"""Contact resolution (geometry/resolve.py): analytic arrangements with known answers."""
+"""Contact resolution (meshing/resolution/): analytic arrangements with known answers."""
 
 from __future__ import annotations
 
@@ -12,13 +12,13 @@ from chipstack.core.arrangement import Arrangement
 from chipstack.core.errors import InputError
 from chipstack.core.schema import ChipSpec
 from chipstack.geometry.contacts import KINDS, find_contacts
-from chipstack.geometry.resolve import (
+from chipstack.meshing import check_mesh, conformal_mesh
+from chipstack.meshing.resolution import (
     UnresolvedError,
     resolve_chips,
     resolve_contacts,
     separation_mm,
 )
-from chipstack.meshing import check_mesh, conformal_mesh
 from chipstack.packing.shapes import box_shape
 
 SQUARE = box_shape(ChipSpec())  # 20 x 20 x 2 mm

@@ -1,5 +1,5 @@
 """Contact resolution of the whole stack at once (the first route of
-:func:`geometry.resolve.resolve_contacts`).
+:func:`.resolve.resolve_contacts`).
 
 Every chip moves at the same time: sequential quadratic programming over the six rigid
 motions of all chips, each step one sparse convex quadratic programme (Clarabel's
@@ -9,7 +9,7 @@ interior-point solver) linearised at the current poses:
   left it (translations in mm, turns weighted by the chip's inertia);
 * a surface contact is a set of equalities: the corners of the chip's face lie in its
   partner's face plane (the conveyor: z = 0);
-* every other near pair keeps its rule (:class:`geometry.resolve.Rule`): at least the gap
+* every other near pair keeps its rule (:class:`.rigid.Rule`): at least the gap
   along its separating axis, every corner near the extreme a row of its own; a touching
   pair at most the contact gap, a line contact's edge parallel;
 * every row is soft with an exact (L1) penalty, the lower bounds and the surface
@@ -26,14 +26,34 @@ by a final snap, chip by chip from the bottom up, of a few nanometres.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
+from typing import NamedTuple
 
+import clarabel
 import numpy as np
 import scipy.sparse as sparse
 from scipy.spatial.transform import Rotation
 
 from chipstack.geometry.contacts import GROUND, candidate_pairs
+from chipstack.meshing.resolution.result import Resolution
+from chipstack.meshing.resolution.rigid import (
+    CORNER_REACH_MM,
+    MAX_MOVE_MM,
+    MAX_TURN_RAD,
+    REACH_MM,
+    SLACK_MM,
+    SURFACE,
+    TURN_WEIGHT,
+    batched_axis_gaps,
+    convex_pieces,
+    pair_rules,
+    place_chip,
+    separating_axis,
+    separation_between,
+)
+from chipstack.meshing.resolution.snapping import TOUCHING_TOL_MM, snap, verify_rules
 
 log = logging.getLogger(__name__)
 
@@ -85,6 +105,22 @@ class _Row:
     key: object = None  # an alignment, flush edge or corner on an edge (can be let go)
 
 
+class Relaxed(NamedTuple):
+    """What the global route leaves: every chip's pose (rotations (n, 3, 3), positions
+    (n, 3) mm) and the poses it started from, the surface contacts it held, as
+    {(chip, partner): ((piece, face) of the chip, (piece, face) of the partner or None
+    for the conveyor)}, those it let go, and ``worst``: how far the worst lower bound (or
+    surface contact out of its plane) is short of its target (mm; >= 0: none)."""
+
+    rotations: np.ndarray
+    positions: np.ndarray
+    start_rotations: np.ndarray
+    start_positions: np.ndarray
+    surface: dict
+    let_go: set
+    worst: float
+
+
 def relax(
     arrangement,
     contacts,
@@ -92,82 +128,127 @@ def relax(
     snap_angle_deg: float,
     contact_gap_mm: float,
     touching_lines: bool = False,
-):
-    """Resolve every chip at once. Returns (rotations, positions, surface contacts kept
-    as (chip, partner) with partner -1 for the conveyor, surface contacts let go) or None
-    when the lower bounds cannot all be met."""
-    from chipstack.geometry import _rigid as r
+) -> Relaxed | None:
+    """Resolve every chip at once (see the module docstring); None when a programme
+    fails."""
+    return _Relaxation(
+        arrangement, contacts, gap_mm, snap_angle_deg, contact_gap_mm, touching_lines
+    ).run()
 
-    n = arrangement.n_chips
-    pieces = [r._pieces(s) for s in arrangement.shapes]
-    rotations = np.array(arrangement.rotations, dtype=float).reshape(n, 3, 3)
-    positions = np.array(arrangement.positions, dtype=float).reshape(n, 3)
-    start_rot, start_pos = rotations.copy(), positions.copy()
-    rank = arrangement.bottom_up_rank()
-    rule = r._rules(contacts, gap_mm, contact_gap_mm, touching_lines)
-    cos_snap = np.cos(np.radians(snap_angle_deg))
-    volumes = np.array(
-        [arrangement.shapes[arrangement.shape_index[k]].volume_mm3 for k in range(n)]
-    )
-    weights = volumes / volumes.mean()
-    inertia = [arrangement.shapes[arrangement.shape_index[k]].inertia_mm2 for k in range(n)]
 
-    def world(k):
-        return r._place(pieces[arrangement.shape_index[k]], rotations[k], positions[k])
+class _Relaxation:
+    """The global route's state: every chip's pose and accumulated motion, the surface
+    contacts held and let go, the edges made flush and corners kept off edges, the trust
+    region and the step budget."""
 
-    worlds = [world(k) for k in range(n)]
-    near = [(int(a), int(b)) for a, b in candidate_pairs(arrangement.bounds, gap_mm + 1.0)]
-    # Surface contacts: (chip, partner) with the partner placed first (or the conveyor).
-    surface = {}
-    for a, b, kind in zip(contacts.chip_a, contacts.chip_b, contacts.kind, strict=True):
-        if kind != r._SURFACE:
-            continue
-        a, b = int(a), int(b)
-        if b != GROUND and rank[b] > rank[a]:
-            a, b = b, a
-        faces = _facing_faces(worlds, a, b, contacts, positions, cos_snap)
-        if faces is not None:
-            surface[(a, b)] = faces
-    align = {
-        pair
-        for pair in surface
-        if pair[1] != GROUND
-        # Asked of the geometry, not of the shape's name: a beam crossing a box at 1.7 deg
-        # left a wedge no mesh could take (mixed-shapes seed 3).
-        and all(arrangement.shapes[arrangement.shape_index[k]].is_cuboid for k in pair)
-        and abs(_misalignment(rotations, *pair, worlds, surface[pair])) < np.radians(_ALIGN_DEG)
-    }
-    # Edges of two aligned chips that run parallel a hair apart cut the shared face into a
-    # strip as narrow: they are made flush (collinear) instead.
-    flush = _near_flush(worlds, surface, align, set())
-    # A corner a hair from the other face's edge (the edges crossing at a real angle)
-    # leaves a neck as narrow in the face around it: it is moved away from the edge's
-    # line, on the side it is on, to the flush distance. (Put exactly on the line, it
-    # left degenerate tetrahedra: OpenCASCADE merges within its own tolerance.)
-    # Corners are looked for again whenever the rest has settled: the motions can bring
-    # a corner near an edge that was far from it at the start.
-    corner_on_edge = _near_corners(worlds, surface, align, set())
-    let_go: set = set()
-    dropped: set = set()
-    chosen: dict = {}
+    def __init__(
+        self, arrangement, contacts, gap_mm, snap_angle_deg, contact_gap_mm, touching_lines
+    ):
+        n = self.n = arrangement.n_chips
+        self.arrangement = arrangement
+        self.pieces = [convex_pieces(s) for s in arrangement.shapes]
+        self.rotations = np.array(arrangement.rotations, dtype=float).reshape(n, 3, 3)
+        self.positions = np.array(arrangement.positions, dtype=float).reshape(n, 3)
+        self.start_rot, self.start_pos = self.rotations.copy(), self.positions.copy()
+        rank = arrangement.bottom_up_rank()
+        self.rule = pair_rules(contacts, gap_mm, contact_gap_mm, touching_lines)
+        cos_snap = np.cos(np.radians(snap_angle_deg))
+        volumes = np.array(
+            [arrangement.shapes[arrangement.shape_index[k]].volume_mm3 for k in range(n)]
+        )
+        weights = volumes / volumes.mean()
+        inertia = [arrangement.shapes[arrangement.shape_index[k]].inertia_mm2 for k in range(n)]
+        self.worlds = [self._world(k) for k in range(n)]
+        worlds, rotations = self.worlds, self.rotations
+        self.near = [(int(a), int(b)) for a, b in candidate_pairs(arrangement.bounds, gap_mm + 1.0)]
+        # Surface contacts: (chip, partner) with the partner placed first (or the conveyor).
+        self.surface = {}
+        for a, b, kind in zip(contacts.chip_a, contacts.chip_b, contacts.kind, strict=True):
+            if kind != SURFACE:
+                continue
+            a, b = int(a), int(b)
+            if b != GROUND and rank[b] > rank[a]:
+                a, b = b, a
+            faces = _facing_faces(worlds, a, b, contacts, self.positions, cos_snap)
+            if faces is not None:
+                self.surface[(a, b)] = faces
+        self.align = {
+            pair
+            for pair in self.surface
+            if pair[1] != GROUND
+            # Asked of the geometry, not of the shape's name: a beam crossing a box at 1.7
+            # deg left a wedge no mesh could take (mixed-shapes seed 3).
+            and all(arrangement.shapes[arrangement.shape_index[k]].is_cuboid for k in pair)
+            and abs(_misalignment(rotations, *pair, worlds, self.surface[pair]))
+            < np.radians(_ALIGN_DEG)
+        }
+        # Edges of two aligned chips that run parallel a hair apart cut the shared face into
+        # a strip as narrow: they are made flush (collinear) instead.
+        self.flush = _near_flush(worlds, self.surface, self.align, set())
+        # A corner a hair from the other face's edge (the edges crossing at a real angle)
+        # leaves a neck as narrow in the face around it: it is moved away from the edge's
+        # line, on the side it is on, to the flush distance. (Put exactly on the line, it
+        # left degenerate tetrahedra: OpenCASCADE merges within its own tolerance.)
+        # Corners are looked for again whenever the rest has settled: the motions can bring
+        # a corner near an edge that was far from it at the start.
+        self.corner_on_edge = _near_corners(worlds, self.surface, self.align, set())
+        self.let_go: set = set()
+        self.dropped: set = set()
+        self.chosen: dict = {}
+        # The rotations the rows are built at (a trial step's, while it is tried).
+        self.row_rotations = rotations
+        self.metric = _metric(self.start_rot, inertia, weights)
+        self.total = np.zeros(6 * n)  # accumulated motion (translation, rotation vector)
+        self.radius = 1.0  # trust region, in units of (_STEP_MM, _STEP_RAD)
+        self.rows = self.build(worlds)
+        self.current = self.merit(self.rows, self.total)
+        self.limit, self.extended = _ITERATIONS, 0
+        self.iteration = -1
+        self.checkpoint, self.last_checkpoint = 0, -1
+        # An edge rule's offset when first seen or at the last checkpoint.
+        self.edge_offsets: dict = {}
 
-    rotations_now = [rotations]
+    def _world(self, k: int, rotation=None, position=None):
+        return place_chip(
+            self.pieces[self.arrangement.shape_index[k]],
+            self.rotations[k] if rotation is None else rotation,
+            self.positions[k] if position is None else position,
+        )
 
-    def build(worlds):
-        kept = {pair: f for pair, f in surface.items() if pair not in let_go}
+    def kept(self) -> dict:
+        """The surface contacts held: {(chip, partner): faces}."""
+        return {pair: f for pair, f in self.surface.items() if pair not in self.let_go}
+
+    def build(self, worlds) -> list[_Row]:
+        """Every row at the poses ``worlds``: pairs and the conveyor, the surface contacts
+        held (and their alignments), the edges made flush and the corners kept off
+        edges."""
+        kept = self.kept()
+        return (
+            self._pair_and_floor_rows(worlds, kept)
+            + self._surface_rows(worlds, kept)
+            + self._flush_rows(worlds, kept)
+            + self._corner_rows(worlds, kept)
+        )
+
+    def _pair_and_floor_rows(self, worlds, kept) -> list[_Row]:
         equal_pairs = {frozenset(p) for p in kept}
         rows = []
-        pairs = [(a, b) for a, b in near if frozenset((a, b)) not in equal_pairs]
-        for (a, b), gaps in zip(pairs, r._batched_axis_gaps(worlds, pairs), strict=True):
-            rows += _pair_rows(worlds, a, b, rule(a, b), chosen, gaps)
-        for k in range(n):
+        pairs = [(a, b) for a, b in self.near if frozenset((a, b)) not in equal_pairs]
+        for (a, b), gaps in zip(pairs, batched_axis_gaps(worlds, pairs), strict=True):
+            rows += _pair_rows(worlds, a, b, self.rule(a, b), self.chosen, gaps)
+        for k in range(self.n):
             if (k, GROUND) not in kept:
-                rows += _floor_rows(worlds[k], k, rule(k, GROUND))
+                rows += _floor_rows(worlds[k], k, self.rule(k, GROUND))
+        return rows
+
+    def _surface_rows(self, worlds, kept) -> list[_Row]:
+        rows = []
         for (a, b), (face_a, face_b) in kept.items():
             rows += _surface_rows(worlds, a, b, face_a, face_b)
-            if (a, b) in align and ("align", a, b) not in dropped:
+            if (a, b) in self.align and ("align", a, b) not in self.dropped:
                 normal = worlds[b].normals[face_b[0]][face_b[1]]
-                value = _misalignment(rotations_now[0], a, b, worlds, (face_a, face_b))
+                value = _misalignment(self.row_rotations, a, b, worlds, (face_a, face_b))
                 rows.append(
                     _Row(
                         a,
@@ -183,8 +264,12 @@ def relax(
                         key=("align", a, b),
                     )
                 )
-        for (a, b), i, j in flush:
-            if (a, b) not in kept or ("flush", a, b, i, j) in dropped:
+        return rows
+
+    def _flush_rows(self, worlds, kept) -> list[_Row]:
+        rows = []
+        for (a, b), i, j in self.flush:
+            if (a, b) not in kept or ("flush", a, b, i, j) in self.dropped:
                 continue
             (pa, fa), (pb, fb) = kept[(a, b)]
             p, q = _face_edges(worlds[a], pa, fa)[i]
@@ -209,8 +294,12 @@ def relax(
                     key=("flush", a, b, i, j),
                 )
             )
-        for pair, first, i, j, side in corner_on_edge:
-            if pair not in kept or ("corner", pair, first, i, j) in dropped:
+        return rows
+
+    def _corner_rows(self, worlds, kept) -> list[_Row]:
+        rows = []
+        for pair, first, i, j, side in self.corner_on_edge:
+            if pair not in kept or ("corner", pair, first, i, j) in self.dropped:
                 continue
             faces = kept[pair]
             own, other = pair[first], pair[1 - first]
@@ -237,179 +326,299 @@ def relax(
             )
         return rows
 
-    metric = _metric(start_rot, inertia, weights)
-
-    def merit(rows, total):
-        return 0.5 * float(total @ (metric @ total)) + sum(
+    def merit(self, rows, total) -> float:
+        return 0.5 * float(total @ (self.metric @ total)) + sum(
             row.penalty * _violation(row) for row in rows
         )
 
-    total = np.zeros(6 * n)  # accumulated motion (translation, rotation vector)
-    radius = 1.0  # trust region, in units of (_STEP_MM, _STEP_RAD)
-    rows = build(worlds)
-    current = merit(rows, total)
-    limit, extended = _ITERATIONS, 0
-
-    def let_go_stuck_surfaces() -> bool:
+    def _let_go_stuck_surfaces(self) -> bool:
         """At the end of the budget (or of the trust region): the surface contacts that
         hold the rest up are let go and the rest given more steps (a few times)."""
-        nonlocal rows, current, radius, limit, extended
-        stuck = _stuck_groups(rows)
-        if extended >= _EXTENSIONS or not stuck:
+        stuck = _stuck_groups(self.rows)
+        if self.extended >= _EXTENSIONS or not stuck:
             return False
-        extended += 1
-        let_go.update(stuck)
-        rows = build(worlds)
-        current = merit(rows, total)
-        radius = 1.0
-        limit = iteration + 1 + _EXTRA_ITERATIONS
-        log.debug("relax: %d surface contacts let go at step %d", len(stuck), iteration)
+        self.extended += 1
+        self.let_go.update(stuck)
+        self.rows = self.build(self.worlds)
+        self.current = self.merit(self.rows, self.total)
+        self.radius = 1.0
+        self.limit = self.iteration + 1 + _EXTRA_ITERATIONS
+        log.debug("relax: %d surface contacts let go at step %d", len(stuck), self.iteration)
         return True
 
-    iteration = -1
-    checkpoint, last_checkpoint = 0, -1
-    edge_offsets: dict = {}  # an edge rule's offset when first seen or at the last checkpoint
-    while True:
-        iteration += 1
-        if iteration >= limit and not let_go_stuck_surfaces():
-            break
-        for row in rows:
-            if row.key is not None:
-                edge_offsets.setdefault(row.key, _violation(row))
-        worst = min(
-            (row.value - row.target for row in rows if row.penalty == _LOWER_PENALTY),
-            default=np.inf,
-        )
-        off_plane = max((abs(row.value) for row in rows if row.group is not None), default=0.0)
-        turned = max((_violation(row) for row in rows if row.key is not None), default=0.0)
-        # The lower bounds carry a margin (resolve._SLACK_MM) above the gap: a
-        # micrometre short of it is still clear, and the final check is against the gap.
-        # 1e-8 mm: within OpenCASCADE's tolerance (1e-7), so that a chip's second partner
-        # face, which the final snap does not move, merges with its face.
-        if worst >= -1e-6 and off_plane < 1e-8 and turned < 1e-8:
-            known = {entry[:4] for entry in corner_on_edge}
-            kept = {pair: f for pair, f in surface.items() if pair not in let_go}
-            new = [
-                entry
-                for entry in _near_corners(worlds, kept, align, known)
-                if ("corner", *entry[:4]) not in dropped
-            ]
-            # Edges the motions brought within the flush distance are made flush too:
-            # two aligned chips 0.56 mm apart sideways at the start ended 0.5 um apart,
-            # a strip no mesh can take (paper-rectangles, seed 2).
-            new_flush = [
-                entry
-                for entry in _near_flush(worlds, kept, align, set(flush))
-                if ("flush", *entry[0], *entry[1:]) not in dropped
-            ]
-            if not new and not new_flush:
+    def run(self) -> Relaxed | None:
+        while True:
+            self.iteration += 1
+            if self.iteration >= self.limit and not self._let_go_stuck_surfaces():
                 break
-            corner_on_edge += new
-            flush += new_flush
-            rows = build(worlds)
-            current = merit(rows, total)
-            radius = 1.0
-            continue
-        solved = _qp(rows, total, metric, positions, n, radius)
+            for row in self.rows:
+                if row.key is not None:
+                    self.edge_offsets.setdefault(row.key, _violation(row))
+            worst, off_plane, turned = _shortfalls(self.rows)
+            # The lower bounds carry a margin (SLACK_MM) above the gap: a micrometre
+            # short of it is still clear, and the final check is against the gap.
+            # 1e-8 mm: within OpenCASCADE's tolerance (1e-7), so that a chip's second
+            # partner face, which the final snap does not move, merges with its face.
+            if worst >= -1e-6 and off_plane < 1e-8 and turned < 1e-8:
+                if not self._new_edges():
+                    break
+                continue
+            stepped = self._step(worst, off_plane)
+            if stepped is None:
+                log.debug("relax: programme failed at step %d", self.iteration)
+                return None
+            if not stepped:
+                break
+            self._checkpoint()
+        return self._result()
+
+    def _new_edges(self) -> bool:
+        """Once the rest has settled: corners and edges the motions brought near an edge
+        of a shared face, added as rules of their own (False: none)."""
+        known = {entry[:4] for entry in self.corner_on_edge}
+        kept = self.kept()
+        new = [
+            entry
+            for entry in _near_corners(self.worlds, kept, self.align, known)
+            if ("corner", *entry[:4]) not in self.dropped
+        ]
+        # Edges the motions brought within the flush distance are made flush too: two
+        # aligned chips 0.56 mm apart sideways at the start ended 0.5 um apart, a strip no
+        # mesh can take (paper-rectangles, seed 2).
+        new_flush = [
+            entry
+            for entry in _near_flush(self.worlds, kept, self.align, set(self.flush))
+            if ("flush", *entry[0], *entry[1:]) not in self.dropped
+        ]
+        if not new and not new_flush:
+            return False
+        self.corner_on_edge += new
+        self.flush += new_flush
+        self.rows = self.build(self.worlds)
+        self.current = self.merit(self.rows, self.total)
+        self.radius = 1.0
+        return True
+
+    def _step(self, worst: float, off_plane: float) -> bool | None:
+        """One programme and its trial step, taken when the true merit falls; the trust
+        region updated. None: the programme failed; False: nothing more to gain."""
+        n, pieces, arrangement = self.n, self.pieces, self.arrangement
+        solved = _qp(self.rows, self.total, self.metric, self.positions, n, self.radius)
         if solved is None:
-            log.debug("relax: programme failed at step %d", iteration)
             return None
         delta, modelled = solved
-        predicted = current - modelled
-        trial_rot, trial_pos = rotations.copy(), positions.copy()
+        predicted = self.current - modelled
+        trial_rot, trial_pos = self.rotations.copy(), self.positions.copy()
         moved = np.flatnonzero(np.abs(delta.reshape(n, 6)).max(axis=1) > 0)
-        trial_worlds = list(worlds)
+        trial_worlds = list(self.worlds)
         for k in moved:
             t, w = delta[6 * k : 6 * k + 3], delta[6 * k + 3 : 6 * k + 6]
-            trial_rot[k] = Rotation.from_rotvec(w).as_matrix() @ rotations[k]
-            trial_pos[k] = positions[k] + t
-            trial_worlds[k] = r._place(
+            trial_rot[k] = Rotation.from_rotvec(w).as_matrix() @ self.rotations[k]
+            trial_pos[k] = self.positions[k] + t
+            trial_worlds[k] = place_chip(
                 pieces[arrangement.shape_index[k]], trial_rot[k], trial_pos[k]
             )
-        rotations_now[0] = trial_rot
-        trial_rows = build(trial_worlds)
-        rotations_now[0] = rotations
-        trial = merit(trial_rows, total + delta)
+        self.row_rotations = trial_rot
+        trial_rows = self.build(trial_worlds)
+        self.row_rotations = self.rotations
+        trial = self.merit(trial_rows, self.total + delta)
         log.debug(
             "relax step %d: %d rows, worst lower %.2e mm, off plane %.2e mm, radius %.3g, "
             "merit %.6g -> %.6g",
-            iteration,
-            len(rows),
+            self.iteration,
+            len(self.rows),
             worst,
             off_plane,
-            radius,
-            current,
+            self.radius,
+            self.current,
             trial,
         )
         # The trust region grows only when the model predicted the gain well: doubling it
         # after every accepted step had every other step rejected, the rotations' curvature
         # costing more than the step gained (reference stack: 79 programmes, half wasted).
-        ratio = (current - trial) / predicted if predicted > 0 else 0.0
-        if trial < current:
-            rotations, positions, worlds = trial_rot, trial_pos, trial_worlds
-            rotations_now[0] = rotations
-            total = total + delta
-            rows, current = trial_rows, trial
+        ratio = (self.current - trial) / predicted if predicted > 0 else 0.0
+        if trial < self.current:
+            self.rotations, self.positions, self.worlds = trial_rot, trial_pos, trial_worlds
+            self.row_rotations = self.rotations
+            self.total = self.total + delta
+            self.rows, self.current = trial_rows, trial
             if ratio > 0.75:
-                radius = min(1.0, 2 * radius)
+                self.radius = min(1.0, 2 * self.radius)
             elif ratio < 0.25:
-                radius /= 2
+                self.radius /= 2
         else:
-            radius /= 4
-            if radius < 1e-6 and not let_go_stuck_surfaces():
-                break
-        # What cannot hold with the rest once it has settled is let go: first an edge
-        # made flush or a corner put on an edge (the mesh copes with a narrow strip
-        # better than the stack with a lost contact), then, later, a surface contact
-        # still out of its plane (cleared by the gap instead).
-        # A checkpoint comes at its step or, sooner, once the trust region has shrunk to
-        # nothing (the rest has settled: waiting for the fixed step only spent programmes
-        # on a merit that no longer moves, 15 of them on the reference stack, seed 0).
-        due = checkpoint < len(_CHECKPOINTS) and (
-            iteration >= _CHECKPOINTS[checkpoint]
-            or (radius <= _STATIONARY and iteration - last_checkpoint >= 4)
+            self.radius /= 4
+            if self.radius < 1e-6 and not self._let_go_stuck_surfaces():
+                return False
+        return True
+
+    def _checkpoint(self) -> None:
+        """What cannot hold with the rest once it has settled is let go: first an edge
+        made flush or a corner put on an edge (the mesh copes with a narrow strip better
+        than the stack with a lost contact), then, later, a surface contact still out of
+        its plane (cleared by the gap instead).
+
+        A checkpoint comes at its step or, sooner, once the trust region has shrunk to
+        nothing (the rest has settled: waiting for the fixed step only spent programmes on
+        a merit that no longer moves, 15 of them on the reference stack, seed 0)."""
+        due = self.checkpoint < len(_CHECKPOINTS) and (
+            self.iteration >= _CHECKPOINTS[self.checkpoint]
+            or (self.radius <= _STATIONARY and self.iteration - self.last_checkpoint >= 4)
         )
-        if due:
-            # An edge that has not halved its offset since the last checkpoint is stuck;
-            # one still closing is kept: let go a few micrometres from flush, it would
-            # leave a strip that thin for the mesh (the reference stack, seed 1: an
-            # alignment let go at 4e-4 rad left an 8 um wedge along a 20 mm edge, and
-            # triangles of quality 0.05 on it).
-            stuck_edges = set()
-            for row in rows:
-                if row.key is not None:
-                    offset = _violation(row)
-                    if offset > 1e-6 and offset > 0.5 * edge_offsets.get(row.key, 0.0):
-                        stuck_edges.add(row.key)
-                    edge_offsets[row.key] = offset
-            stuck = set() if checkpoint == 0 else _stuck_groups(rows)
-            checkpoint, last_checkpoint = checkpoint + 1, iteration
-            if stuck or stuck_edges:
-                log.debug(
-                    "relax: checkpoint at step %d: let go %s, %s",
-                    iteration,
-                    sorted(stuck),
-                    sorted(
-                        (key, round(_violation(row), 6))
-                        for row in rows
-                        if row.key in stuck_edges
-                        for key in [row.key]
-                    ),
-                )
-                let_go.update(stuck)
-                dropped.update(stuck_edges)
-                rows = build(worlds)
-                current = merit(rows, total)
-                radius = 1.0
+        if not due:
+            return
+        # An edge that has not halved its offset since the last checkpoint is stuck; one
+        # still closing is kept: let go a few micrometres from flush, it would leave a
+        # strip that thin for the mesh (the reference stack, seed 1: an alignment let go
+        # at 4e-4 rad left an 8 um wedge along a 20 mm edge, and triangles of quality 0.05
+        # on it).
+        stuck_edges = set()
+        for row in self.rows:
+            if row.key is not None:
+                offset = _violation(row)
+                if offset > 1e-6 and offset > 0.5 * self.edge_offsets.get(row.key, 0.0):
+                    stuck_edges.add(row.key)
+                self.edge_offsets[row.key] = offset
+        stuck = set() if self.checkpoint == 0 else _stuck_groups(self.rows)
+        self.checkpoint, self.last_checkpoint = self.checkpoint + 1, self.iteration
+        if not (stuck or stuck_edges):
+            return
+        log.debug(
+            "relax: checkpoint at step %d: let go %s, %s",
+            self.iteration,
+            sorted(stuck),
+            sorted(
+                (key, round(_violation(row), 6))
+                for row in self.rows
+                if row.key in stuck_edges
+                for key in [row.key]
+            ),
+        )
+        self.let_go.update(stuck)
+        self.dropped.update(stuck_edges)
+        self.rows = self.build(self.worlds)
+        self.current = self.merit(self.rows, self.total)
+        self.radius = 1.0
+
+    def _result(self) -> Relaxed:
+        worst, off_plane, _ = _shortfalls(self.rows)
+        # A surface contact left out of its plane would be snapped into it afterwards, by
+        # as much: that counts against the result like a pair short of its gap.
+        worst = min(worst, -off_plane if off_plane > 1e-5 else 0.0)
+        return Relaxed(
+            self.rotations,
+            self.positions,
+            self.start_rot,
+            self.start_pos,
+            self.surface,
+            self.let_go,
+            worst,
+        )
+
+
+def resolve_globally(
+    arrangement, contacts, gap_mm, snap_angle_deg, contact_gap_mm, touching_lines=False
+):
+    """The global route (:func:`relax`) finished by an exact snap of every kept
+    surface contact, bottom-up; None when it leaves any pair short of its rule."""
+    out = relax(arrangement, contacts, gap_mm, snap_angle_deg, contact_gap_mm, touching_lines)
+    # The relaxation's bounds carry the slack above the gap: a pair short of them by less
+    # than the slack is still clear, and the check below is against the gap itself (half
+    # the slack turned mixed-shapes, seed 0, over to the bottom-up route, which took more
+    # than 25 minutes and failed, for a pair 0.1 um short of the slack and clear).
+    if out is None or out.worst < -SLACK_MM:
+        return None
+    rotations, positions, start_rot, start_pos, surface, let_go, _ = out
+    n = arrangement.n_chips
+    pieces = [convex_pieces(s) for s in arrangement.shapes]
+    rank = arrangement.bottom_up_rank()
+    order = arrangement.bottom_up_order()
+    rule = pair_rules(contacts, gap_mm, contact_gap_mm, touching_lines)
+    cos_snap = np.cos(np.radians(snap_angle_deg))
+    kept = [pair for pair in surface if pair not in let_go]
+    partners: dict[int, list[int]] = {k: [] for k in range(n)}
+    touching: dict[int, set[int]] = {k: set() for k in range(n)}
+    for chip, partner in kept:
+        partners[chip].append(partner)
+        touching[chip].add(partner)
+        if partner != GROUND:
+            touching[partner].add(chip)
+    placed = [
+        place_chip(pieces[arrangement.shape_index[k]], rotations[k], positions[k]) for k in range(n)
+    ]
+    for chip in order:
+        chip = int(chip)
+        if not partners[chip]:
+            continue
+        # The first partner's face exactly: the relaxation leaves it nanometres off.
+        partner = min(partners[chip], key=lambda k: -1 if k == GROUND else rank[k])
+        faces = surface[(chip, partner)]
+        if partner == GROUND:
+            plane = (np.array([0.0, 0.0, 1.0]), 0.0, positions[chip] * [1, 1, 0])
+        else:
+            piece, face = faces[1]
+            world = placed[partner]
+            plane = (world.normals[piece][face], float(world.offsets[piece][face]), positions[chip])
+        snapped = snap(
+            pieces[arrangement.shape_index[chip]], rotations[chip], positions[chip], plane, cos_snap
+        )
+        if snapped is None:
+            return None
+        rotations[chip], positions[chip] = snapped
+        placed[chip] = place_chip(pieces[arrangement.shape_index[chip]], *snapped)
+    near: dict[int, set[int]] = {k: set() for k in range(n)}
+    for a, b in candidate_pairs(arrangement.bounds, gap_mm + 1.0):
+        near[int(a)].add(int(b))
+        near[int(b)].add(int(a))
+    unresolved = verify_rules(order, near, placed, touching, rule, touching_tol=TOUCHING_TOL_MM)
+    if unresolved:
+        log.info("contact resolution, global route: %d chips short", len(unresolved))
+        return None
+    start_worlds = [
+        place_chip(pieces[arrangement.shape_index[k]], start_rot[k], start_pos[k]) for k in range(n)
+    ]
+    cleared = sum(
+        1
+        for a in range(n)
+        for b in near[a]
+        if a < b and separation_between(start_worlds[a], start_worlds[b]) < rule(a, b).lower
+    )
+    resolved = dataclasses.replace(
+        arrangement, positions=positions, quaternions=Rotation.from_matrix(rotations).as_quat()
+    )
+    turned = (Rotation.from_matrix(rotations) * Rotation.from_matrix(start_rot).inv()).magnitude()
+    surface_pairs = [
+        (int(a), int(b))
+        for a, b, k in zip(contacts.chip_a, contacts.chip_b, contacts.kind, strict=True)
+        if k == SURFACE
+    ]
+    kept_sets = {frozenset(p) for p in kept}
+    return Resolution(
+        arrangement=resolved,
+        translation_mm=np.linalg.norm(positions - start_pos, axis=1),
+        rotation_deg=np.degrees(turned),
+        snapped={
+            "chip": sum(1 for _, p in kept if p != GROUND),
+            "conveyor": sum(1 for _, p in kept if p == GROUND),
+        },
+        surface_cleared=tuple(p for p in surface_pairs if frozenset(p) not in kept_sets),
+        cleared=cleared,
+        gap_mm=gap_mm,
+        snap_angle_deg=snap_angle_deg,
+        info={"route": "global"},
+    )
+
+
+def _shortfalls(rows) -> tuple[float, float, float]:
+    """The worst lower bound's margin (mm; negative: short), the furthest surface contact
+    out of its plane (mm) and the largest edge rule's violation."""
     worst = min(
         (row.value - row.target for row in rows if row.penalty == _LOWER_PENALTY),
         default=np.inf,
     )
-    # A surface contact left out of its plane would be snapped into it afterwards, by as
-    # much: that counts against the result like a pair short of its gap.
     off_plane = max((abs(row.value) for row in rows if row.group is not None), default=0.0)
-    worst = min(worst, -off_plane if off_plane > 1e-5 else 0.0)
-    return rotations, positions, start_rot, start_pos, surface, let_go, worst
+    turned = max((_violation(row) for row in rows if row.key is not None), default=0.0)
+    return worst, off_plane, turned
 
 
 def _stuck_groups(rows) -> set:
@@ -444,13 +653,11 @@ def _violation(row) -> float:
 
 
 def _metric(rotations, inertia, weights):
-    from chipstack.geometry import _rigid as r
-
     blocks = []
     for k in range(len(rotations)):
         w = np.zeros((6, 6))
         w[:3, :3] = np.eye(3)
-        w[3:, 3:] = r._TURN_WEIGHT * rotations[k] @ np.diag(inertia[k]) @ rotations[k].T
+        w[3:, 3:] = TURN_WEIGHT * rotations[k] @ np.diag(inertia[k]) @ rotations[k].T
         blocks.append(2 * weights[k] * w)
     return sparse.block_diag(blocks, format="csc")
 
@@ -609,26 +816,24 @@ def _surface_rows(worlds, chip, partner, face_a, face_b):
 
 
 def _floor_rows(world, chip, rule):
-    from chipstack.geometry import _rigid as r
-
     up = np.array([0.0, 0.0, 1.0])
     out = []
-    target = rule.lower + r._SLACK_MM
+    target = rule.lower + SLACK_MM
     lowest = None
     for v in world.vertices:
         for x in v:
             z = float(x[2])
             if lowest is None or z < lowest[0]:
                 lowest = (z, x)
-            if z < rule.lower + r._REACH_MM:
+            if z < rule.lower + REACH_MM:
                 out.append(_Row(-1, chip, up, x * [1, 1, 0], x, z, 1, target, _LOWER_PENALTY))
     if rule.upper < np.inf:
         z, x = lowest
         out.append(
-            _Row(-1, chip, up, x * [1, 1, 0], x, z, -1, rule.upper - r._SLACK_MM, _SOFT_PENALTY)
+            _Row(-1, chip, up, x * [1, 1, 0], x, z, -1, rule.upper - SLACK_MM, _SOFT_PENALTY)
         )
         if rule.parallel:
-            edge = [x for v in world.vertices for x in v if x[2] <= z + r._CORNER_REACH_MM]
+            edge = [x for v in world.vertices for x in v if x[2] <= z + CORNER_REACH_MM]
             if len(edge) >= 2:
                 out += [
                     _Row(-1, chip, up, x * [1, 1, 0], x, float(x[2]), 0, target, _SOFT_PENALTY)
@@ -638,10 +843,8 @@ def _floor_rows(world, chip, rule):
 
 
 def _pair_rows(worlds, a, b, rule, chosen, piece_gaps):
-    """Rows of a pair of chips along its separating axes (see resolve._near_features);
-    ``piece_gaps``: the pair's entry of :func:`geometry._rigid._batched_axis_gaps`."""
-    from chipstack.geometry import _rigid as r
-
+    """Rows of a pair of chips along its separating axes (see :func:`.clearance._near_features`);
+    ``piece_gaps``: the pair's entry of :func:`.rigid.batched_axis_gaps`."""
     wa, wb = worlds[a], worlds[b]
     candidates = []
     for pa_i, pb_i, gaps, sides in piece_gaps:
@@ -653,18 +856,18 @@ def _pair_rows(worlds, a, b, rule, chosen, piece_gaps):
         candidates.append((float(gaps[k]), pa_i, pb_i, k, bool(sides[k])))
     closest = min(candidates)
     out = []
-    target = rule.lower + r._SLACK_MM
+    target = rule.lower + SLACK_MM
     for gap, pa_i, pb_i, k, ahead in candidates:
         nearest = (pa_i, pb_i) == closest[1:3]
-        if gap >= rule.lower + r._REACH_MM and not (nearest and rule.upper < np.inf):
+        if gap >= rule.lower + REACH_MM and not (nearest and rule.upper < np.inf):
             continue
-        axis = r._axis(wa, wb, pa_i, pb_i, k)
+        axis = separating_axis(wa, wb, pa_i, pb_i, k)
         normal = axis if ahead else -axis  # from a towards b
         va, vb = wa.vertices[pa_i], wb.vertices[pb_i]
         sa, sb = va @ normal, vb @ normal
         top_a, bottom_b = sa.max(), sb.min()
-        near_a = np.flatnonzero(sa >= top_a - r._CORNER_REACH_MM)
-        near_b = np.flatnonzero(sb <= bottom_b + r._CORNER_REACH_MM)
+        near_a = np.flatnonzero(sa >= top_a - CORNER_REACH_MM)
+        near_b = np.flatnonzero(sb <= bottom_b + CORNER_REACH_MM)
         n_faces_a = len(wa.normals[pa_i])
         n_faces_b = len(wb.normals[pb_i])
         pairs = []
@@ -696,7 +899,7 @@ def _pair_rows(worlds, a, b, rule, chosen, piece_gaps):
                     first[1],
                     first[2],
                     -1,
-                    rule.upper - r._SLACK_MM,
+                    rule.upper - SLACK_MM,
                     _SOFT_PENALTY,
                 )
             )
@@ -736,10 +939,6 @@ def _reachable(rows, positions, radius):
 def _qp(rows, total, metric, positions, n, radius):
     """The step of every chip's motion (6 n,) from the linearised rows, within the trust
     region; None when the programme fails."""
-    import clarabel
-
-    from chipstack.geometry import _rigid as r
-
     rows = _reachable(rows, positions, radius)
     m = len(rows)
     dim = 6 * n
@@ -785,7 +984,7 @@ def _qp(rows, total, metric, positions, n, radius):
     # The trust region, and no chip further from where the physics left it than the
     # bottom-up route allows (a larger motion is not a resolution but a new stack).
     step = radius * np.tile(np.r_[[_STEP_MM] * 3, [_STEP_RAD] * 3], n)
-    limit = np.tile(np.r_[[r._MAX_MOVE_MM] * 3, [r._MAX_TURN_RAD] * 3], n)
+    limit = np.tile(np.r_[[MAX_MOVE_MM] * 3, [MAX_TURN_RAD] * 3], n)
     upper = np.maximum(np.minimum(step, limit - total), 0.0)
     lower = np.maximum(np.minimum(step, limit + total), 0.0)
     box = sparse.hstack([sparse.identity(dim), sparse.csr_matrix((dim, m))])

@@ -1,6 +1,6 @@
 """Rigid chips for contact resolution: convex pieces placed in the world, their
 separating-axis gaps, and the rule each pair keeps (shared by the bottom-up route in
-:mod:`geometry.resolve` and the global route in :mod:`geometry._relax`)."""
+:mod:`.bottom_up` and the global route in :mod:`.relax`)."""
 
 from __future__ import annotations
 
@@ -12,18 +12,18 @@ import numpy as np
 from chipstack.geometry.contacts import GROUND, KINDS, ContactTable
 from chipstack.geometry.solids import shape_pieces
 
-_SURFACE = KINDS.index("surface")
-_LINE = KINDS.index("line")
-_MAX_MOVE_MM = 1.0  # the largest motion asked of a chip (a tenth of its thickness is typical)
-_MAX_TURN_RAD = np.radians(6.0)
-_TURN_WEIGHT = 10.0  # turns cost this many times their inertia: a turn sweeps corners far
-_REACH_MM = 0.3  # pairs further apart than their lower bound by this are left out of a step
-_CORNER_REACH_MM = 0.2  # corners this close to a pair's extreme are constrained too
-_SLACK_MM = 2e-4  # margin kept above the gap so rounding cannot bring a pair under it
+SURFACE = KINDS.index("surface")
+LINE = KINDS.index("line")
+MAX_MOVE_MM = 1.0  # the largest motion asked of a chip (a tenth of its thickness is typical)
+MAX_TURN_RAD = np.radians(6.0)
+TURN_WEIGHT = 10.0  # turns cost this many times their inertia: a turn sweeps corners far
+REACH_MM = 0.3  # pairs further apart than their lower bound by this are left out of a step
+CORNER_REACH_MM = 0.2  # corners this close to a pair's extreme are constrained too
+SLACK_MM = 2e-4  # margin kept above the gap so rounding cannot bring a pair under it
 
 
 @dataclass(frozen=True)
-class _Piece:
+class ConvexPiece:
     """A convex piece in its chip's frame: corners, outward face planes, edge directions."""
 
     vertices: np.ndarray  # (V, 3) mm
@@ -50,18 +50,18 @@ def _edge_directions(vertices, normals, offsets) -> np.ndarray:
     return np.array(directions).reshape(-1, 3)
 
 
-def _pieces(shape) -> tuple[_Piece, ...]:
+def convex_pieces(shape) -> tuple[ConvexPiece, ...]:
     out = []
     for piece in shape_pieces(shape):
         v, n, d = (
             np.asarray(a, dtype=float) for a in (piece.vertices, piece.normals, piece.offsets)
         )
-        out.append(_Piece(v, n, d, _edge_directions(v, n, d)))
+        out.append(ConvexPiece(v, n, d, _edge_directions(v, n, d)))
     return tuple(out)
 
 
 @dataclass
-class _World:
+class PlacedChip:
     """One chip's pieces placed in the world (for separating-axis tests)."""
 
     vertices: list[np.ndarray]
@@ -70,11 +70,13 @@ class _World:
     offsets: list[np.ndarray]  # face planes in the world: normals . x <= offsets
 
 
-def _place(pieces: tuple[_Piece, ...], rotation: np.ndarray, position: np.ndarray) -> _World:
+def place_chip(
+    pieces: tuple[ConvexPiece, ...], rotation: np.ndarray, position: np.ndarray
+) -> PlacedChip:
     vertices = [p.vertices @ rotation.T + position for p in pieces]
     normals = [p.normals @ rotation.T for p in pieces]
     offsets = [p.offsets + n @ position for p, n in zip(pieces, normals, strict=True)]
-    return _World(vertices, normals, [p.edges @ rotation.T for p in pieces], offsets)
+    return PlacedChip(vertices, normals, [p.edges @ rotation.T for p in pieces], offsets)
 
 
 def _edge_crosses(ea: np.ndarray, eb: np.ndarray) -> np.ndarray:
@@ -100,7 +102,7 @@ def _piece_separation(va, na, ea, vb, nb, eb) -> float:
     return float(gap.max())
 
 
-def _separation(a: _World, b: _World) -> float:
+def separation_between(a: PlacedChip, b: PlacedChip) -> float:
     """Separating-axis distance of two placed chips (mm): positive, a lower bound on the
     distance between them; negative, minus the depth of their deepest interpenetration."""
     return min(
@@ -110,7 +112,7 @@ def _separation(a: _World, b: _World) -> float:
     )
 
 
-def _rules(
+def pair_rules(
     contacts: ContactTable, gap_mm: float, contact_gap_mm: float, touching_lines: bool = False
 ):
     """rule(chip, partner) -> :class:`Rule` for a pair (partner GROUND: the conveyor),
@@ -133,7 +135,7 @@ def _rules(
         kind = kinds.get((min(chip, partner), max(chip, partner)))
         if kind is None:
             return apart
-        if touching_lines and kind == _LINE and GROUND not in (chip, partner):
+        if touching_lines and kind == LINE and GROUND not in (chip, partner):
             return Rule(0.0, within, True, touching=True)  # touching leaves room for it
         return Rule(gap_mm, upper, kind != KINDS.index("point"))
 
@@ -160,7 +162,7 @@ def _axes(na, ea, nb, eb):
     return np.vstack([na, nb, cross]), np.concatenate([np.ones(len(na) + len(nb), bool), valid])
 
 
-def _axis_gaps(va, na, ea, vb, nb, eb):
+def axis_gaps(va, na, ea, vb, nb, eb):
     """Gap along every separating axis (mm; -inf for degenerate ones) and on which side
     of the chip the neighbour lies along it (True: the positive side)."""
     axes, valid = _axes(na, ea, nb, eb)
@@ -171,8 +173,8 @@ def _axis_gaps(va, na, ea, vb, nb, eb):
     return gaps, ahead >= behind
 
 
-def _batched_axis_gaps(worlds: list[_World], pairs: list[tuple[int, int]]):
-    """:func:`_axis_gaps` of every piece of ``a`` against every piece of ``b`` for every
+def batched_axis_gaps(worlds: list[PlacedChip], pairs: list[tuple[int, int]]):
+    """:func:`axis_gaps` of every piece of ``a`` against every piece of ``b`` for every
     pair (a, b), computed together: a list per pair of (piece of a, piece of b, gaps,
     sides). Pieces with the same numbers of corners, faces and edges are stacked, and the
     arithmetic is written out element by element (the same on every CPU, where a matrix
@@ -241,7 +243,7 @@ def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     )
 
 
-def _axis(world, other, a, b, k) -> np.ndarray:
+def separating_axis(world, other, a, b, k) -> np.ndarray:
     """Separating axis ``k`` of piece ``a`` of the chip and piece ``b`` of a neighbour
     (the order of :func:`_axes`)."""
     na, ea, nb, eb = world.normals[a], world.edges[a], other.normals[b], other.edges[b]
