@@ -11,6 +11,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from chipstack.diagnosis.drop_separation import MOST_DROPS
+from chipstack.diagnosis.spec import EXPERIMENT_KINDS
 from chipstack.diagnosis.verdicts import percent
 
 __all__ = ["write_diagnosis", "report_markdown"]
@@ -29,7 +30,7 @@ def _fmt(value, digits: int = 3) -> str:
 def report_markdown(result: dict) -> str:
     """The report as Markdown."""
     lines = _summary(result)
-    drop = result["kind"] == "drop"
+    drop = EXPERIMENT_KINDS.get(result["kind"]).replicated_drops
     lines += _where_section(result["where"], drop, result.get("detection"))
     if result.get("model_choice"):
         lines += _model_choice_section(result["model_choice"])

@@ -484,6 +484,9 @@ class ExperimentKind:
     scenario_kind: str | None = None  # the scenario kind it runs as (None: the scenario's)
     held_out: tuple[str, ...] = ("conditions",)  # the values diagnosis.held_out may take
     release_tilt: bool = False  # whether diagnosis.release_tilt applies
+    # Its observations are many drops per condition, each a point cloud (tested by the
+    # energy statistic, observables by max-T), not one value per quantity (G, Holm).
+    replicated_drops: bool = False
 
     def condition(
         self, entry: Any, key: str, scenario: Scenario | None, base: Path, load_scenario
@@ -529,6 +532,7 @@ class DropExperiment(ExperimentKind):
     scenario_kind = "drop"
     held_out = ("halves", "conditions")
     release_tilt = True
+    replicated_drops = True
 
     def condition(self, entry, key, scenario, base, load_scenario):
         return _drop_condition(entry, key, scenario)

@@ -254,6 +254,7 @@ class ShapeKind:
     check: SizeCheck
     extent: Callable[[ChipSpec], tuple[float, float]]
     varies_per_chip: bool = False  # a new outline for every chip
+    reads_file: bool = False  # built from the geometry file ``chip.file``
 
 
 def _plate_check(spec: ChipSpec, key: str) -> None:
@@ -306,7 +307,7 @@ SHAPES.register(
 )
 SHAPES.register("beam", ShapeKind(_slender("beam"), _slender_check, _rectangle_extent))
 SHAPES.register("fibre", ShapeKind(_slender("fibre"), _slender_check, _rectangle_extent))
-SHAPES.register("file", ShapeKind(file_shape, _file_check, _file_extent))
+SHAPES.register("file", ShapeKind(file_shape, _file_check, _file_extent, reads_file=True))
 
 
 def varies_per_chip(spec: ChipSpec) -> bool:
@@ -318,7 +319,7 @@ def check_chip(spec: ChipSpec, key: str) -> tuple[float, float]:
     """Refuse a chip spec that makes no chip (naming ``key``); returns its nominal
     (largest in-plane extent, circumradius) in mm."""
     kind = SHAPES.get(spec.shape, key=f"{key}.shape")
-    if spec.shape != "file" and spec.file:
+    if not kind.reads_file and spec.file:
         raise InputError(f'{key}.file: only read when shape = "file" (shape is {spec.shape!r})')
     kind.check(spec, key)
     if spec.size_distribution != "fixed" and spec.size_spread == 0:

@@ -79,6 +79,7 @@ BAD_SCENARIOS = {
         "mix: the weights sum to 0",
     ),
     "wrong length unit": ('[chip]\nshape = "file"\nfile = "c.obj"\nunits = "furlong"\n', "units"),
+    "a geometry file for a box": ('[chip]\nshape = "box"\nfile = "c.obj"\n', "chip.file"),
     "array nested 1,000 deep": ("a = " + "[" * 1000 + "]" * 1000 + "\n", "nested too deeply"),
     "a value of 600 kB": (
         '[deposition]\nchips = "' + "y" * 600_000 + '"\n',
