@@ -173,7 +173,10 @@ LAYERS = (
     ("export", "CSV, VTK, figure drawing"),
     ("packing", "deposition, drops, conveyor, effects (PyBullet)"),
     ("geometry", "descriptors (manifold3d), ensembles"),
-    ("meshing", "voxel, conformal, image and contact meshes, contact resolution; the solve stage (CalculiX)"),
+    (
+        "meshing",
+        "voxel, conformal, image and contact meshes, contact resolution; solve stage (CalculiX)",
+    ),
     ("diagnosis", "experiment specs, drop and stack diagnoses, the report"),
     ("pipeline", "command line, run directory, stage cache, sweeps, validation"),
     ("chipstack", "the Python API: scenarios, runs and their results as arrays and tables"),
