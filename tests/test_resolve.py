@@ -211,6 +211,22 @@ def test_the_settled_arrangement_is_left_as_it_was():
     assert r.arrangement is not a and not np.allclose(r.arrangement.positions, a.positions)
 
 
+def test_a_chip_may_rise_one_gap_more_per_chip_thickness_it_sits_above_the_conveyor():
+    """The global route's caps on each chip's motion: 1 mm and 6 degrees every way, and
+    upwards one gap more per chip thickness between the chip and the conveyor (each
+    contact cleared below a chip lifts it by a gap; with 1 mm for every chip the dense
+    paper-rectangles stack could not be cleared)."""
+    from chipstack.meshing.resolution import convex_pieces, place_chip
+    from chipstack.meshing.resolution.relax import _motion_caps
+
+    a = arrange([((0.0, 0.0, 1.0), 0.0), ((0.0, 0.0, 11.0), 0.0), ((0.0, 0.0, 21.0), 30.0)])
+    worlds = [place_chip(convex_pieces(SQUARE), a.rotations[k], a.positions[k]) for k in range(3)]
+    up, down = (caps.reshape(3, 6) for caps in _motion_caps(worlds, 0.2, a.thinnest_mm))
+    assert np.allclose(up[:, 2], [1.0, 2.0, 3.0])  # lowest corners at 0, 10 and 20 mm
+    assert np.allclose(down[:, :3], 1.0) and np.allclose(up[:, :2], 1.0)
+    assert np.allclose(up[:, 3:], np.radians(6.0)) and np.allclose(down[:, 3:], np.radians(6.0))
+
+
 @pytest.mark.parametrize(
     ("gap", "angle", "message"),
     [
