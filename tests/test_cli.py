@@ -194,3 +194,14 @@ def test_builtin_scenarios_are_the_papers():
         s.chip.length_mm * s.chip.width_mm * s.chip.thickness_mm for s in (squares, rectangles)
     ]
     assert volume[0] == volume[1]
+
+
+def test_the_whole_stack_model_is_the_reference_stack_with_its_pore_space():
+    """``paper-whole-stack`` (the README's whole-stack solve) packs the very stack of
+    ``paper-squares`` and meshes it conformally with its pore space, in every format."""
+    squares, whole = load_scenario(None), load_scenario("paper-whole-stack")
+    for table in ("chip", "deposition", "physics", "settling"):
+        assert getattr(whole, table) == getattr(squares, table), table
+    assert (whole.kind, whole.seed) == (squares.kind, squares.seed)
+    assert (whole.mesh.kind, whole.mesh.pore_space) == ("conformal", "box")
+    assert set(whole.mesh.formats) == {"msh", "vtu", "inp", "xdmf"}
