@@ -52,6 +52,15 @@ _REGULAR = np.array(
 _REGULAR_INVERSE = np.linalg.inv(_REGULAR)
 
 
+def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(M, 3) row-wise cross products: ``np.cross``'s arithmetic, without its set-up, which
+    was most of the node moves' time on a few elements at a time (2,596 slivers: 675,000
+    calls, 133 of 227 s)."""
+    u0, u1, u2 = u[:, 0], u[:, 1], u[:, 2]
+    v0, v1, v2 = v[:, 0], v[:, 1], v[:, 2]
+    return np.stack([u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0], axis=1)
+
+
 def tetra_sicn(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
     """(M,) signed inverse condition number of every tetrahedron (1: regular, <= 0:
     flat or inverted); dimensionless."""
@@ -61,7 +70,7 @@ def tetra_sicn(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
     r0, r1, r2 = shape[:, 0], shape[:, 1], shape[:, 2]
     # The inverse's columns are the rows' cross products over the determinant, so
     # |S| |S^-1| = |S| |adj S| / |det S| without inverting (millions of elements).
-    adjugate = np.stack([np.cross(r1, r2), np.cross(r2, r0), np.cross(r0, r1)], axis=1)
+    adjugate = np.stack([_cross(r1, r2), _cross(r2, r0), _cross(r0, r1)], axis=1)
     det = np.einsum("ij,ij->i", r0, adjugate[:, 0])
     norms = np.sqrt(
         np.einsum("ijk,ijk->i", shape, shape) * np.einsum("ijk,ijk->i", adjugate, adjugate)
