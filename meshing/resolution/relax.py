@@ -200,7 +200,7 @@ class _Relaxation:
         # The rotations the rows are built at (a trial step's, while it is tried).
         self.row_rotations = rotations
         self.metric = _metric(self.start_rot, inertia, weights)
-        self.up_caps, self.down_caps = _motion_caps(worlds, gap_mm, arrangement.thinnest_mm)
+        self.caps = _motion_caps(worlds, gap_mm, arrangement.thinnest_mm)  # up, down
         self.total = np.zeros(6 * n)  # accumulated motion (translation, rotation vector)
         self.radius = 1.0  # trust region, in units of (_STEP_MM, _STEP_RAD)
         self.rows = self.build(worlds)
@@ -277,11 +277,8 @@ class _Relaxation:
             (pa, fa), (pb, fb) = kept[(a, b)]
             p, q = _face_edges(worlds[a], pa, fa)[i]
             s_, t = _face_edges(worlds[b], pb, fb)[j]
-            normal = worlds[b].normals[pb][fb]
-            edge = (t - s_) / np.linalg.norm(t - s_)
-            across = np.cross(normal, edge)
             middle = (p + q) / 2
-            foot = s_ + edge * ((middle - s_) @ edge)
+            across, foot = _across_edge(middle, s_, t, worlds[b].normals[pb][fb])
             value = float(across @ (middle - foot))
             rows.append(
                 _Row(
@@ -309,9 +306,8 @@ class _Relaxation:
             corner = _face_edges(worlds[own], *faces[first])[i][0]
             s_, t = _face_edges(worlds[other], *faces[1 - first])[j]
             normal = worlds[pair[1]].normals[faces[1][0]][faces[1][1]]
-            edge = (t - s_) / np.linalg.norm(t - s_)
-            away = side * np.cross(normal, edge)
-            foot = s_ + edge * ((corner - s_) @ edge)
+            across, foot = _across_edge(corner, s_, t, normal)
+            away = side * across
             value = float(away @ (corner - foot))
             rows.append(
                 _Row(
@@ -406,7 +402,7 @@ class _Relaxation:
     def _step(self, worst: float, off_plane: float) -> bool | None:
         """One programme and its trial step, taken when the true merit falls; the trust
         region updated. None: the programme failed; False: nothing more to gain."""
-        solved = _qp(self.rows, self.total, self.metric, self.positions, self.caps(), self.radius)
+        solved = _qp(self.rows, self.total, self.metric, self.positions, self.caps, self.radius)
         if solved is None:
             return None
         delta, modelled = solved
@@ -444,10 +440,6 @@ class _Relaxation:
                 return False
         return True
 
-    def caps(self) -> tuple[np.ndarray, np.ndarray]:
-        """How far (6 n,) each motion may still go up and down before reaching its cap."""
-        return self.up_caps, self.down_caps
-
     def _trial(self, delta):
         """Poses, placed chips and rows after the step ``delta``."""
         n, pieces, arrangement = self.n, self.pieces, self.arrangement
@@ -482,7 +474,7 @@ class _Relaxation:
                 self.total,
                 self.metric,
                 self.positions,
-                self.caps(),
+                self.caps,
                 _POLISH_RADIUS,
                 anchor=False,
             )
@@ -673,12 +665,18 @@ def _motion_caps(worlds, gap_mm: float, thinnest_mm: float) -> tuple[np.ndarray,
     return up.ravel(), down.ravel()
 
 
+def _across_edge(point, s, t, normal):
+    """The unit direction across edge s-t in the plane of ``normal``, and the foot of
+    ``point`` on the edge's line."""
+    edge = (t - s) / np.linalg.norm(t - s)
+    return np.cross(normal, edge), s + edge * ((point - s) @ edge)
+
+
 def _unmet(rows) -> tuple[float, float]:
     """(mm) the worst lower bound short of its target and the surface corner furthest out
     of its plane: what the result is judged by."""
-    short = max((_violation(row) for row in rows if row.penalty == _LOWER_PENALTY), default=0.0)
-    off = max((abs(row.value) for row in rows if row.group is not None), default=0.0)
-    return short, off
+    worst, off, _ = _shortfalls(rows)
+    return max(0.0, -worst), off
 
 
 def _shortfalls(rows) -> tuple[float, float, float]:
