@@ -17,7 +17,7 @@ import dataclasses
 import math
 import os
 import re
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -26,6 +26,9 @@ from chipstack.core.stages import load_stages
 
 __all__ = [
     "ChipSpec",
+    "KindChoice",
+    "KindKeys",
+    "Parameters",
     "Section",
     "Scenario",
     "sections",
@@ -37,10 +40,19 @@ __all__ = [
 ]
 
 
-def key(default: Any, unit: str, doc: str, check: Callable[[Any], str | None] | None = None):
+def key(
+    default: Any,
+    unit: str,
+    doc: str,
+    check: Callable[[Any], str | None] | None = None,
+    *,
+    path: bool = False,
+):
     """A scenario key: its default, unit, one-line description and check (a function of
-    the value returning the problem, or None when the value is good)."""
-    return field(default=default, metadata={"unit": unit, "doc": doc, "check": check})
+    the value returning the problem, or None when the value is good). ``path``: a file
+    name, made absolute from the scenario file's folder when the scenario loads."""
+    metadata = {"unit": unit, "doc": doc, "check": check, "path": path}
+    return field(default=default, metadata=metadata)
 
 
 MAX_SEED = 2**63 - 1  # seeds are recorded in JSON manifests and TOML: 64-bit integers
@@ -124,43 +136,155 @@ LENGTH_UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "um": 1e-3, "in": 25.4}
 
 
 @dataclass(frozen=True)
-class ChipSpec:
-    """A chip shape and its size. Lengths in mm, fibre directions in degrees in the chip
-    plane; which keys a shape reads is listed in the README (Chip shapes)."""
+class Parameters:
+    """Base of a kind's own parameter table: a frozen dataclass of :func:`key` fields that
+    a shape, a mesh kind (any kind a table chooses by name) declares as ``parameters``.
+
+    The keys sit in the choosing table of the scenario file as before (``[chip]`` with
+    ``shape = "star"`` takes ``sides`` and ``inner_ratio``); the scenario holds the chosen
+    kind's table only, so a key of another kind is refused by name and a plugin's kind
+    brings keys of its own. Keys several kinds share are declared once, on a common base.
+    """
+
+    def check(self, key: str) -> None:
+        """Refuse combinations of this kind's keys that cannot work (``InputError`` naming
+        ``key.<name>``, ``key`` the table's path: ``chip``, ``mix[2]``, ``mesh``)."""
+
+
+@dataclass(frozen=True)
+class KindChoice:
+    """How a table's selector key chooses among registered kinds, each with its own
+    :class:`Parameters` (declared by the stage that owns the kinds: ``Stage.kind_choices``).
+
+    what: what a kind is called in messages (``shape``, ``mesh kind``).
+    names: the valid names, for messages and documentation.
+    resolve: ``resolve(name, key)``, the object(s) the name stands for; an unknown name
+        raises ``InputError`` naming ``key`` and listing the valid names.
+    parameters: ``parameters(resolved)``, the chosen kind's parameter table.
+    """
+
+    what: str
+    names: Callable[[], Sequence[str]]
+    resolve: Callable[[str, str], Any]
+    parameters: Callable[[Any], type[Parameters]]
+
+    def parameters_of(self, name: str, key: str) -> type[Parameters]:
+        return self.parameters(self.resolve(name, key))
+
+
+def kind_choice(table: str) -> KindChoice:
+    """The :class:`KindChoice` a registered stage declares for ``table``."""
+    for stage in load_stages():
+        choice = getattr(stage, "kind_choices", {}).get(table)
+        if choice is not None:
+            return choice
+    raise RuntimeError(f"no registered stage declares the kinds of [{table}]")  # packaging
+
+
+def parameter_fields(cls: type) -> dict[str, dataclasses.Field]:
+    """The declared keys of a :class:`Parameters` table, by name, in order."""
+    return {f.name: f for f in dataclasses.fields(cls)}
+
+
+class KindKeys:
+    """Mixin of a frozen table whose selector key (``selector``: ``shape``, ``kind``) names
+    a kind with its own :class:`Parameters`: the table's own keys are its fields, the
+    chosen kind's are held in ``params`` and read as the table's (``chip.sides``); a key
+    of another kind is not there (``AttributeError`` naming the kind).
+
+    ``Table(selector=name, **keys)`` takes both: a kind key goes into ``params``; with
+    ``params=`` given (``dataclasses.replace``), its keys that the kind declares are kept.
+    """
+
+    table: ClassVar[str] = ""
+    selector: ClassVar[str] = ""
+
+    def __init__(self, **values: Any) -> None:
+        own = [f for f in dataclasses.fields(self) if f.name != "params"]
+        for f in own:
+            if f.name in values:
+                value = values.pop(f.name)
+            elif f.default_factory is not dataclasses.MISSING:
+                value = f.default_factory()
+            else:
+                value = f.default
+            object.__setattr__(self, f.name, value)
+        choice = kind_choice(self.table)
+        chosen = choice.resolve(getattr(self, self.selector), f"{self.table}.{self.selector}")
+        object.__setattr__(self, "_chosen", chosen)
+        parameters = choice.parameters(chosen)
+        declared = parameter_fields(parameters)
+        given = values.pop("params", None)
+        kept = {}
+        if given is not None:
+            kept = {n: getattr(given, n) for n in parameter_fields(type(given)) if n in declared}
+        unknown = sorted(set(values) - set(declared))
+        if unknown:
+            raise TypeError(
+                f"{type(self).__name__}: {', '.join(unknown)} not keys of "
+                f"{kind_choice(self.table).what} {getattr(self, self.selector)!r}"
+            )
+        object.__setattr__(self, "params", parameters(**{**kept, **values}))
+
+    @property
+    def chosen(self) -> Any:
+        """What the selector names, resolved once when the table was made: the shape, the
+        mesh kinds. Callers ask it what it can do, never its name."""
+        chosen = self.__dict__.get("_chosen")
+        if chosen is None:  # unpickled (the resolved object is not sent along)
+            choice = kind_choice(self.table)
+            chosen = choice.resolve(getattr(self, self.selector), f"{self.table}.{self.selector}")
+            object.__setattr__(self, "_chosen", chosen)
+        return chosen
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {k: v for k, v in self.__dict__.items() if k != "_chosen"}
+
+    def __getattr__(self, name: str) -> Any:
+        # Only reached when ordinary lookup fails: a key of the chosen kind. Dunder
+        # lookups (pickle, copy) on an instance not yet filled in fail the ordinary way.
+        params = self.__dict__.get("params")
+        if params is None or name.startswith("__"):
+            raise AttributeError(name)
+        if name in parameter_fields(type(params)):
+            return getattr(params, name)
+        kind = self.__dict__.get(self.selector)
+        raise AttributeError(
+            f"{self.table}.{name} is not a key of {kind_choice(self.table).what} {kind!r}"
+        )
+
+    def paths(self) -> dict[str, str]:
+        """The chosen kind's file keys (declared with ``path``) that are set, by name."""
+        return {
+            name: getattr(self.params, name)
+            for name, f in parameter_fields(type(self.params)).items()
+            if f.metadata.get("path") and getattr(self.params, name)
+        }
+
+    def keys(self) -> dict[str, Any]:
+        """Every key of the table with its value, the kind's right after the selector."""
+        out: dict[str, Any] = {}
+        for f in dataclasses.fields(self):
+            if f.name == "params":
+                continue
+            out[f.name] = getattr(self, f.name)
+            if f.name == self.selector:
+                out.update(
+                    {n: getattr(self.params, n) for n in parameter_fields(type(self.params))}
+                )
+        return out
+
+
+@dataclass(frozen=True, init=False)
+class ChipSpec(KindKeys):
+    """A chip: its shape, the shape's own keys (sizes in mm; ``chip.params``, read as
+    ``chip.sides``), how its size varies and its fibres (degrees in the chip plane).
+    Each shape's keys are listed under it in docs/packing.md (Chip shapes)."""
+
+    table: ClassVar[str] = "chip"
+    selector: ClassVar[str] = "shape"
 
     shape: str = key("box", "", "chip shape, from the shape registry (see Chip shapes)")
-    length_mm: float = key(
-        20.0,
-        "mm",
-        "box, beam, fibre: length (local x); polygon, star, random_polygon: diameter of "
-        "the circle through the corners",
-        length,
-    )
-    width_mm: float = key(20.0, "mm", "box, beam: width (local y)", length)
-    thickness_mm: float = key(
-        2.0, "mm", "thickness (local z); a cylindrical beam or fibre's diameter", length
-    )
-    sides: int = key(6, "", "polygon: sides; star: points; random_polygon: corners", between(3, 64))
-    inner_ratio: float = key(
-        0.5, "", "star: radius of the notches over the radius of the tips", between(0.05, 0.95)
-    )
-    convex: bool = key(True, "", "random_polygon: convex outline (else star-shaped)")
-    irregularity: float = key(
-        0.5,
-        "",
-        "random_polygon (non-convex): corner radii uniform in [1 - irregularity, 1] x radius",
-        between(0.0, 0.9),
-    )
-    section: str = key(
-        "box", "", "beam, fibre: cross-section `box` or `cylinder`", one_of("box", "cylinder")
-    )
-    file: str = key("", "", "file: an STL, OBJ or PLY file (relative to the scenario file)")
-    units: str = key(
-        "mm",
-        "",
-        f"file: the length unit of the file's coordinates ({', '.join(LENGTH_UNITS_MM)})",
-        one_of(*LENGTH_UNITS_MM),
-    )
     size_distribution: str = key(
         "fixed",
         "",
@@ -178,6 +302,8 @@ class ChipSpec:
         "fibre directions in the chip plane from local x ([]: the shape's own, woven "
         "twill [0, 90] for plates, [0] along beams and fibres)",
     )
+    # The shape's own keys (its ``parameters``), filled in from the shape's table.
+    params: Parameters = field(default=None, metadata={"doc": "the shape's own keys"})
 
 
 class Section:
@@ -208,6 +334,18 @@ def sections() -> tuple[type[Section], ...]:
     if not _sections:
         _sections[:] = assemble(load_stages())  # one assignment: a second thread redoes it
     return tuple(_sections)
+
+
+def tables_of(kind: str) -> dict[str, type[Section]]:
+    """The tables a scenario of ``kind`` holds, by name: those declared for it (a
+    table's ``kinds``), and those of the stages that run on it (a drop scenario, packed
+    only, holds no ``[mesh]``)."""
+    runs = {cls.table: stage.kinds for stage in load_stages() for cls in stage.owned_sections}
+    return {
+        cls.table: cls
+        for cls in sections()
+        if (kind in cls.kinds if cls.kinds else kind in runs.get(cls.table, (kind,)))
+    }
 
 
 def assemble(stages: list) -> list[type[Section]]:
@@ -271,12 +409,16 @@ class Scenario:
                 value = f.default
             object.__setattr__(self, f.name, value)
         values.pop("_by_table", None)  # Scenario(**other.__dict__): derived from the tables
-        by_table = {cls.table: cls() for cls in sections()}
-        given = {t.table: t for t in values.pop("tables", ())}
+        by_table = {table: cls() for table, cls in tables_of(self.kind).items()}
+        # The tables of another kind are dropped when the kind changes (replace(kind=...)).
+        given = {t.table: t for t in values.pop("tables", ()) if t.table in by_table}
         given.update(values)
         for table, value in given.items():
             if table not in by_table:
-                raise TypeError(f"Scenario: unknown table {table!r}; tables: {', '.join(by_table)}")
+                raise TypeError(
+                    f"Scenario: no table {table!r} in a {self.kind!r} scenario; its tables: "
+                    f"{', '.join(by_table)}"
+                )
             if type(value) is not type(by_table[table]):
                 raise TypeError(
                     f"Scenario: [{table}] must be a {type(by_table[table]).__name__}, "
@@ -360,27 +502,73 @@ def _unknown(key: Any, declared: Any, prefix: str) -> InputError:
 
 
 def _build(cls: type, table: Mapping[str, Any], prefix: str) -> Any:
-    """A flat table (the chip, a section) from its TOML mapping."""
+    """A flat table (the chip, a section) from its TOML mapping; a table that chooses a
+    kind (:class:`KindKeys`) takes its own keys and the chosen kind's."""
     if not isinstance(table, Mapping):
         raise InputError(f"{prefix}: expected a table, got {type(table).__name__}")
-    declared = {f.name: f for f in dataclasses.fields(cls)}
+    declared = {f.name: f for f in dataclasses.fields(cls) if f.name != "params"}
+    values: dict[str, Any] = {}
+    if issubclass(cls, KindKeys):
+        selector = declared[cls.selector]
+        if cls.selector in table:
+            values[cls.selector] = _value(f"{prefix}.{cls.selector}", selector, table[cls.selector])
+        kind = values.get(cls.selector, selector.default)
+        choice = kind_choice(cls.table)
+        parameters = choice.parameters_of(kind, f"{prefix}.{cls.selector}")
+        declared.update(parameter_fields(parameters))
+        for key_ in table:
+            if key_ not in declared:
+                raise _not_of_kind(key_, choice, kind, cls.table, declared, prefix)
     for key_ in table:
         if key_ not in declared:
             raise _unknown(key_, declared, prefix)
-    values = {
-        name: _value(f"{prefix}.{name}", f, table[name])
-        for name, f in declared.items()
-        if name in table
-    }
+    values.update(
+        {
+            name: _value(f"{prefix}.{name}", f, table[name])
+            for name, f in declared.items()
+            if name in table
+        }
+    )
+    if issubclass(cls, KindKeys):
+        built = cls(**values)
+        built.params.check(prefix)
+        return built
     return cls(**values)
+
+
+def _not_of_kind(
+    key_: Any, choice: KindChoice, kind: str, table: str, declared: Mapping, prefix: str
+) -> InputError:
+    """A key the chosen kind does not declare: naming the kinds that do, if any."""
+    owners = []
+    for name in choice.names():
+        try:
+            if key_ in parameter_fields(choice.parameters_of(name, f"{prefix}.{table}")):
+                owners.append(name)
+        except InputError:  # a combined name whose part is missing: not an owner
+            continue
+    if not owners:
+        return _unknown(key_, declared, prefix)
+    return InputError(
+        f"{prefix}.{printable(key_)}: a key of {choice.what} {', '.join(map(repr, owners))}, "
+        f"not of {kind!r}; keys of [{prefix}] with {choice.what} {kind!r}: "
+        f"{', '.join(sorted(declared))}"
+    )
 
 
 def _build_scenario(data: Mapping[str, Any]) -> Scenario:
     if not isinstance(data, Mapping):
         raise InputError(f"scenario: expected a table, got {type(data).__name__}")
     top = {f.name: f for f in dataclasses.fields(Scenario) if f.name != "tables"}
-    tables = {cls.table: cls for cls in sections()}
+    every = {cls.table: cls for cls in sections()}
+    kind = data.get("kind", top["kind"].default)
+    tables = tables_of(kind) if isinstance(kind, str) else every
     for key_ in data:
+        if key_ in every and key_ not in tables:
+            raise InputError(
+                f"{key_}: not a table of a {printable(kind)!r} scenario (kind); its tables: "
+                f"{', '.join(tables)}"
+            )
         if key_ not in top and key_ not in tables:
             raise _unknown(key_, [*top, *tables], "")
     values: dict[str, Any] = {}
@@ -427,19 +615,22 @@ def scenario_from_dict(data: Mapping[str, Any], base_dir: str | None = None) -> 
         table.check()
     _check_top_level(scenario)
     for stage in load_stages():
-        stage.check(scenario)
+        if scenario.kind in stage.kinds:
+            stage.check(scenario)
     return scenario
 
 
 def _resolve_files(scenario: Scenario, base_dir: str | None) -> Scenario:
-    """Geometry-file paths made absolute, so the resolved scenario works from anywhere."""
+    """File paths of the chips' keys (declared with ``path``) made absolute, so the
+    resolved scenario works from anywhere."""
 
     def resolve(spec: ChipSpec) -> ChipSpec:
-        if not spec.file or os.path.isabs(spec.file):
-            return spec
-        return dataclasses.replace(
-            spec, file=os.path.abspath(os.path.join(base_dir or os.getcwd(), spec.file))
-        )
+        relative = {
+            name: os.path.abspath(os.path.join(base_dir or os.getcwd(), value))
+            for name, value in spec.paths().items()
+            if not os.path.isabs(value)
+        }
+        return dataclasses.replace(spec, **relative) if relative else spec
 
     return dataclasses.replace(
         scenario, chip=resolve(scenario.chip), mix=tuple(resolve(c) for c in scenario.mix)
@@ -460,6 +651,8 @@ def scenario_to_dict(scenario: Scenario) -> dict[str, Any]:
     the top-level keys, then every table in the order of :func:`sections`."""
 
     def plain(value: Any) -> Any:
+        if isinstance(value, KindKeys):
+            return {name: plain(v) for name, v in value.keys().items()}
         if dataclasses.is_dataclass(value):
             return {f.name: plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
         if isinstance(value, tuple):
@@ -476,13 +669,38 @@ def scenario_to_dict(scenario: Scenario) -> dict[str, Any]:
 
 
 def key_table() -> list[tuple[str, str, str, str]]:
-    """(key, unit, default, description) for every scenario key, for documentation."""
+    """(key, unit, default, description) for every scenario key, for documentation; a
+    key of the kinds a table chooses among is one row naming the kinds that declare it."""
 
     def rows_of(cls: type, prefix: str) -> list[tuple[str, str, str, str]]:
-        return [
-            (f"{prefix}.{g.name}", g.metadata["unit"], repr(g.default), g.metadata["doc"])
-            for g in dataclasses.fields(cls)
-        ]
+        rows = []
+        for g in dataclasses.fields(cls):
+            if g.name == "params":
+                continue
+            rows.append(
+                (f"{prefix}.{g.name}", g.metadata["unit"], repr(g.default), g.metadata["doc"])
+            )
+            if issubclass(cls, KindKeys) and g.name == cls.selector:
+                rows += kind_rows(cls.table, prefix)
+        return rows
+
+    def kind_rows(table: str, prefix: str) -> list[tuple[str, str, str, str]]:
+        by_key: dict[str, list[tuple[str, dataclasses.Field]]] = {}
+        choice = kind_choice(table)
+        for name in choice.names():
+            for f in parameter_fields(choice.parameters_of(name, table)).values():
+                by_key.setdefault(f.name, []).append((name, f))
+        rows = []
+        for name, owners in by_key.items():
+            unit = owners[0][1].metadata["unit"]
+            defaults = {repr(f.default) for _, f in owners}
+            default = defaults.pop() if len(defaults) == 1 else "per kind"
+            by_doc: dict[str, list[str]] = {}  # kinds that describe the key alike, together
+            for kind, f in owners:
+                by_doc.setdefault(f.metadata["doc"], []).append(f"`{kind}`")
+            doc = "; ".join(f"{', '.join(kinds)}: {text}" for text, kinds in by_doc.items())
+            rows.append((f"{prefix}.{name}", unit, default, doc))
+        return rows
 
     rows = []
     for f in dataclasses.fields(Scenario):
@@ -494,6 +712,19 @@ def key_table() -> list[tuple[str, str, str, str]]:
         else:
             rows.append((f.name, f.metadata["unit"], repr(f.default), f.metadata["doc"]))
     return rows
+
+
+def kind_key_table(table: str) -> dict[str, list[tuple[str, str, str, str]]]:
+    """(key, unit, default, description) of each kind's own keys, by kind name: what
+    the docs list under each shape and mesh kind."""
+    choice = kind_choice(table)
+    return {
+        name: [
+            (f.name, f.metadata["unit"], repr(f.default), f.metadata["doc"])
+            for f in parameter_fields(choice.parameters_of(name, table)).values()
+        ]
+        for name in choice.names()
+    }
 
 
 def key_table_markdown() -> str:

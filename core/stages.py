@@ -101,6 +101,8 @@ class Stage:
     sections: the scenario tables (or top-level keys) its cache key depends on.
     owned_sections: the scenario tables it declares (:class:`core.schema.Section`
         classes in its own package); the scenario is assembled from what stages own.
+    kind_choices: the tables whose selector key chooses a kind of this stage's, each
+        kind with its own keys (:class:`core.schema.KindChoice`).
     kinds: the scenario kinds it applies to (a drop scenario has only the packing stage).
     checkpointed: whether it saves partial state to resume from (the packing's batches).
     in_ensembles: whether ``--repeats`` may run it (meshes are made of single runs).
@@ -111,6 +113,9 @@ class Stage:
     upstream: ClassVar[tuple[str, ...]] = ()
     sections: ClassVar[tuple[str, ...]] = ()
     owned_sections: ClassVar[tuple[type, ...]] = ()
+    # Tables whose selector key chooses a kind with its own keys: table name ->
+    # core.schema.KindChoice (the packing stage's ``chip`` chooses among the shapes).
+    kind_choices: ClassVar[Mapping[str, Any]] = {}
     # A conveyor's packing leaves the panel cut from its mat: a stack like any other.
     kinds: ClassVar[tuple[str, ...]] = ("stack", "conveyor")
     checkpointed: ClassVar[bool] = False

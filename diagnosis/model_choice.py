@@ -284,7 +284,11 @@ def _fit_interval(X, y, groups, bounds, seed) -> _IntervalModel:
 
 
 def _group_folds(labels, groups, seed, folds=FOLDS):
-    splits = min(folds, len(np.unique(groups)))
+    # Every fold needs each class: no more folds than the class with the fewest pools
+    # has pools (a small table, or few datasets a pool once the drops are doubled).
+    labels, groups = np.asarray(labels), np.asarray(groups)
+    fewest = min(len(np.unique(groups[labels == c])) for c in np.unique(labels))
+    splits = min(folds, fewest)
     splitter = StratifiedGroupKFold(n_splits=splits, shuffle=True, random_state=seed)
     return list(splitter.split(np.zeros(len(labels)), labels, groups))
 

@@ -22,6 +22,7 @@ from chipstack.core.files import number, read_text
 from chipstack.core.registry import Registry
 from chipstack.core.schema import (
     MAX_LENGTH_MM,
+    ChipSpec,
     Scenario,
     printable,
     scenario_from_dict,
@@ -38,7 +39,6 @@ from chipstack.diagnosis.model import (
 )
 from chipstack.packing.drop import DropProtocol
 from chipstack.packing.effects import EFFECTS
-from chipstack.packing.shapes import SHAPES
 
 __all__ = [
     "EXPERIMENT_KINDS",
@@ -161,10 +161,14 @@ def _experiment(data: dict, base: Path, load_scenario) -> Experiment:
             raise InputError("chip: give a base `scenario` for the chip to go with")
         merged = scenario_to_dict(scenario)
         merged.pop("mix", None)
-        merged["chip"] = {
-            **merged.get("chip", {}),
-            **_table(data["chip"], "chip", set(merged["chip"]) | {"file"}),
-        }
+        given = _table(data["chip"], "chip", set(data["chip"]))  # keys: checked below
+        base_chip = merged["chip"]
+        if given.get("shape", base_chip["shape"]) != base_chip["shape"]:
+            # Another shape: the base's own keys, not its shape's (the new shape's keys
+            # are refused by name if they are not its own).
+            own = {f.name for f in dataclasses.fields(ChipSpec)}
+            base_chip = {k: v for k, v in base_chip.items() if k in own}
+        merged["chip"] = {**base_chip, **given}
         try:
             scenario = scenario_from_dict(merged, str(base))
         except InputError as exc:
@@ -294,7 +298,7 @@ def _drop_condition(entry, key: str, scenario: Scenario) -> Condition:
     default = scenario.drop
     height = _number(entry.get("height_mm", default.height_mm), f"{key}.height_mm", 1e-3, 1e5)
     # The chip's own extent from its shape (a file chip's length_mm is not its size).
-    half_extent = SHAPES.get(scenario.chips[0].shape).extent(scenario.chips[0])[0] / 2
+    half_extent = scenario.chips[0].chosen.extent(scenario.chips[0])[0] / 2
     if height <= half_extent:
         raise InputError(
             f"{key}.height_mm: {height:g} mm does not clear half the chip's largest extent "

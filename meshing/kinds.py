@@ -15,12 +15,14 @@ from __future__ import annotations
 import json
 import logging
 import shutil
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, make_dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from chipstack.core.errors import InputError, printable
 from chipstack.core.registry import Registry
+from chipstack.core.schema import KindChoice, Parameters
+from chipstack.meshing.sections import ConformalKeys, ContactKeys, ImageKeys, VoxelKeys
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -33,7 +35,15 @@ if TYPE_CHECKING:
     from chipstack.meshing.contact_model import ContactModel
     from chipstack.meshing.mesh import VolumeMesh
 
-__all__ = ["Built", "MeshKind", "MESH_KINDS", "COMBINED", "mesh_kinds"]
+__all__ = [
+    "Built",
+    "MeshKind",
+    "MESH_KINDS",
+    "MESH_CHOICE",
+    "COMBINED",
+    "check_volume",
+    "mesh_kinds",
+]
 
 log = logging.getLogger(__name__)
 
@@ -57,8 +67,9 @@ class MeshKind:
 
     name: str = ""
     doc: str = ""
-    crops: bool = False  # takes mesh.crop
-    periodic: bool = False  # takes mesh.periodic (opposite sides matching node for node)
+    # Its own keys in [mesh] (a core.schema.Parameters dataclass): read there when
+    # mesh.kind names it, refused when it does not.
+    parameters: type[Parameters] = Parameters
     crop_shift_mm: float = 0.0  # how far it may move a crop's sides (clear of chip corners)
     # Part of the mesh stage's cache key: raise it when the kind's algorithm gives another
     # mesh for the same keys, so that run directories made before remesh instead of
@@ -68,6 +79,16 @@ class MeshKind:
     # Errors of the mesher that mean "this stack cannot be meshed this way" (a one-line
     # message); with mesh.kind = "both" the other kind's mesh still stands.
     failures: tuple[type[Exception], ...] = ()
+
+    def crop_margin_mm(self, spec) -> float:
+        """How far inside a crop's sides a surface contact must lie for its two chips'
+        meshes to be held to shared faces (a patch the crop cuts to a sliver may keep
+        none): a millimetre, plus how far the kind moves the sides."""
+        return 1.0 + self.crop_shift_mm
+
+    def takes(self, key: str) -> bool:
+        """Whether ``mesh.<key>`` is one of its own keys (``takes("crop")``: it crops)."""
+        return any(f.name == key for f in fields(getattr(self, "parameters", Parameters)))
 
     def check_available(self) -> None:
         """Refuse, before any work, a kind whose mesher is not installed (``InputError``
@@ -160,7 +181,11 @@ def write_volume_mesh(
     }
 
 
-def _checked_volume(mesh, arrangement, pairs, min_quality, tolerance, kind) -> dict[str, Any]:
+def check_volume(mesh, arrangement, pairs, min_quality, tolerance, kind) -> dict[str, Any]:
+    """The check report of a volume mesh of the stack (``meshing.checks.check_mesh``),
+    raising when it is not valid: what a kind's ``check`` returns. ``pairs``: the chip
+    pairs in surface contact, whose meshes must share faces; ``tolerance``: the largest
+    accepted relative error of a chip's volume; ``kind``: the kind's name, for the log."""
     import logging
 
     from chipstack.meshing.checks import assert_valid, check_mesh, split_warning
@@ -181,10 +206,13 @@ def _checked_volume(mesh, arrangement, pairs, min_quality, tolerance, kind) -> d
 
 class VoxelKind(MeshKind):
     name = "voxel"
+    parameters = VoxelKeys
+
     doc = "hexahedra from the exact voxel image (always succeeds)"
-    crops = True
-    periodic = True
     solve_models = ("volume",)
+
+    def crop_margin_mm(self, spec) -> float:
+        return 2 * spec.voxel_mm  # two voxels: a cut patch keeps a whole voxel face
 
     def build(self, arrangement, scenario, scratch):
         from chipstack.meshing.mesh import check_voxel_below_thinnest
@@ -208,18 +236,18 @@ class VoxelKind(MeshKind):
         # plate tilted 14 deg at 0.5 mm voxels). Allow a quarter of a layer.
         thinnest = min(s.thickness_mm for s in arrangement.shapes)
         tolerance = max(0.02, 0.25 * scenario.mesh.voxel_mm / thinnest)
-        return _checked_volume(built.mesh, arrangement, surface_pairs(), 0.99, tolerance, self.name)
+        return check_volume(built.mesh, arrangement, surface_pairs(), 0.99, tolerance, self.name)
 
 
 class ConformalKind(MeshKind):
     name = "conformal"
+    parameters = ConformalKeys
     # 2: line contacts kept touching for a mesh of the chips alone; with the pore space,
     # the clearance mesh.pore_gap_mm. 3: crop sides off shallow faces and concave chips'
     # notches, grading toward corners near the box's planes, the sliver fallback keeping
     # holes empty. 4: the whole stack's box sides clear of the corners, HXT optimising
     # the elements under 0.2.
     version = 4
-    crops = True
     solve_models = ("volume",)
     doc = "gmsh tetrahedra of the resolved arrangement, touching chips sharing faces"
 
@@ -326,7 +354,7 @@ class ConformalKind(MeshKind):
         pairs = np.array(
             [p for p in surface_pairs().tolist() if frozenset(p) not in cleared]
         ).reshape(-1, 2)
-        return _checked_volume(
+        return check_volume(
             built.mesh,
             resolution.arrangement,
             pairs,
@@ -351,11 +379,11 @@ class ConformalKind(MeshKind):
 
 class ImageKind(MeshKind):
     name = "image"
+    parameters = ImageKeys
     doc = (
         "CGAL Mesh_3 tetrahedra of the labelled voxel image (any chip shape; needs "
         "pygalmesh), touching chips sharing faces"
     )
-    crops = True
     solve_models = ("volume",)
 
     @property
@@ -393,11 +421,12 @@ class ImageKind(MeshKind):
         # slivers it cannot exude); with it every element is held to min_quality.
         spec = scenario.mesh
         floor = spec.min_quality if spec.image_improve else 0.0
-        return _checked_volume(built.mesh, arrangement, surface_pairs(), floor, 0.04, self.name)
+        return check_volume(built.mesh, arrangement, surface_pairs(), floor, 0.04, self.name)
 
 
 class ContactKind(MeshKind):
     name = "contact"
+    parameters = ContactKeys
     doc = (
         "every chip meshed on its own, contact pairs and rigid platens: the model the "
         "solve stage runs"
@@ -538,10 +567,11 @@ def pore_gap_mm(spec, arrangement: Arrangement) -> float:
 def crop_region(scenario: Scenario) -> tuple[float, float, float, float] | None:
     """The crop of ``[mesh]`` as (x_min, x_max, y_min, y_max) mm, or None."""
     spec = scenario.mesh
-    if spec.crop == "target":
+    crop = getattr(spec, "crop", "none")  # a kind without the key meshes the whole stack
+    if crop == "target":
         half = scenario.deposition.target_size_mm / 2
         return (-half, half, -half, half)
-    if spec.crop == "region":
+    if crop == "region":
         x0, x1, y0, y1 = spec.region_mm
         return (x0, x1, y0, y1)
     return None
@@ -549,3 +579,22 @@ def crop_region(scenario: Scenario) -> tuple[float, float, float, float] | None:
 
 for _kind in (VoxelKind(), ConformalKind(), ImageKind(), ContactKind()):
     MESH_KINDS.register(_kind.name, _kind)
+
+_UNIONS: dict[tuple[type, ...], type[Parameters]] = {}
+
+
+def _parameters(kinds: list[MeshKind]) -> type[Parameters]:
+    """The keys of ``mesh.kind``: its kind's, or every one of a combined name's kinds'."""
+    own = tuple(dict.fromkeys(getattr(kind, "parameters", Parameters) for kind in kinds))
+    if len(own) == 1:
+        return own[0]
+    if own not in _UNIONS:  # one class per combination: tables made twice compare equal
+        name = "And".join(cls.__name__ for cls in own)
+        _UNIONS[own] = make_dataclass(name, [], bases=own[::-1], frozen=True)
+    return _UNIONS[own]
+
+
+# How [mesh] chooses its kinds (a combined name several): the mesh stage declares it.
+MESH_CHOICE = KindChoice(
+    "mesh kind", lambda: [*MESH_KINDS.in_order(), *COMBINED], mesh_kinds, _parameters
+)

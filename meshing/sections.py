@@ -3,32 +3,29 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import ClassVar
 
-from chipstack.core.schema import Section, between, key, one_of, region
+from chipstack.core.errors import InputError
+from chipstack.core.schema import KindKeys, Parameters, Section, between, key, one_of, region
 
-__all__ = ["MeshSpec", "SolveSpec"]
+__all__ = [
+    "ConformalKeys",
+    "ContactKeys",
+    "CropKeys",
+    "ImageKeys",
+    "MeshSpec",
+    "SolveSpec",
+    "TetrahedraKeys",
+    "VoxelKeys",
+]
 
 
 @dataclass(frozen=True)
-class MeshSpec(Section):
-    """How the meshing stage meshes the stack (see README: Meshes)."""
+class CropKeys(Parameters):
+    """The keys of the kinds that mesh the stack with or without its pore space, whole or
+    cropped (voxel, conformal, image)."""
 
-    table: ClassVar[str] = "mesh"
-
-    kind: str = key(
-        "voxel",
-        "",
-        "mesh kind, from the mesh-kind registry (see Meshes): `voxel` (hexahedra, always "
-        "succeeds), `conformal` (gmsh tetrahedra), `image` (CGAL tetrahedra of the "
-        "labelled image), `both`, or `contact` (every chip meshed on its own, contact "
-        "pairs and rigid platens: the model the solve stage runs)",
-    )
-    voxel_mm: float = key(0.5, "mm", "voxel of the hexahedral mesh", between(0.05, 100.0))
-    size_mm: float = key(
-        1.5, "mm", "largest element edge of the conformal mesh", between(0.05, 100.0)
-    )
     pore_space: str = key(
         "none",
         "",
@@ -39,8 +36,7 @@ class MeshSpec(Section):
     crop: str = key(
         "none",
         "",
-        "voxel and image meshes: `target` crops them to the deposition target, `region` to "
-        "`region_mm`; "
+        "`target` crops the mesh to the deposition target, `region` to `region_mm`; "
         "`none`: the whole stack",
         one_of("none", "target", "region"),
     )
@@ -50,97 +46,158 @@ class MeshSpec(Section):
         "[x_min, x_max, y_min, y_max] of the crop with crop = 'region'",
         region,
     )
+
+    def check(self, key: str) -> None:
+        if self.crop == "region" and not self.region_mm:
+            raise InputError(
+                f"{key}.region_mm: give [x_min, x_max, y_min, y_max] with {key}.crop = 'region'"
+            )
+        if self.region_mm and self.crop != "region":
+            raise InputError(
+                f"{key}.region_mm: read only with {key}.crop = 'region' (it is {self.crop!r})"
+            )
+
+
+@dataclass(frozen=True)
+class VoxelKeys(CropKeys):
+    """The voxel mesh's keys."""
+
+    voxel_mm: float = key(0.5, "mm", "voxel of the hexahedral mesh", between(0.05, 100.0))
     periodic: bool = key(
         False,
         "",
-        "voxel mesh cropped with pore_space = 'box': tie each node of the xmax and ymax "
-        "sides to its twin on the opposite side (*EQUATION in the .inp, reference nodes "
-        "REF_X and REF_Y carry the jumps): a representative volume",
+        "cropped with pore_space = 'box': tie each node of the xmax and ymax sides to its "
+        "twin on the opposite side (*EQUATION in the .inp, reference nodes REF_X and REF_Y "
+        "carry the jumps): a representative volume",
     )
+
+    def check(self, key: str) -> None:
+        super().check(key)
+        if self.periodic and (self.crop == "none" or self.pore_space != "box"):
+            raise InputError(
+                f"{key}.periodic: needs a crop ({key}.crop) and {key}.pore_space = 'box', so "
+                "that opposite sides are full faces whose nodes match"
+            )
+
+
+@dataclass(frozen=True)
+class TetrahedraKeys(CropKeys):
+    """The keys the tetrahedral meshes (conformal, image) share."""
+
+    size_mm: float = key(1.5, "mm", "largest element edge", between(0.05, 100.0))
     min_quality: float = key(
         0.1,
         "",
-        "smallest accepted element quality (SICN) of the conformal mesh, and of the image "
-        "mesh with image_improve",
+        "smallest accepted element quality (SICN; the image mesh's with image_improve)",
         between(0, 1),
     )
-    image_voxel_mm: float = key(
-        0.0,
-        "mm",
-        "image mesh: voxel of the labelled image CGAL meshes (0: an eighth of the thinnest "
-        "chip dimension; below that dimension)",
-        between(0.0, 100.0),
-    )
-    image_optimise: bool = key(
-        False,
-        "",
-        "image mesh: perturb and exude slivers after the refinement (about five times the "
-        "time, the worst SICN ~0.04 instead of ~0.001; CGAL's optimisers do not give the "
-        "same mesh twice, so the run is no longer reproducible)",
-    )
-    image_improve: bool = key(
-        True,
-        "",
-        "image mesh: remove the slivers Mesh_3 leaves (gmsh's optimiser, then nodes on "
-        "interfaces and box sides moved within them; regions, shared faces and volumes "
-        "kept, the same mesh every run), and hold every element to min_quality",
-    )
+
+
+@dataclass(frozen=True)
+class ConformalKeys(TetrahedraKeys):
+    """The conformal mesh's keys."""
+
     gap_mm: float = key(
         0.03,
         "mm",
-        "conformal mesh: contact resolution leaves chips that are not in surface contact at "
-        "least this far apart (at most a tenth of the thinnest chip dimension)",
+        "contact resolution leaves chips that are not in surface contact at least this far "
+        "apart (at most a tenth of the thinnest chip dimension)",
         between(1e-4, 10.0),
     )
     pore_gap_mm: float = key(
         0.0,
         "mm",
-        "conformal mesh with the pore space: the clearance of the contact resolution in "
-        "place of gap_mm, wide enough for pore elements between chips, about a tenth of "
-        "size_mm or more (0: a tenth of the thinnest chip dimension, the largest allowed)",
+        "with the pore space: the clearance of the contact resolution in place of gap_mm, "
+        "wide enough for pore elements between chips, about a tenth of size_mm or more "
+        "(0: a tenth of the thinnest chip dimension, the largest allowed)",
         between(0.0, 10.0),
     )
     pore_size_mm: float = key(
         0.0,
         "mm",
-        "conformal mesh with the pore space: largest element edge of the pore space away "
-        "from the chips, graded from size_mm at their faces (0: four times size_mm; "
-        "size_mm: no grading)",
+        "with the pore space: largest element edge of the pore space away from the chips, "
+        "graded from size_mm at their faces (0: four times size_mm; size_mm: no grading)",
         between(0.0, 100.0),
     )
     snap_angle_deg: float = key(
         3.0,
         "deg",
-        "conformal mesh: surface contacts whose faces are within this angle are made exactly "
-        "coplanar and touching",
+        "surface contacts whose faces are within this angle are made exactly coplanar and touching",
         between(0.0, 15.0),
+    )
+
+
+@dataclass(frozen=True)
+class ImageKeys(TetrahedraKeys):
+    """The image mesh's keys."""
+
+    image_voxel_mm: float = key(
+        0.0,
+        "mm",
+        "voxel of the labelled image CGAL meshes (0: an eighth of the thinnest chip "
+        "dimension; below that dimension)",
+        between(0.0, 100.0),
+    )
+    image_optimise: bool = key(
+        False,
+        "",
+        "perturb and exude slivers after the refinement (about five times the time, the "
+        "worst SICN ~0.04 instead of ~0.001; CGAL's optimisers do not give the same mesh "
+        "twice, so the run is no longer reproducible)",
+    )
+    image_improve: bool = key(
+        True,
+        "",
+        "remove the slivers Mesh_3 leaves (gmsh's optimiser, then nodes on interfaces and "
+        "box sides moved within them; regions, shared faces and volumes kept, the same mesh "
+        "every run), and hold every element to min_quality",
+    )
+
+
+@dataclass(frozen=True)
+class ContactKeys(Parameters):
+    """The contact model's keys."""
+
+    element_mm: float = key(
+        0.0,
+        "mm",
+        "in-plane element size (0: a tenth of the chip's shortest side, at most 2 mm)",
+        between(0.0, 100.0),
+    )
+    through_thickness: int = key(2, "", "elements through a chip's thickness", between(1, 16))
+    element: str = key(
+        "C3D8I",
+        "",
+        "CalculiX element (`C3D8I` incompatible modes for bending with few elements, "
+        "`C3D8`, or `C3D20R`)",
+        one_of("C3D8I", "C3D8", "C3D20R"),
+    )
+    contact_gap_mm: float = key(
+        0.3, "mm", "chips closer than this get a contact pair", between(1e-4, 10.0)
+    )
+
+
+@dataclass(frozen=True, init=False)
+class MeshSpec(Section, KindKeys):
+    """How the meshing stage meshes the stack (see docs/meshing.md): the mesh kind, its
+    own keys (``mesh.params``, read as ``mesh.voxel_mm``) and the files to write."""
+
+    table: ClassVar[str] = "mesh"
+    selector: ClassVar[str] = "kind"
+
+    kind: str = key(
+        "voxel",
+        "",
+        "mesh kind, from the mesh-kind registry (see Meshes): `voxel` (hexahedra, always "
+        "succeeds), `conformal` (gmsh tetrahedra), `image` (CGAL tetrahedra of the "
+        "labelled image), `both`, or `contact` (every chip meshed on its own, contact "
+        "pairs and rigid platens: the model the solve stage runs)",
     )
     formats: tuple[str, ...] = key(
         ("msh", "vtu", "inp", "xdmf"), "", "files to write (the CLI's --formats overrides)"
     )
-    element_mm: float = key(
-        0.0,
-        "mm",
-        "contact model: in-plane element size (0: a tenth of the chip's shortest side, at "
-        "most 2 mm)",
-        between(0.0, 100.0),
-    )
-    through_thickness: int = key(
-        2, "", "contact model: elements through a chip's thickness", between(1, 16)
-    )
-    element: str = key(
-        "C3D8I",
-        "",
-        "contact model: CalculiX element (`C3D8I` incompatible modes for bending with few "
-        "elements, `C3D8`, or `C3D20R`)",
-        one_of("C3D8I", "C3D8", "C3D20R"),
-    )
-    contact_gap_mm: float = key(
-        0.3,
-        "mm",
-        "contact model: chips closer than this get a contact pair",
-        between(1e-4, 10.0),
-    )
+    # The kind's own keys (its ``parameters``), filled in from the kind's table.
+    params: Parameters = field(default=None, metadata={"doc": "the mesh kind's own keys"})
 
 
 @dataclass(frozen=True)

@@ -61,9 +61,7 @@ SOLVE_MODELS: Registry[SolveModel] = Registry("solve model", "chipstack.solve_mo
 
 def solve_model(scenario: Scenario) -> SolveModel:
     """The model that presses the scenario's mesh; refused in one line when none can."""
-    from chipstack.meshing.kinds import mesh_kinds
-
-    for kind in mesh_kinds(scenario.mesh.kind):
+    for kind in scenario.mesh.chosen:
         for name in kind.solve_models:
             model = SOLVE_MODELS.get(name)
             if model.accepts(scenario):
@@ -71,7 +69,7 @@ def solve_model(scenario: Scenario) -> SolveModel:
     needs = " or ".join(SOLVE_MODELS.get(n).needs for n in SOLVE_MODELS.in_order())
     raise InputError(
         f"--to solve: needs {needs}; mesh.kind is {scenario.mesh.kind!r}, "
-        f"mesh.pore_space {scenario.mesh.pore_space!r}"
+        f"mesh.pore_space {getattr(scenario.mesh, 'pore_space', 'none')!r}"
     )
 
 
@@ -82,9 +80,7 @@ class ContactPress(SolveModel):
     needs = "the contact model (mesh.kind = 'contact')"
 
     def accepts(self, scenario):
-        from chipstack.meshing.kinds import mesh_kinds
-
-        return any(self.name in kind.solve_models for kind in mesh_kinds(scenario.mesh.kind))
+        return any(self.name in kind.solve_models for kind in scenario.mesh.chosen)
 
     def prepare(self, mesh_folder, scratch, job, scenario):
         from chipstack.meshing.calculix_deck import write_contact_compaction
@@ -116,17 +112,13 @@ class VolumePress(SolveModel):
     @staticmethod
     def stem(scenario) -> str:
         """The files of the first of the scenario's mesh kinds that this model presses."""
-        from chipstack.meshing.kinds import mesh_kinds
-
-        kind = next(k for k in mesh_kinds(scenario.mesh.kind) if "volume" in k.solve_models)
+        kind = next(k for k in scenario.mesh.chosen if "volume" in k.solve_models)
         return f"stack_{kind.name}"
 
     def accepts(self, scenario):
-        from chipstack.meshing.kinds import mesh_kinds
-
         spec = scenario.mesh
-        pressable = any(self.name in kind.solve_models for kind in mesh_kinds(spec.kind))
-        return pressable and spec.pore_space == "box"
+        pressable = any(self.name in kind.solve_models for kind in spec.chosen)
+        return pressable and getattr(spec, "pore_space", "none") == "box"
 
     def check(self, scenario):
         if "inp" not in scenario.mesh.formats:

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any
 from chipstack.core.errors import InputError, printable
 from chipstack.core.schema import Scenario
 from chipstack.core.stages import Stage, StageInputs, StageOptions, StageOutput
-from chipstack.meshing.kinds import MESH_KINDS, Built, crop_region, mesh_kinds
+from chipstack.meshing.kinds import MESH_CHOICE, MESH_KINDS, Built, crop_region
 from chipstack.meshing.sections import MeshSpec
 from chipstack.packing.kinds import stack_kinds
 
@@ -48,46 +48,30 @@ class MeshStage(Stage):
     # new mesh).
     sections = ("geometry", "mesh")
     owned_sections = (MeshSpec,)
+    kind_choices = {"mesh": MESH_CHOICE}  # [mesh]: the mesh kind's own keys
     kinds = property(lambda self: stack_kinds())  # the kinds whose stack goes on
     in_ensembles = False
 
     def check(self, scenario: Scenario) -> None:
         spec = scenario.mesh
-        kinds = mesh_kinds(spec.kind)
         check_formats(spec.formats, "mesh.formats")
-        if spec.crop == "region" and not spec.region_mm:
+        # A combined kind takes the keys of each of its kinds; the periodic ties need
+        # every one of them to take them.
+        if getattr(spec, "periodic", False) and not all(k.takes("periodic") for k in spec.chosen):
+            able = [n for n in MESH_KINDS.names() if MESH_KINDS.get(n).takes("periodic")]
             raise InputError(
-                "mesh.region_mm: give [x_min, x_max, y_min, y_max] with mesh.crop = 'region'"
-            )
-        if spec.region_mm and spec.crop != "region":
-            raise InputError(
-                f"mesh.region_mm: read only with mesh.crop = 'region' (it is {spec.crop!r})"
-            )
-        if spec.crop != "none" and not all(kind.crops for kind in kinds):
-            crops = ", ".join(name for name in MESH_KINDS.names() if MESH_KINDS.get(name).crops)
-            raise InputError(
-                f"mesh.crop: the {crops} mesh only so far (mesh.kind is {spec.kind!r})"
-            )
-        if spec.periodic and not all(kind.periodic for kind in kinds):
-            able = ", ".join(n for n in MESH_KINDS.names() if MESH_KINDS.get(n).periodic)
-            raise InputError(
-                f"mesh.periodic: the {able} mesh only (mesh.kind is {spec.kind!r}: its "
-                "opposite sides do not match node for node)"
-            )
-        if spec.periodic and (spec.crop == "none" or spec.pore_space != "box"):
-            raise InputError(
-                "mesh.periodic: needs a crop (mesh.crop) and mesh.pore_space = 'box', so "
-                "that opposite sides are full faces whose nodes match"
+                f"mesh.periodic: the {', '.join(able)} mesh only (mesh.kind is {spec.kind!r}: "
+                "its opposite sides do not match node for node)"
             )
 
     def check_run(self, scenario: Scenario) -> None:
         """A mesher that is not installed (the image kind's pygalmesh) is refused before
         the packing stage starts, not after it."""
-        for kind in mesh_kinds(scenario.mesh.kind):
+        for kind in scenario.mesh.chosen:
             kind.check_available()
 
     def key_extra(self, scenario: Scenario, options: StageOptions) -> dict[str, Any]:
-        versions = {kind.name: kind.version for kind in mesh_kinds(scenario.mesh.kind)}
+        versions = {kind.name: kind.version for kind in scenario.mesh.chosen}
         return {"figures": options.figures, "algorithms": versions}
 
     def compute(self, inputs: StageInputs) -> MeshedStack:
@@ -96,7 +80,7 @@ class MeshStage(Stage):
 
         arrangement = stack_history(inputs.result("packing"))[-1]
         scenario = inputs.scenario
-        kinds = mesh_kinds(scenario.mesh.kind)
+        kinds = scenario.mesh.chosen
         result = MeshedStack(scratch=tempfile.TemporaryDirectory(prefix="chipstack-mesh-"))
         found: list = []
 
@@ -132,9 +116,10 @@ class MeshStage(Stage):
     def write(self, result: MeshedStack, folder: Path, inputs: StageInputs) -> StageOutput:
         try:
             summary = {kind: {"error": error} for kind, error in result.errors.items()}
-            for name, built in result.built.items():
-                kind = MESH_KINDS.get(name)
-                summary[name] = kind.write(folder, built, result.reports[name], inputs)
+            for kind in inputs.scenario.mesh.chosen:
+                if kind.name in result.built:
+                    built, report = result.built[kind.name], result.reports[kind.name]
+                    summary[kind.name] = kind.write(folder, built, report, inputs)
         finally:
             if result.scratch is not None:
                 result.scratch.cleanup()
@@ -144,7 +129,7 @@ class MeshStage(Stage):
         """The mesh files written, by kind (downstream stages read the files)."""
         files = {
             kind: sorted(p.name for p in folder.glob(f"stack_{kind}.*"))
-            for kind in (k.name for k in mesh_kinds(scenario.mesh.kind))
+            for kind in (k.name for k in scenario.mesh.chosen)
         }
         return MeshFiles(folder, files)
 
@@ -198,8 +183,8 @@ def contact_classes(table) -> dict[tuple[int, int], str]:
 
 def _surface_pairs(table, scenario: Scenario) -> np.ndarray:
     """(k, 2) the chip pairs in surface contact (``table``: the stack's contacts), whose
-    meshes must share faces; a crop keeps those whose patch lies inside it, two voxels
-    clear of its sides (a patch the crop cuts to a sliver may keep no whole voxel face)."""
+    meshes must share faces; a crop keeps those whose patch lies inside it, clear of its
+    sides by each mesh kind's ``crop_margin_mm``."""
     import numpy as np
 
     from chipstack.geometry.contacts import KINDS
@@ -207,9 +192,7 @@ def _surface_pairs(table, scenario: Scenario) -> np.ndarray:
     checked = (table.chip_b >= 0) & (table.kind == KINDS.index("surface"))
     if (region := crop_region(scenario)) is not None:
         x0, x1, y0, y1 = region
-        # A kind that moves the crop's sides (to clear chip corners) moves them inward too.
-        shift = max(kind.crop_shift_mm for kind in mesh_kinds(scenario.mesh.kind))
-        margin = 2 * scenario.mesh.voxel_mm + shift
+        margin = max(kind.crop_margin_mm(scenario.mesh) for kind in scenario.mesh.chosen)
         x, y = table.centre_mm[:, 0], table.centre_mm[:, 1]
         checked &= (x > x0 + margin) & (x < x1 - margin)
         checked &= (y > y0 + margin) & (y < y1 - margin)

@@ -492,7 +492,7 @@ def buried_under(positions: np.ndarray, reach_mm: np.ndarray, depth_lengths: flo
 def _domain_mm(scenario: Scenario) -> float:
     """Twenty times the scenario's own size: a chip beyond has left the experiment."""
     d = scenario.deposition
-    size = max(d.target_size_mm, max(d.release_height_mm), scenario.drop.height_mm)
+    size = max(d.target_size_mm, max(d.release_height_mm))
     size = max(size, SITES.get(scenario.kind).extent_mm(scenario))
     return 20.0 * size
 

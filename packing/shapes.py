@@ -32,7 +32,17 @@ from chipstack.core.chipshape import (
 )
 from chipstack.core.errors import InputError, printable
 from chipstack.core.registry import Registry
-from chipstack.core.schema import MAX_LENGTH_MM, ChipSpec
+from chipstack.core.schema import (
+    LENGTH_UNITS_MM,
+    MAX_LENGTH_MM,
+    ChipSpec,
+    KindChoice,
+    Parameters,
+    between,
+    key,
+    length,
+    one_of,
+)
 from chipstack.packing.polygons import (
     check_simple,
     convex_partition,
@@ -46,6 +56,7 @@ from chipstack.packing.shapefiles import shape_from_file
 __all__ = [
     "ChipShape",
     "SHAPES",
+    "SHAPE_CHOICE",
     "ShapeKind",
     "check_chip",
     "varies_per_chip",
@@ -241,20 +252,85 @@ Builder = Callable[[ChipSpec, "np.random.Generator | None", float], ChipShape]
 SizeCheck = Callable[[ChipSpec, str], None]
 
 
+def _thickness(doc: str = "thickness (local z)"):
+    return key(2.0, "mm", doc, length)
+
+
+@dataclass(frozen=True)
+class BoxKeys(Parameters):
+    length_mm: float = key(20.0, "mm", "length (local x)", length)
+    width_mm: float = key(20.0, "mm", "width (local y)", length)
+    thickness_mm: float = _thickness()
+
+
+@dataclass(frozen=True)
+class PolygonKeys(Parameters):
+    length_mm: float = key(20.0, "mm", "diameter of the circle through the corners", length)
+    thickness_mm: float = _thickness()
+    sides: int = key(6, "", "sides", between(3, 64))
+
+
+@dataclass(frozen=True)
+class StarKeys(Parameters):
+    length_mm: float = key(20.0, "mm", "diameter of the circle through the tips", length)
+    thickness_mm: float = _thickness()
+    sides: int = key(6, "", "points", between(3, 64))
+    inner_ratio: float = key(
+        0.5, "", "radius of the notches over the radius of the tips", between(0.05, 0.95)
+    )
+
+
+@dataclass(frozen=True)
+class RandomPolygonKeys(Parameters):
+    length_mm: float = key(20.0, "mm", "diameter of the circle the corners lie within", length)
+    thickness_mm: float = _thickness()
+    sides: int = key(6, "", "corners", between(3, 64))
+    convex: bool = key(True, "", "convex outline (else star-shaped)")
+    irregularity: float = key(
+        0.5,
+        "",
+        "non-convex: corner radii uniform in [1 - irregularity, 1] x radius",
+        between(0.0, 0.9),
+    )
+
+
+@dataclass(frozen=True)
+class SlenderKeys(Parameters):
+    length_mm: float = key(20.0, "mm", "length (local x, the fibres' direction)", length)
+    width_mm: float = key(20.0, "mm", "width (local y) of a box section", length)
+    thickness_mm: float = _thickness("thickness (local z) of a box section; a cylinder's diameter")
+    section: str = key("box", "", "cross-section `box` or `cylinder`", one_of("box", "cylinder"))
+
+
+@dataclass(frozen=True)
+class FileKeys(Parameters):
+    file: str = key("", "", "an STL, OBJ or PLY file (relative to the scenario file)", path=True)
+    units: str = key(
+        "mm",
+        "",
+        f"the length unit of the file's coordinates ({', '.join(LENGTH_UNITS_MM)})",
+        one_of(*LENGTH_UNITS_MM),
+    )
+
+
 @dataclass(frozen=True)
 class ShapeKind:
-    """One registered shape: how to build it, which sizes make one, and how big it is.
+    """One registered shape: how to build it, its own keys, which sizes make one, and how
+    big it is.
 
-    ``check(spec, key)`` refuses sizes that do not make this shape (``key`` names the
-    scenario table); ``extent(spec)`` is (largest in-plane extent, circumradius) in mm
-    of a chip of nominal size, used to check it fits the target and clears the floor.
+    ``parameters`` is its own table of keys (a :class:`core.schema.Parameters`), read in
+    ``[chip]`` when ``shape`` names it; ``check(spec, key)`` refuses sizes that do not
+    make this shape (``key`` names the scenario table); ``extent(spec)`` is (largest
+    in-plane extent, circumradius) in mm of a chip of nominal size, used to check it fits
+    the target and clears the floor.
     """
 
     build: Builder
     check: SizeCheck
     extent: Callable[[ChipSpec], tuple[float, float]]
+    parameters: type[Parameters] = Parameters
     varies_per_chip: bool = False  # a new outline for every chip
-    reads_file: bool = False  # built from the geometry file ``chip.file``
+    reads_file: bool = False  # built from a geometry file (a key declared with path)
 
 
 def _plate_check(spec: ChipSpec, key: str) -> None:
@@ -282,7 +358,7 @@ def _file_check(spec: ChipSpec, key: str) -> None:
 
 
 def _rectangle_extent(spec: ChipSpec) -> tuple[float, float]:
-    width = spec.width_mm if spec.shape == "box" or spec.section == "box" else spec.thickness_mm
+    width = spec.thickness_mm if getattr(spec, "section", "box") == "cylinder" else spec.width_mm
     across = math.hypot(spec.length_mm, width)
     return across, 0.5 * math.hypot(across, spec.thickness_mm)
 
@@ -298,29 +374,41 @@ def _file_extent(spec: ChipSpec) -> tuple[float, float]:
 
 
 SHAPES: Registry[ShapeKind] = Registry("shape", "chipstack.shapes")
-SHAPES.register("box", ShapeKind(box_shape, _box_check, _rectangle_extent))
-SHAPES.register("polygon", ShapeKind(polygon_shape, _plate_check, _round_extent))
-SHAPES.register("star", ShapeKind(star_shape, _plate_check, _round_extent))
+SHAPES.register("box", ShapeKind(box_shape, _box_check, _rectangle_extent, BoxKeys))
+SHAPES.register("polygon", ShapeKind(polygon_shape, _plate_check, _round_extent, PolygonKeys))
+SHAPES.register("star", ShapeKind(star_shape, _plate_check, _round_extent, StarKeys))
 SHAPES.register(
     "random_polygon",
-    ShapeKind(random_polygon_shape, _plate_check, _round_extent, varies_per_chip=True),
+    ShapeKind(
+        random_polygon_shape, _plate_check, _round_extent, RandomPolygonKeys, varies_per_chip=True
+    ),
 )
-SHAPES.register("beam", ShapeKind(_slender("beam"), _slender_check, _rectangle_extent))
-SHAPES.register("fibre", ShapeKind(_slender("fibre"), _slender_check, _rectangle_extent))
-SHAPES.register("file", ShapeKind(file_shape, _file_check, _file_extent, reads_file=True))
+SHAPES.register("beam", ShapeKind(_slender("beam"), _slender_check, _rectangle_extent, SlenderKeys))
+SHAPES.register(
+    "fibre", ShapeKind(_slender("fibre"), _slender_check, _rectangle_extent, SlenderKeys)
+)
+SHAPES.register("file", ShapeKind(file_shape, _file_check, _file_extent, FileKeys, reads_file=True))
+
+
+def _shape_parameters(kind: ShapeKind) -> type[Parameters]:
+    return getattr(kind, "parameters", Parameters)
+
+
+# How [chip] (and each [[mix]] table) chooses its shape: the packing stage declares it.
+SHAPE_CHOICE = KindChoice(
+    "shape", SHAPES.in_order, lambda name, key: SHAPES.get(name, key=key), _shape_parameters
+)
 
 
 def varies_per_chip(spec: ChipSpec) -> bool:
     """Whether every chip of this spec gets its own outline (random polygons)."""
-    return SHAPES.get(spec.shape, key="chip.shape").varies_per_chip
+    return spec.chosen.varies_per_chip
 
 
 def check_chip(spec: ChipSpec, key: str) -> tuple[float, float]:
     """Refuse a chip spec that makes no chip (naming ``key``); returns its nominal
     (largest in-plane extent, circumradius) in mm."""
-    kind = SHAPES.get(spec.shape, key=f"{key}.shape")
-    if not kind.reads_file and spec.file:
-        raise InputError(f'{key}.file: only read when shape = "file" (shape is {spec.shape!r})')
+    kind = spec.chosen
     kind.check(spec, key)
     if spec.size_distribution != "fixed" and spec.size_spread == 0:
         raise InputError(f"{key}.size_spread: a {spec.size_distribution} size needs a spread > 0")
@@ -331,7 +419,7 @@ def make_shape(
     spec: ChipSpec, rng: np.random.Generator | None = None, size: float = 1.0
 ) -> ChipShape:
     """Build the shape named by ``spec.shape`` from the registry."""
-    return SHAPES.get(spec.shape, key="chip.shape").build(spec, rng, size)
+    return spec.chosen.build(spec, rng, size)
 
 
 def shape_record(shape: ChipShape) -> dict:

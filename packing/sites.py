@@ -70,6 +70,13 @@ class Site:
         return scenario.deposition.target_size_mm
 
 
+class DropSite(Site):
+    """The bare floor a single chip is dropped on from ``[drop]``'s height."""
+
+    def extent_mm(self, scenario: Scenario) -> float:
+        return scenario.drop.height_mm
+
+
 class SquareTarget(Site):
     """Batches released over a square above the target (``[deposition]``)."""
 
@@ -200,7 +207,7 @@ class PourZone(SquareTarget):
 SITES: Registry[Site] = Registry("deposition site", "chipstack.sites")
 for _kind, _site in (
     ("stack", SquareTarget()),
-    ("drop", Site()),
+    ("drop", DropSite()),
     ("container", Cylinder()),
     ("conveyor", PourZone()),
 ):

@@ -31,6 +31,14 @@ class PackingStage(Stage):
     progress_unit = "batch"
     checkpointed = True
 
+    @property
+    def kind_choices(self) -> dict[str, Any]:
+        """[chip] and [[mix]] choose a shape, each with its own keys (the shapes' module
+        holds their builders, numpy and all: imported when a scenario is read)."""
+        from chipstack.packing.shapes import SHAPE_CHOICE
+
+        return {"chip": SHAPE_CHOICE}
+
     # What the stage runs, declares and reads follows the scenario-kind registry, so that
     # a kind from a plugin runs, and its own table is validated and in the cache key.
     @property
@@ -52,14 +60,12 @@ class PackingStage(Stage):
     def key_extra(self, scenario: Scenario, options) -> dict[str, Any]:
         files = {}
         for spec in scenario.chips:
-            if spec.file:
+            for name, path in spec.paths().items():
                 try:
-                    digest = file_sha256(spec.file)
+                    digest = file_sha256(path)
                 except OSError as exc:
-                    raise InputError(
-                        f"chip.file {spec.file!r}: unreadable ({exc.strerror})"
-                    ) from None
-                files[spec.file] = digest
+                    raise InputError(f"chip.{name} {path!r}: unreadable ({exc.strerror})") from None
+                files[path] = digest
         extra: dict[str, Any] = {"files": files, "versions": code_versions()}
         extra.update(SCENARIO_KINDS.get(scenario.kind).key_extra(scenario, options))
         return extra

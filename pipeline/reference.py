@@ -51,8 +51,19 @@ def stages_markdown() -> str:
     return _table(("stage", "what it does"), rows)
 
 
+def _keys(parameters: type) -> str:
+    """A kind's own keys, for its row (each key's meaning is in the scenario key table)."""
+    import dataclasses
+
+    names = [f"`{f.name}`" for f in dataclasses.fields(parameters)]
+    return f" Keys: {', '.join(names)}." if names else " No keys of its own."
+
+
 def shapes_markdown() -> str:
-    rows = [(n, _first_line(SHAPES.get(n).build.__doc__)) for n in SHAPES.in_order()]
+    rows = [
+        (n, _first_line(SHAPES.get(n).build.__doc__) + _keys(SHAPES.get(n).parameters))
+        for n in SHAPES.in_order()
+    ]
     return _table(("shape", "what it is"), rows)
 
 
@@ -96,8 +107,8 @@ def mesh_kinds_markdown() -> str:
     for name in MESH_KINDS.in_order():
         kind = MESH_KINDS.get(name)
         solved = ", ".join(kind.solve_models) or "-"
-        crops = "takes mesh.crop" if kind.crops else "whole stack"
-        rows.append((name, f"{kind.doc} ({crops}; solve models: {solved})"))
+        keys = _keys(kind.parameters)
+        rows.append((name, f"{kind.doc} (solve models: {solved}).{keys}"))
     return _table(("mesh kind", "what it is"), rows)
 
 

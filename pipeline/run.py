@@ -79,7 +79,8 @@ def stage_inputs(scenario: Scenario, options: StageOptions | None = None) -> dic
     hashes: dict[str, str] = {}
     for stage in load_stages():
         key: dict[str, Any] = {name: hashes[name] for name in stage.upstream}
-        key.update({section: data[section] for section in stage.sections})
+        # A table of another scenario kind is not in the scenario (nor in the key).
+        key.update({section: data[section] for section in stage.sections if section in data})
         key.update(stage.key_extra(scenario, options))
         hashes[stage.name] = _sha256(key)
     return hashes

@@ -79,7 +79,19 @@ BAD_SCENARIOS = {
         "mix: the weights sum to 0",
     ),
     "wrong length unit": ('[chip]\nshape = "file"\nfile = "c.obj"\nunits = "furlong"\n', "units"),
-    "a geometry file for a box": ('[chip]\nshape = "box"\nfile = "c.obj"\n', "chip.file"),
+    "a geometry file for a box": (
+        '[chip]\nshape = "box"\nfile = "c.obj"\n',
+        "chip.file: a key of shape 'file', not of 'box'",
+    ),
+    "a star's key for a box": (
+        "[chip]\ninner_ratio = 0.3\n",
+        "chip.inner_ratio: a key of shape 'star', not of 'box'",
+    ),
+    "a box's key in a polygon mix": (
+        '[[mix]]\nshape = "polygon"\nwidth_mm = 5.0\n',
+        "mix[0].width_mm: a key of shape 'box', 'beam', 'fibre', not of 'polygon'",
+    ),
+    "a key no shape has": ('[chip]\nshape = "star"\nsidez = 5\n', "chip.sidez: unknown key"),
     "array nested 1,000 deep": ("a = " + "[" * 1000 + "]" * 1000 + "\n", "nested too deeply"),
     "a value of 600 kB": (
         '[deposition]\nchips = "' + "y" * 600_000 + '"\n',
@@ -106,7 +118,15 @@ BAD_SCENARIOS = {
     ),
     "periodic sides of the conformal mesh": (
         '[mesh]\nkind = "conformal"\ncrop = "target"\npore_space = "box"\nperiodic = true\n',
-        "mesh.periodic: the voxel mesh only (mesh.kind is 'conformal'",
+        "mesh.periodic: a key of mesh kind 'voxel', 'both', not of 'conformal'",
+    ),
+    "periodic sides of both meshes": (
+        '[mesh]\nkind = "both"\ncrop = "target"\npore_space = "box"\nperiodic = true\n',
+        "mesh.periodic: the voxel mesh only (mesh.kind is 'both'",
+    ),
+    "a voxel key for the contact model": (
+        '[mesh]\nkind = "contact"\nvoxel_mm = 1.0\n',
+        "mesh.voxel_mm: a key of mesh kind 'voxel', 'both', not of 'contact'",
     ),
     "crop of the contact model": ('[mesh]\nkind = "contact"\ncrop = "target"\n', "mesh.crop"),
     "unknown scenario kind": (

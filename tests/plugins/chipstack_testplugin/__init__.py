@@ -1,8 +1,8 @@
-"""A plugin package outside the project: a chip shape, a descriptor, a mesh kind, an
-effect, a scenario kind (with its table and deposition site), a stack writer and a
-figure, declared only in its own entry points (``chipstack_testplugin-0.1.dist-info``).
-``tests/test_plugins.py`` puts this folder on the path of a CLI run and checks that each
-works end to end."""
+"""A plugin package outside the project: a chip shape and a mesh kind with keys of their
+own, a descriptor, an effect, a scenario kind (with its table and deposition site), a
+stack writer and a figure, declared only in its own entry points
+(``chipstack_testplugin-0.1.dist-info``). ``tests/test_plugins.py`` puts this folder on
+the path of a CLI run and checks that each works end to end."""
 
 from __future__ import annotations
 
@@ -11,10 +11,11 @@ from typing import ClassVar
 
 import numpy as np
 
-from chipstack.core.schema import Section, between, key
+from chipstack.core.errors import InputError
+from chipstack.core.schema import Parameters, Section, between, key, length
 from chipstack.export.figure_kinds import FigureKind
 from chipstack.geometry.describe import Descriptor
-from chipstack.meshing.kinds import VoxelKind
+from chipstack.meshing.kinds import Built, MeshKind, check_volume
 from chipstack.packing.effects import Effect
 from chipstack.packing.files import StackWriter
 from chipstack.packing.kinds import StackKind
@@ -22,25 +23,47 @@ from chipstack.packing.shapes import ShapeKind, prism_shape
 from chipstack.packing.sites import SquareTarget
 
 
-def _triangle(spec, rng=None, size=1.0):
-    """An equilateral triangle of side ``length_mm``, extruded through the thickness."""
-    side = spec.length_mm * size
-    radius = side / np.sqrt(3)
-    angles = np.radians([90.0, 210.0, 330.0])
-    outline = np.column_stack([radius * np.cos(angles), radius * np.sin(angles)])
-    return prism_shape(
-        f"triangle {side:g}x{spec.thickness_mm:g}", "triangle", outline, spec.thickness_mm, spec
+@dataclass(frozen=True)
+class TriangleKeys(Parameters):
+    """The triangle's keys: two of the built-in shapes' names and one of its own."""
+
+    length_mm: float = key(20.0, "mm", "base (local x)", length)
+    thickness_mm: float = key(2.0, "mm", "thickness (local z)", length)
+    apex_angle_deg: float = key(
+        60.0, "deg", "angle between the two equal sides (60: equilateral)", between(20.0, 150.0)
     )
 
 
+def _corners(spec, size=1.0):
+    """(3, 2) mm: the base along x, the apex on +y."""
+    base = spec.length_mm * size
+    height = base / 2 / np.tan(np.radians(spec.apex_angle_deg) / 2)
+    return np.array([[-base / 2, 0.0], [base / 2, 0.0], [0.0, height]])
+
+
+def _triangle(spec, rng=None, size=1.0):
+    """An isosceles triangle: base ``length_mm``, ``apex_angle_deg`` between its equal
+    sides, extruded through the thickness."""
+    outline = _corners(spec, size)
+    outline -= outline.mean(axis=0)
+    name = f"triangle {spec.length_mm * size:g}x{spec.apex_angle_deg:g}x{spec.thickness_mm:g}"
+    return prism_shape(name, "triangle", outline, spec.thickness_mm, spec)
+
+
 def _triangle_check(spec, key):
-    from chipstack.core.errors import InputError
+    corners = _corners(spec)
+    if spec.thickness_mm >= np.ptp(corners[:, 1]):
+        raise InputError(f"{key}.thickness_mm: a triangle must be thinner than it is tall")
 
-    if spec.thickness_mm >= spec.length_mm:
-        raise InputError(f"{key}.thickness_mm: a triangle must be thinner than it is across")
+
+def _triangle_extent(spec):
+    corners = _corners(spec)
+    sides = np.linalg.norm(corners - np.roll(corners, 1, axis=0), axis=1)
+    radius = np.linalg.norm(corners - corners.mean(axis=0), axis=1).max()
+    return float(sides.max()), float(np.hypot(radius, spec.thickness_mm / 2))
 
 
-TRIANGLE = ShapeKind(_triangle, _triangle_check, lambda s: (s.length_mm, s.length_mm / np.sqrt(3)))
+TRIANGLE = ShapeKind(_triangle, _triangle_check, _triangle_extent, TriangleKeys)
 
 
 def _centre_heights(ctx):
@@ -57,14 +80,80 @@ CENTRE_HEIGHT = Descriptor(
 )
 
 
-class CoarseVoxel(VoxelKind):
-    """The voxel mesh under another name (a mesh kind the project does not have)."""
+@dataclass(frozen=True)
+class KuhnKeys(Parameters):
+    """The Kuhn mesher's own keys."""
 
-    name = "coarse_voxel"
-    doc = "hexahedra of the voxel image, from a plugin"
+    cube_mm: float = key(
+        1.0,
+        "mm",
+        "edge of the cubes of the labelled image, six tetrahedra each",
+        between(0.1, 20.0),
+    )
+    min_quality: float = key(0.3, "", "smallest accepted element quality (SICN)", between(0.0, 1.0))
 
 
-COARSE_VOXEL = CoarseVoxel()
+# A cube's corners in VTK hexahedron order split along its diagonal 0-6 into six
+# tetrahedra, one per order of the three axes (Kuhn's split): every cube cut alike, so
+# the faces of neighbouring cubes are cut alike and the tetrahedra conform.
+_KUHN = np.array(
+    [[0, 1, 2, 6], [0, 5, 1, 6], [0, 3, 7, 6], [0, 2, 3, 6], [0, 4, 5, 6], [0, 7, 4, 6]]
+)
+
+
+class KuhnTetrahedra(MeshKind):
+    """The chips' cubes of the labelled image, each split into six tetrahedra (a mesh kind
+    the project does not have: tetrahedra on a grid, no pore space)."""
+
+    name = "kuhn"
+    doc = "six tetrahedra to each cube of the chips' voxel image, from a plugin"
+    parameters = KuhnKeys
+    version = 1
+
+    def build(self, arrangement, scenario, scratch):
+        from chipstack.geometry.voxels import voxelize
+        from chipstack.meshing.boundaries import side_node_sets
+        from chipstack.meshing.image import tetra_sicn
+        from chipstack.meshing.mesh import VolumeMesh, element_attributes
+
+        spec = scenario.mesh
+        image = voxelize(arrangement, spec.cube_mm)
+        i, j, k = np.nonzero(image.labels)
+        corners = np.array([(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)] * 2)
+        corners[4:, 2] = 1  # the top face's corners in the bottom's order
+        nx, ny, nz = (n + 1 for n in image.labels.shape)
+        ids = ((i[:, None] + corners[:, 0]) * ny + j[:, None] + corners[:, 1]) * nz
+        ids += k[:, None] + corners[:, 2]
+        used, hexes = np.unique(ids, return_inverse=True)
+        hexes = hexes.reshape(-1, 8)
+        ui, rest = np.divmod(used, ny * nz)
+        points = np.column_stack([ui, *np.divmod(rest, nz)]) * spec.cube_mm + image.origin_mm
+        cells = hexes[:, _KUHN].reshape(-1, 4)
+        chip = np.repeat(image.labels[i, j, k].astype(np.int64) - 1, len(_KUHN))
+        mesh = VolumeMesh(
+            points=points,
+            cell_type="tetra",
+            cells=cells,
+            chip=chip,
+            **element_attributes(arrangement, chip, scenario.geometry.layer_mm),
+            quality=tetra_sicn(points, cells),
+            node_sets=side_node_sets(points),
+            n_chips=arrangement.n_chips,
+            kind=self.name,
+            info={"cube_mm": spec.cube_mm},
+        )
+        return Built(mesh)
+
+    def check(self, built, arrangement, scenario, surface_pairs):
+        thinnest = min(s.thickness_mm for s in arrangement.shapes)
+        tolerance = max(0.02, 0.25 * scenario.mesh.cube_mm / thinnest)
+        spec = scenario.mesh
+        return check_volume(
+            built.mesh, arrangement, surface_pairs(), spec.min_quality, tolerance, self.name
+        )
+
+
+KUHN = KuhnTetrahedra()
 
 
 class Crosswind(Effect):
