@@ -8,11 +8,25 @@ touching a file of the project (``tests/plugins`` holds one)."""
 from __future__ import annotations
 
 from collections.abc import Iterator
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
 
 from chipstack.core.errors import InputError
 
 T = TypeVar("T")
+
+
+class _Named:
+    """An entry declared by the ``module:attribute`` that holds it, imported when first
+    asked for: a registry of light declarations loads no numerical library."""
+
+    def __init__(self, target: str) -> None:
+        self.target = target
+
+    def load(self) -> Any:
+        import importlib
+
+        module, _, attribute = self.target.partition(":")
+        return getattr(importlib.import_module(module), attribute)
 
 
 class Registry(Generic[T]):
@@ -30,6 +44,11 @@ class Registry(Generic[T]):
             raise KeyError(f"{self.kind} {name!r} is already registered")
         self._items[name] = item
         return item
+
+    def register_named(self, name: str, target: str) -> None:
+        """Register ``name`` as the object at ``target`` (``"module:attribute"``), imported
+        the first time it is asked for (:meth:`names` and ``in`` do not import it)."""
+        self.register(name, _Named(target))  # type: ignore[arg-type]
 
     def _load_plugins(self) -> None:
         """Register what the installed packages declare in the entry-point group (once;
@@ -60,12 +79,15 @@ class Registry(Generic[T]):
         """The item called ``name``; ``key`` names the config key in the error message."""
         self._load_plugins()
         try:
-            return self._items[name]
+            item = self._items[name]
         except KeyError:
             where = f"{key}: " if key else ""
             raise InputError(
                 f"{where}unknown {self.kind} {name!r}; valid names: {', '.join(self.names())}"
             ) from None
+        if isinstance(item, _Named):
+            item = self._items[name] = item.load()
+        return item
 
     def names(self) -> list[str]:
         """The registered names, sorted (for messages and listings)."""

@@ -8,14 +8,13 @@ manager decides where the path is.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
-from chipstack.core.registry import Registry
 from chipstack.export.figure_kinds import FIGURES, FigureKind
 from chipstack.meshing.boundaries import FACET_TAGS, boundary_facets
+from chipstack.meshing.formats import MESH_FORMATS
 from chipstack.meshing.interfaces import find_interfaces
 from chipstack.meshing.mesh import PORE, VolumeMesh
 
@@ -40,19 +39,7 @@ MATERIALS = {
     "PORE": {"E": 2000.0, "nu": 0.35},
 }
 
-MESH_FORMATS: Registry[Callable[[Path, VolumeMesh], list[Path]]] = Registry(
-    "mesh format", "chipstack.mesh_formats"
-)
-
 log = logging.getLogger(__name__)
-
-
-def _format(name: str):
-    def wrap(function):
-        MESH_FORMATS.register(name, function)
-        return function
-
-    return wrap
 
 
 def to_meshio(mesh: VolumeMesh):
@@ -96,7 +83,6 @@ def interface_surface(mesh: VolumeMesh):
     )
 
 
-@_format("vtu")
 def write_vtu(path: Path, mesh: VolumeMesh) -> list[Path]:
     """VTK unstructured grid (binary, compressed) and a one-step .pvd beside it; the
     faces chips share as a surface mesh in ``<stem>_interfaces.vtu`` (cell data
@@ -131,7 +117,6 @@ def facets(mesh: VolumeMesh) -> dict[str, np.ndarray]:
     return {side: faces for side, faces in found.items() if len(faces)}
 
 
-@_format("msh")
 def write_msh(path: Path, mesh: VolumeMesh) -> list[Path]:
     """gmsh 4.1 (binary): one discrete volume and physical group per chip (tag k + 1,
     named chip_K) and one for the pores (tag n + 1, named pore); the boundary faces on each
@@ -190,7 +175,6 @@ def write_msh(path: Path, mesh: VolumeMesh) -> list[Path]:
     return [path]
 
 
-@_format("xdmf")
 def write_xdmf(path: Path, mesh: VolumeMesh) -> list[Path]:
     """XDMF with its heavy data in HDF5 (.h5 beside it), as FEniCS reads it; the facet
     tags (``facet_tag``: the domain's sides, values in ``FACET_TAGS``, and the faces each
@@ -245,7 +229,6 @@ def _write_rows(f, rows: np.ndarray, row_format: str, chunk: int = 65536) -> Non
         f.write((row_format * len(part)) % tuple(part.ravel().tolist()))
 
 
-@_format("inp")
 def write_inp(path: Path, mesh: VolumeMesh) -> list[Path]:
     """Abaqus / CalculiX input: nodes, elements, an element set and a material orientation
     per chip (local 1 along its first fibre direction, 2 along the second), node sets

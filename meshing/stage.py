@@ -156,7 +156,7 @@ class MeshFiles:
 
 def check_formats(formats: tuple[str, ...], key: str) -> None:
     """Refuse an empty list or an unknown mesh format, listing the valid ones."""
-    from chipstack.meshing.files import MESH_FORMATS  # numpy: when a scenario is checked
+    from chipstack.meshing.formats import MESH_FORMATS
 
     valid = ", ".join(MESH_FORMATS.names())
     if not formats:

@@ -1,4 +1,5 @@
-"""Chip shapes, registered by name.
+"""Chip shapes: their builders (declared and registered by name in
+:mod:`packing.shape_kinds`, which names these functions).
 
 A shape is geometry in the chip's own frame (mm): centred on its centre of mass, turned
 to its principal axes of inertia, with the chip's plane at local z = 0 for flat chips and
@@ -12,14 +13,10 @@ a fibre's axis along local x. It carries:
 * its fibre directions (unit vectors in its frame) and its inertia per unit mass.
 
 Builders take a :class:`ChipSpec`, a random generator (for random outlines) and a size
-factor (for size distributions), and are registered in ``SHAPES``.
+factor (for size distributions); ``SHAPES`` (re-exported here) names them.
 """
 
 from __future__ import annotations
-
-import math
-from collections.abc import Callable
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -31,18 +28,7 @@ from chipstack.core.chipshape import (
     spec_fibre_directions,
 )
 from chipstack.core.errors import InputError, printable
-from chipstack.core.registry import Registry
-from chipstack.core.schema import (
-    LENGTH_UNITS_MM,
-    MAX_LENGTH_MM,
-    ChipSpec,
-    KindChoice,
-    Parameters,
-    between,
-    key,
-    length,
-    one_of,
-)
+from chipstack.core.schema import MAX_LENGTH_MM, ChipSpec
 from chipstack.packing.polygons import (
     check_simple,
     convex_partition,
@@ -50,6 +36,13 @@ from chipstack.packing.polygons import (
     random_polygon,
     regular_polygon,
     star_polygon,
+)
+from chipstack.packing.shape_kinds import (
+    SHAPE_CHOICE,
+    SHAPES,
+    ShapeKind,
+    check_chip,
+    varies_per_chip,
 )
 from chipstack.packing.shapefiles import shape_from_file
 
@@ -248,178 +241,15 @@ def file_shape(spec: ChipSpec, rng: np.random.Generator | None = None, size: flo
     return shape_from_file(spec, size)
 
 
-Builder = Callable[[ChipSpec, "np.random.Generator | None", float], ChipShape]
-SizeCheck = Callable[[ChipSpec, str], None]
-
-
-def _thickness(doc: str = "thickness (local z)"):
-    return key(2.0, "mm", doc, length)
-
-
-@dataclass(frozen=True)
-class BoxKeys(Parameters):
-    length_mm: float = key(20.0, "mm", "length (local x)", length)
-    width_mm: float = key(20.0, "mm", "width (local y)", length)
-    thickness_mm: float = _thickness()
-
-
-@dataclass(frozen=True)
-class PolygonKeys(Parameters):
-    length_mm: float = key(20.0, "mm", "diameter of the circle through the corners", length)
-    thickness_mm: float = _thickness()
-    sides: int = key(6, "", "sides", between(3, 64))
-
-
-@dataclass(frozen=True)
-class StarKeys(Parameters):
-    length_mm: float = key(20.0, "mm", "diameter of the circle through the tips", length)
-    thickness_mm: float = _thickness()
-    sides: int = key(6, "", "points", between(3, 64))
-    inner_ratio: float = key(
-        0.5, "", "radius of the notches over the radius of the tips", between(0.05, 0.95)
-    )
-
-
-@dataclass(frozen=True)
-class RandomPolygonKeys(Parameters):
-    length_mm: float = key(20.0, "mm", "diameter of the circle the corners lie within", length)
-    thickness_mm: float = _thickness()
-    sides: int = key(6, "", "corners", between(3, 64))
-    convex: bool = key(True, "", "convex outline (else star-shaped)")
-    irregularity: float = key(
-        0.5,
-        "",
-        "non-convex: corner radii uniform in [1 - irregularity, 1] x radius",
-        between(0.0, 0.9),
-    )
-
-
-@dataclass(frozen=True)
-class SlenderKeys(Parameters):
-    length_mm: float = key(20.0, "mm", "length (local x, the fibres' direction)", length)
-    width_mm: float = key(20.0, "mm", "width (local y) of a box section", length)
-    thickness_mm: float = _thickness("thickness (local z) of a box section; a cylinder's diameter")
-    section: str = key("box", "", "cross-section `box` or `cylinder`", one_of("box", "cylinder"))
-
-
-@dataclass(frozen=True)
-class FileKeys(Parameters):
-    file: str = key("", "", "an STL, OBJ or PLY file (relative to the scenario file)", path=True)
-    units: str = key(
-        "mm",
-        "",
-        f"the length unit of the file's coordinates ({', '.join(LENGTH_UNITS_MM)})",
-        one_of(*LENGTH_UNITS_MM),
-    )
-
-
-@dataclass(frozen=True)
-class ShapeKind:
-    """One registered shape: how to build it, its own keys, which sizes make one, and how
-    big it is.
-
-    ``parameters`` is its own table of keys (a :class:`core.schema.Parameters`), read in
-    ``[chip]`` when ``shape`` names it; ``check(spec, key)`` refuses sizes that do not
-    make this shape (``key`` names the scenario table); ``extent(spec)`` is (largest
-    in-plane extent, circumradius) in mm of a chip of nominal size, used to check it fits
-    the target and clears the floor.
-    """
-
-    build: Builder
-    check: SizeCheck
-    extent: Callable[[ChipSpec], tuple[float, float]]
-    parameters: type[Parameters] = Parameters
-    varies_per_chip: bool = False  # a new outline for every chip
-    reads_file: bool = False  # built from a geometry file (a key declared with path)
-
-
-def _plate_check(spec: ChipSpec, key: str) -> None:
-    if spec.thickness_mm >= spec.length_mm:
-        raise InputError(f"{key}.thickness_mm: a chip must be thinner than it is across")
-
-
-def _box_check(spec: ChipSpec, key: str) -> None:
-    if spec.thickness_mm >= min(spec.length_mm, spec.width_mm):
-        raise InputError(f"{key}.thickness_mm: a chip must be thinner than it is long and wide")
-
-
-def _slender_check(spec: ChipSpec, key: str) -> None:
-    if spec.section == "box" and spec.width_mm > spec.length_mm:
-        raise InputError(f"{key}.width_mm: a {spec.shape} must not be wider than it is long")
-    if spec.section == "box" and spec.thickness_mm > spec.width_mm:
-        raise InputError(f"{key}.thickness_mm: a {spec.shape} must not be thicker than it is wide")
-    if spec.thickness_mm >= spec.length_mm:
-        raise InputError(f"{key}.thickness_mm: a {spec.shape} must be longer than it is thick")
-
-
-def _file_check(spec: ChipSpec, key: str) -> None:
-    if not spec.file:
-        raise InputError(f"{key}.file: give the geometry file of a `file` chip")
-
-
-def _rectangle_extent(spec: ChipSpec) -> tuple[float, float]:
-    width = spec.thickness_mm if getattr(spec, "section", "box") == "cylinder" else spec.width_mm
-    across = math.hypot(spec.length_mm, width)
-    return across, 0.5 * math.hypot(across, spec.thickness_mm)
-
-
-def _round_extent(spec: ChipSpec) -> tuple[float, float]:
-    return spec.length_mm, 0.5 * math.hypot(spec.length_mm, spec.thickness_mm)
-
-
-def _file_extent(spec: ChipSpec) -> tuple[float, float]:
-    shape = shape_from_file(spec)
-    across = 2 * float(np.linalg.norm(shape.vertices[:, :2], axis=1).max())
-    return across, shape.circumradius_mm
-
-
-SHAPES: Registry[ShapeKind] = Registry("shape", "chipstack.shapes")
-SHAPES.register("box", ShapeKind(box_shape, _box_check, _rectangle_extent, BoxKeys))
-SHAPES.register("polygon", ShapeKind(polygon_shape, _plate_check, _round_extent, PolygonKeys))
-SHAPES.register("star", ShapeKind(star_shape, _plate_check, _round_extent, StarKeys))
-SHAPES.register(
-    "random_polygon",
-    ShapeKind(
-        random_polygon_shape, _plate_check, _round_extent, RandomPolygonKeys, varies_per_chip=True
-    ),
-)
-SHAPES.register("beam", ShapeKind(_slender("beam"), _slender_check, _rectangle_extent, SlenderKeys))
-SHAPES.register(
-    "fibre", ShapeKind(_slender("fibre"), _slender_check, _rectangle_extent, SlenderKeys)
-)
-SHAPES.register("file", ShapeKind(file_shape, _file_check, _file_extent, FileKeys, reads_file=True))
-
-
-def _shape_parameters(kind: ShapeKind) -> type[Parameters]:
-    return getattr(kind, "parameters", Parameters)
-
-
-# How [chip] (and each [[mix]] table) chooses its shape: the packing stage declares it.
-SHAPE_CHOICE = KindChoice(
-    "shape", SHAPES.in_order, lambda name, key: SHAPES.get(name, key=key), _shape_parameters
-)
-
-
-def varies_per_chip(spec: ChipSpec) -> bool:
-    """Whether every chip of this spec gets its own outline (random polygons)."""
-    return spec.chosen.varies_per_chip
-
-
-def check_chip(spec: ChipSpec, key: str) -> tuple[float, float]:
-    """Refuse a chip spec that makes no chip (naming ``key``); returns its nominal
-    (largest in-plane extent, circumradius) in mm."""
-    kind = spec.chosen
-    kind.check(spec, key)
-    if spec.size_distribution != "fixed" and spec.size_spread == 0:
-        raise InputError(f"{key}.size_spread: a {spec.size_distribution} size needs a spread > 0")
-    return kind.extent(spec)
+beam_shape = _slender("beam")
+fibre_shape = _slender("fibre")
 
 
 def make_shape(
     spec: ChipSpec, rng: np.random.Generator | None = None, size: float = 1.0
 ) -> ChipShape:
     """Build the shape named by ``spec.shape`` from the registry."""
-    return spec.chosen.build(spec, rng, size)
+    return spec.chosen.builder(spec, rng, size)
 
 
 def shape_record(shape: ChipShape) -> dict:

@@ -15,6 +15,7 @@ from chipstack.core.stages import Stage, StageInputs, StageOutput
 from chipstack.packing.kinds import SCENARIO_KINDS, ChipExtent, kind_of_summary
 from chipstack.packing.presets import PRESETS
 from chipstack.packing.sections import SECTIONS
+from chipstack.packing.shape_kinds import SHAPE_CHOICE, check_chip
 
 if TYPE_CHECKING:
     from chipstack.core.stack import Stack
@@ -31,13 +32,7 @@ class PackingStage(Stage):
     progress_unit = "batch"
     checkpointed = True
 
-    @property
-    def kind_choices(self) -> dict[str, Any]:
-        """[chip] and [[mix]] choose a shape, each with its own keys (the shapes' module
-        holds their builders, numpy and all: imported when a scenario is read)."""
-        from chipstack.packing.shapes import SHAPE_CHOICE
-
-        return {"chip": SHAPE_CHOICE}
+    kind_choices = {"chip": SHAPE_CHOICE}  # [chip] and [[mix]]: the shape's own keys
 
     # What the stage runs, declares and reads follows the scenario-kind registry, so that
     # a kind from a plugin runs, and its own table is validated and in the cache key.
@@ -97,10 +92,6 @@ def check_packing(scenario: Scenario) -> None:
     """The scenario values the packing stage needs: its kind, the preset, chip shapes and
     sizes, and what the kind asks of them (chips that fit its target, container or belt
     and clear the floor at release)."""
-    from chipstack.packing.shapes import (
-        check_chip,  # numpy: when a scenario is checked, not at start
-    )
-
     kind = SCENARIO_KINDS.get(scenario.kind, key="kind")
     PRESETS.get(scenario.physics.preset, key="physics.preset")
     chips = []

@@ -12,7 +12,7 @@ from pathlib import Path
 from chipstack.core.schema import key_table_markdown
 from chipstack.core.stages import load_stages
 from chipstack.geometry.describe import DESCRIPTORS
-from chipstack.meshing.files import MESH_FORMATS
+from chipstack.meshing.formats import MESH_FORMATS
 from chipstack.packing.effects import EFFECTS
 from chipstack.packing.kinds import SCENARIO_KINDS
 from chipstack.packing.presets import PRESETS
@@ -61,7 +61,7 @@ def _keys(parameters: type) -> str:
 
 def shapes_markdown() -> str:
     rows = [
-        (n, _first_line(SHAPES.get(n).build.__doc__) + _keys(SHAPES.get(n).parameters))
+        (n, _first_line(SHAPES.get(n).builder.__doc__) + _keys(SHAPES.get(n).parameters))
         for n in SHAPES.in_order()
     ]
     return _table(("shape", "what it is"), rows)

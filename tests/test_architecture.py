@@ -290,12 +290,15 @@ def test_command_line_start_imports_no_heavy_library():
         "import chipstack.pipeline.cli, chipstack.core.stages\nchipstack.core.stages.load_stages()"
     )
     assert _heavy_imported(probe) == []
-    loaded = _heavy_imported(
-        "import chipstack.pipeline.run\n"
-        "from chipstack.pipeline.scenario_files import load_scenario\n"
-        "load_scenario('paper-squares')"
-    )
-    assert loaded == ["numpy"]  # the chip shapes are checked with numpy
+    # Reading and checking a scenario: the shapes' and mesh formats' declarations are
+    # light (their builders and writers are named by module, imported when used).
+    for name in ("paper-squares", "mixed-shapes", "single-chip-drop", "container-ar10"):
+        loaded = _heavy_imported(
+            "import chipstack.pipeline.run\n"
+            "from chipstack.pipeline.scenario_files import load_scenario\n"
+            f"load_scenario({name!r})"
+        )
+        assert loaded == [], (name, loaded)
 
 
 def test_every_scenario_table_is_in_some_stage_key():
@@ -391,7 +394,7 @@ def test_a_scenario_reads_replaces_and_pickles_its_tables():
     assert (changed.mesh.kind, changed.seed, scenario.mesh.kind) == ("voxel", 5, "conformal")
     assert pickle.loads(pickle.dumps(scenario)) == scenario
     assert hash(pickle.loads(pickle.dumps(scenario))) == hash(scenario)
-    with pytest.raises(TypeError, match="unknown table 'meshes'"):
+    with pytest.raises(TypeError, match="no table 'meshes' in a 'stack' scenario"):
         dataclasses.replace(scenario, meshes=MeshSpec())
     with pytest.raises(TypeError, match=r"\[mesh\] must be a MeshSpec"):
         Scenario(mesh=scenario.deposition)
@@ -531,3 +534,29 @@ def _imported_names(path: Path) -> set[str]:
         elif isinstance(node, ast.Import):
             names.update(a.name for a in node.names)
     return names
+
+
+# Registries whose declarations load no numerical library (their heavy parts named by
+# module and imported when used); the others still import theirs with the registry.
+LIGHT_REGISTRIES = (
+    "chipstack.core.stages:STAGES",
+    "chipstack.packing.shape_kinds:SHAPES",
+    "chipstack.packing.presets:PRESETS",
+    "chipstack.packing.kinds:SCENARIO_KINDS",
+    "chipstack.packing.files:STACK_WRITERS",
+    "chipstack.meshing.formats:MESH_FORMATS",
+    "chipstack.meshing.kinds:MESH_KINDS",
+    "chipstack.meshing.solve_models:SOLVE_MODELS",
+    "chipstack.export.figure_kinds:FIGURES",
+)
+
+
+@pytest.mark.parametrize("where", LIGHT_REGISTRIES)
+def test_light_registries_list_their_names_without_numerical_libraries(where):
+    module, _, name = where.partition(":")
+    code = f"from {module} import {name}\nassert {name}.names()"
+    assert _heavy_imported(code) == [], where
+
+
+def test_the_heavy_import_probe_sees_numpy():
+    assert _heavy_imported("import chipstack.packing.shapes") == ["numpy"]
