@@ -561,16 +561,20 @@ def _build_scenario(data: Mapping[str, Any]) -> Scenario:
         raise InputError(f"scenario: expected a table, got {type(data).__name__}")
     top = {f.name: f for f in dataclasses.fields(Scenario) if f.name != "tables"}
     every = {cls.table: cls for cls in sections()}
-    kind = data.get("kind", top["kind"].default)
-    tables = tables_of(kind) if isinstance(kind, str) else every
+    for key_ in data:  # a key nothing declares; then the kind; then another kind's table
+        if key_ not in top and key_ not in every:
+            raise _unknown(key_, [*top, *every], "")
+    kind = top["kind"].default
+    if "kind" in data:
+        kind = _value("kind", top["kind"], data["kind"])
+        _check_kind(kind)
+    tables = tables_of(kind)
     for key_ in data:
         if key_ in every and key_ not in tables:
             raise InputError(
-                f"{key_}: not a table of a {printable(kind)!r} scenario (kind); its tables: "
+                f"{key_}: not a table of a {kind!r} scenario (kind); its tables: "
                 f"{', '.join(tables)}"
             )
-        if key_ not in top and key_ not in tables:
-            raise _unknown(key_, [*top, *tables], "")
     values: dict[str, Any] = {}
     for name, f in top.items():
         if name == "chip":
@@ -584,10 +588,10 @@ def _build_scenario(data: Mapping[str, Any]) -> Scenario:
             values[name] = tuple(
                 _build(ChipSpec, item, f"{name}[{i}]") for i, item in enumerate(items)
             )
+        elif name == "kind":
+            values[name] = kind
         elif name in data:
             values[name] = _value(name, f, data[name])
-            if name == "kind":
-                _check_kind(values[name])
     for name, cls in tables.items():
         values[name] = _build(cls, data.get(name, {}), name)
     return Scenario(**values)

@@ -29,7 +29,7 @@ from scipy.spatial import ConvexHull
 
 from chipstack.core.chipshape import ChipShape
 from chipstack.core.errors import InputError
-from chipstack.core.registry import Registry
+from chipstack.packing.effect_kinds import EFFECTS
 
 __all__ = [
     "EFFECTS",
@@ -135,15 +135,6 @@ class FlightState:
     masses_g: np.ndarray
 
 
-EFFECTS: Registry[Effect] = Registry("effect", "chipstack.effects")
-
-
-def _register(cls: type[Effect]) -> type[Effect]:
-    EFFECTS.register(cls.name, cls())
-    return cls
-
-
-@_register
 class AirDrag(Effect):
     name = "air_drag"
     parameter = "air density over that of still air at 20 C"
@@ -228,7 +219,6 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     )
 
 
-@_register
 class ReleasePerturbation(Effect):
     name = "release_perturbation"
     parameter = "standard deviation of the chip's angular velocity about each axis at release"
@@ -342,7 +332,6 @@ def _inset(outline: np.ndarray, distance: float) -> np.ndarray:
     return np.array(corners)
 
 
-@_register
 class EdgeRounding(Effect):
     name = "edge_rounding"
     parameter = "radius of the rounded edges and corners"
@@ -376,7 +365,6 @@ class EdgeRounding(Effect):
         return _shape_from_pieces(shape, [points], f"{shape.name} rounded {r:.3g}")
 
 
-@_register
 class Warp(Effect):
     name = "warp"
     parameter = "bow of the chip: rise of its ends above its middle"
@@ -454,7 +442,6 @@ class _ContactCoefficient(Effect):
         return dataclasses.replace(model, **{self.field: strength})
 
 
-@_register
 class Friction(_ContactCoefficient):
     name = "friction"
     field = "friction"
@@ -468,7 +455,6 @@ class Friction(_ContactCoefficient):
     )
 
 
-@_register
 class Restitution(_ContactCoefficient):
     name = "restitution"
     field = "restitution"
@@ -482,7 +468,6 @@ class Restitution(_ContactCoefficient):
     )
 
 
-@_register
 class CompliantFloor(_ContactCoefficient):
     name = "compliant_floor"
     field = "floor_compliance_mm_n"
@@ -497,7 +482,6 @@ class CompliantFloor(_ContactCoefficient):
     )
 
 
-@_register
 class Vibration(Effect):
     name = "vibration"
     parameter = "upward speed of each tap given to the whole pile (10 taps after each batch)"
@@ -522,7 +506,6 @@ class Vibration(Effect):
         return True
 
 
-@_register
 class Cohesion(Effect):
     name = "cohesion"
     parameter = "pull-off force at each contact point between chips (sizing, moisture, static)"
@@ -642,6 +625,18 @@ def contact_model(preset, physics) -> ContactModel:
         friction=physics.friction if physics.friction >= 0 else preset.friction,
         restitution=physics.restitution if physics.restitution >= 0 else preset.restitution,
     )
+
+
+# The effects' objects; packing/effect_kinds.py registers them by name (in this order).
+AIR_DRAG = AirDrag()
+RELEASE_PERTURBATION = ReleasePerturbation()
+EDGE_ROUNDING = EdgeRounding()
+WARP = Warp()
+FRICTION = Friction()
+RESTITUTION = Restitution()
+COMPLIANT_FLOOR = CompliantFloor()
+VIBRATION = Vibration()
+COHESION = Cohesion()
 
 
 def check_effects(strengths: Mapping[str, float], kind: str, key: str = "effects") -> dict:

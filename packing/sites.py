@@ -15,8 +15,8 @@ from typing import ClassVar
 import numpy as np
 
 from chipstack.core.errors import InputError
-from chipstack.core.registry import Registry
 from chipstack.core.schema import Scenario
+from chipstack.packing.site_kinds import SITES
 
 __all__ = ["SITES", "Site", "SquareTarget", "Cylinder", "PourZone", "reaches_rim"]
 
@@ -204,11 +204,8 @@ class PourZone(SquareTarget):
         )
 
 
-SITES: Registry[Site] = Registry("deposition site", "chipstack.sites")
-for _kind, _site in (
-    ("stack", SquareTarget()),
-    ("drop", DropSite()),
-    ("container", Cylinder()),
-    ("conveyor", PourZone()),
-):
-    SITES.register(_kind, _site)
+# The sites' objects; packing/site_kinds.py registers them by scenario kind.
+SQUARE_TARGET = SquareTarget()
+DROP_SITE = DropSite()
+CYLINDER = Cylinder()
+POUR_ZONE = PourZone()

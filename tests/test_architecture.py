@@ -541,6 +541,8 @@ def _imported_names(path: Path) -> set[str]:
 LIGHT_REGISTRIES = (
     "chipstack.core.stages:STAGES",
     "chipstack.packing.shape_kinds:SHAPES",
+    "chipstack.packing.effect_kinds:EFFECTS",
+    "chipstack.packing.site_kinds:SITES",
     "chipstack.packing.presets:PRESETS",
     "chipstack.packing.kinds:SCENARIO_KINDS",
     "chipstack.packing.files:STACK_WRITERS",
