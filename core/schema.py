@@ -409,6 +409,7 @@ class Scenario:
                 value = f.default
             object.__setattr__(self, f.name, value)
         values.pop("_by_table", None)  # Scenario(**other.__dict__): derived from the tables
+        values.pop("_chosen", None)
         by_table = {table: cls() for table, cls in tables_of(self.kind).items()}
         # The tables of another kind are dropped when the kind changes (replace(kind=...)).
         given = {t.table: t for t in values.pop("tables", ()) if t.table in by_table}
@@ -435,6 +436,22 @@ class Scenario:
         if by_table is not None and name in by_table:
             return by_table[name]
         raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+
+    @property
+    def chosen(self) -> Any:
+        """The scenario kind ``kind`` names, resolved once (the packing stage declares the
+        kinds: ``Stage.scenario_choice``); callers ask it what it can do."""
+        chosen = self.__dict__.get("_chosen")
+        if chosen is None:
+            choice = next(
+                c for c in (getattr(s, "scenario_choice", None) for s in load_stages()) if c
+            )
+            chosen = choice.resolve(self.kind, "kind")
+            object.__setattr__(self, "_chosen", chosen)
+        return chosen
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {k: v for k, v in self.__dict__.items() if k != "_chosen"}
 
     @property
     def chips(self) -> tuple[ChipSpec, ...]:

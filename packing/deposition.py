@@ -43,7 +43,6 @@ from chipstack.packing.effects import (
 )
 from chipstack.packing.presets import PRESETS
 from chipstack.packing.shapes import ChipShape, make_shape, varies_per_chip
-from chipstack.packing.sites import SITES
 from chipstack.packing.world import GRAVITY_MM_S2, ChipWorld
 
 __all__ = [
@@ -160,7 +159,7 @@ def release_poses(
     for i, shape in enumerate(shapes):
         pose = _free_pose(scenario, shape, rng, boxes, zone_x_mm)
         if pose is None:
-            raise SITES.get(scenario.kind).no_room(scenario, n)
+            raise scenario.chosen.site.no_room(scenario, n)
         position, rotation, box = pose
         positions[i], quaternions[i] = position, rotation.as_quat()[0]
         boxes.add(*box)
@@ -238,7 +237,7 @@ def _release_point(
     scenario: Scenario, shape: ChipShape, rng: np.random.Generator, zone_x_mm: float = 0.0
 ):
     clearance = shape.circumradius_mm + 0.1  # no release pose may touch the floor
-    return SITES.get(scenario.kind).release_point(scenario, clearance, rng, zone_x_mm)
+    return scenario.chosen.site.release_point(scenario, clearance, rng, zone_x_mm)
 
 
 class _RestTracker:
@@ -373,7 +372,7 @@ def settle(
     moving at the cap are frozen where they are.
     """
     s = scenario.settling
-    site = SITES.get(scenario.kind)
+    site = scenario.chosen.site
     check_steps = max(1, round(CHECK_INTERVAL_S / scenario.physics.time_step_s))
     check_interval_s = check_steps * scenario.physics.time_step_s
     hold_checks = max(1, int(np.ceil(s.hold_time_s / check_interval_s)))
@@ -493,7 +492,7 @@ def _domain_mm(scenario: Scenario) -> float:
     """Twenty times the scenario's own size: a chip beyond has left the experiment."""
     d = scenario.deposition
     size = max(d.target_size_mm, max(d.release_height_mm))
-    size = max(size, SITES.get(scenario.kind).extent_mm(scenario))
+    size = max(size, scenario.chosen.site.extent_mm(scenario))
     return 20.0 * size
 
 
@@ -536,7 +535,7 @@ def deposit(
             f"deposition state: {state.batches_done} batches and {len(state.chip_batch)} "
             f"chips done, more than the scenario's {n_batches} batches of {d.chips} chips"
         )
-    pours = SITES.get(scenario.kind).pours_per_world
+    pours = scenario.chosen.site.pours_per_world
     if not scenario.settling.freeze:
         # A dynamic pile rebuilt from saved poses loses the solver's contact history and
         # sags (median 1.1 mm in 50 ms for rods 10 x 2 mm, measured): one world, start
@@ -555,7 +554,7 @@ def deposit(
 
 def _stack_of(scenario: Scenario, state: DepositionState) -> Stack:
     """The stack a finished deposition leaves, with a warning if a container is not full."""
-    site = SITES.get(scenario.kind)
+    site = scenario.chosen.site
     warnings = list(state.warnings)
     message = site.unfinished(scenario, state.full, len(state.chip_batch))
     if message is not None:
@@ -660,7 +659,7 @@ def _deposit_batches(
     """Release and settle the next ``pours`` batches (fewer once the last batch or, for a
     container, the rim is reached) in one world rebuilt from ``state``; returns the state
     after them."""
-    site = SITES.get(scenario.kind)
+    site = scenario.chosen.site
     work = _WorkingState.unpack(state)
     results = state.results
     batch, full = state.batches_done, False
@@ -705,7 +704,7 @@ def _rebuild_world(
 ) -> None:
     """The world as the previous batch left it: the container wall, the pile (frozen) and,
     once known, the compliant floor."""
-    SITES.get(scenario.kind).build(world, scenario)
+    scenario.chosen.site.build(world, scenario)
     for shape, p, q in zip(work.shapes_of, state.positions, state.quaternions, strict=True):
         chip = world.add_chip(shape, p, q)
         if scenario.settling.freeze:
@@ -867,7 +866,7 @@ def _batch_result(
         ),
         default=0.0,
     )
-    outside = SITES.get(scenario.kind).outside(scenario, positions)
+    outside = scenario.chosen.site.outside(scenario, positions)
     return BatchResult(
         batch=batch,
         positions=positions,

@@ -2,12 +2,12 @@
 runs, writes, reads back and reports for a ``stack``, ``container``, ``conveyor`` or
 ``drop`` scenario.
 
-The packing stage asks the scenario's kind (``SCENARIO_KINDS.get(scenario.kind)``) and
-never tests its name; a package adds a kind through the ``chipstack.scenario_kinds``
-entry-point group. A kind's own table (``[drop]``, ``[container]``, ``[conveyor]``) is a
-:class:`~core.schema.Section` of :mod:`packing.sections` with that kind in its ``kinds``;
-where its chips are released and what holds them is its deposition site
-(:mod:`packing.sites`).
+The packing stage asks the scenario's kind (``scenario.chosen``, resolved once when the
+scenario is made) and never tests its name; a package adds a kind through the
+``chipstack.scenario_kinds`` entry-point group. A kind's own table (``[drop]``,
+``[container]``, ``[conveyor]``) is a :class:`~core.schema.Section` of
+:mod:`packing.sections` with that kind in its ``kinds``; where its chips are released and
+what holds them is its deposition site (:mod:`packing.sites`, ``kind.site``).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple
 
 from chipstack.core.errors import InputError, brief
 from chipstack.core.registry import Registry
-from chipstack.core.schema import Scenario
+from chipstack.core.schema import KindChoice, Parameters, Scenario
 from chipstack.core.stages import StageInputs, StageOptions, StageOutput
 from chipstack.packing.files import (
     container_summary,
@@ -72,6 +72,13 @@ class ScenarioKind:
     summary_keys: ClassVar[frozenset[str]] = frozenset({"packing"})
     sections: ClassVar[tuple[type, ...]] = ()  # its own scenario tables (Section classes)
 
+    @property
+    def site(self):
+        """Where its chips are released and what holds them (:mod:`packing.sites`)."""
+        from chipstack.packing.site_kinds import SITES
+
+        return SITES.get(self.name, key="kind")
+
     def check_chip(self, scenario: Scenario, chip: ChipExtent) -> None:
         """Refuse a chip this kind cannot take (``InputError``), each as it is checked."""
 
@@ -113,6 +120,13 @@ class ScenarioKind:
 
 
 SCENARIO_KINDS: Registry[ScenarioKind] = Registry("scenario kind", "chipstack.scenario_kinds")
+# How the scenario's ``kind`` chooses its kind (the packing stage declares it).
+SCENARIO_CHOICE = KindChoice(
+    "scenario kind",
+    SCENARIO_KINDS.in_order,
+    lambda name, key: SCENARIO_KINDS.get(name, key=key),
+    lambda kind: Parameters,
+)
 
 
 def _register(cls: type[ScenarioKind]) -> type[ScenarioKind]:

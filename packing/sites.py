@@ -3,7 +3,7 @@ released, what holds them besides the floor, what counts as outside, and when a 
 over (a square target for ``stack``, a cylinder for ``container``, a pour zone over a
 belt for ``conveyor``; a ``drop`` has the bare floor).
 
-The deposition asks the scenario's site (``SITES.get(scenario.kind)``) and never tests
+The deposition asks the scenario's site (``scenario.chosen.site``) and never tests
 the kind's name; a package adds one through the ``chipstack.sites`` entry points, beside
 its scenario kind (:mod:`packing.kinds`).
 """

@@ -12,7 +12,7 @@ from chipstack.core.files import file_sha256
 from chipstack.core.provenance import code_versions
 from chipstack.core.schema import Scenario
 from chipstack.core.stages import Stage, StageInputs, StageOutput
-from chipstack.packing.kinds import SCENARIO_KINDS, ChipExtent, kind_of_summary
+from chipstack.packing.kinds import SCENARIO_CHOICE, SCENARIO_KINDS, ChipExtent, kind_of_summary
 from chipstack.packing.presets import PRESETS
 from chipstack.packing.sections import SECTIONS
 from chipstack.packing.shape_kinds import SHAPE_CHOICE, check_chip
@@ -33,6 +33,7 @@ class PackingStage(Stage):
     checkpointed = True
 
     kind_choices = {"chip": SHAPE_CHOICE}  # [chip] and [[mix]]: the shape's own keys
+    scenario_choice = SCENARIO_CHOICE  # ``kind``: the scenario kind (scenario.chosen)
 
     # What the stage runs, declares and reads follows the scenario-kind registry, so that
     # a kind from a plugin runs, and its own table is validated and in the cache key.
@@ -62,20 +63,20 @@ class PackingStage(Stage):
                     raise InputError(f"chip.{name} {path!r}: unreadable ({exc.strerror})") from None
                 files[path] = digest
         extra: dict[str, Any] = {"files": files, "versions": code_versions()}
-        extra.update(SCENARIO_KINDS.get(scenario.kind).key_extra(scenario, options))
+        extra.update(scenario.chosen.key_extra(scenario, options))
         return extra
 
     def compute(self, inputs: StageInputs) -> Any:
-        return SCENARIO_KINDS.get(inputs.scenario.kind).compute(inputs, self.name)
+        return inputs.scenario.chosen.compute(inputs, self.name)
 
     def write(self, result: Any, folder: Path, inputs: StageInputs) -> StageOutput:
-        return SCENARIO_KINDS.get(inputs.scenario.kind).write(result, folder, inputs)
+        return inputs.scenario.chosen.write(result, folder, inputs)
 
     def handoff(self, result: Any, scenario: Scenario) -> Any:
-        return SCENARIO_KINDS.get(scenario.kind).handoff(result)
+        return scenario.chosen.handoff(result)
 
     def load(self, folder: Path, scenario: Scenario) -> Stack | None:
-        return SCENARIO_KINDS.get(scenario.kind).load(folder, scenario)
+        return scenario.chosen.load(folder, scenario)
 
     def manifest_entry(self, summary: Mapping[str, Any]) -> dict[str, Any]:
         return dict(summary)  # packing (and container) or drop, at the top level
@@ -92,7 +93,7 @@ def check_packing(scenario: Scenario) -> None:
     """The scenario values the packing stage needs: its kind, the preset, chip shapes and
     sizes, and what the kind asks of them (chips that fit its target, container or belt
     and clear the floor at release)."""
-    kind = SCENARIO_KINDS.get(scenario.kind, key="kind")
+    kind = scenario.chosen
     PRESETS.get(scenario.physics.preset, key="physics.preset")
     chips = []
     for index, spec in enumerate(scenario.chips):
