@@ -138,7 +138,7 @@ class VolumePress(SolveModel):
             f"{stem}.inp",
             high[2] - low[2],
             scenario.solve,
-            scenario.mesh.periodic,
+            getattr(scenario.mesh, "periodic", False),
         )
 
     def forces(self, prints, press):

@@ -78,6 +78,8 @@ def stage_inputs(scenario: Scenario, options: StageOptions | None = None) -> dic
     data = scenario_to_dict(scenario)
     hashes: dict[str, str] = {}
     for stage in load_stages():
+        if scenario.kind not in stage.kinds:  # a stage that never runs on this kind
+            continue
         key: dict[str, Any] = {name: hashes[name] for name in stage.upstream}
         # A table of another scenario kind is not in the scenario (nor in the key).
         key.update({section: data[section] for section in stage.sections if section in data})
@@ -141,7 +143,9 @@ def run_pipeline(
             _run_stage(run, stage, keys[stage.name], StageInputs(scenario, options, result))
             times[stage.name] = round(time.perf_counter() - start, 3)
         for stage in load_stages()[len(wanted) :]:  # kept from an earlier run if still valid
-            if stage.name in run.stages and not run.reusable(stage.name, keys[stage.name]):
+            if stage.name in run.stages and (
+                stage.name not in keys or not run.reusable(stage.name, keys[stage.name])
+            ):
                 run.invalidate(stage.name)
         manifest = _staged_manifest(run, scenario, command, resolved, times, reused)
         manifest["started_utc"] = started

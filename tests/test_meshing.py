@@ -880,6 +880,7 @@ def test_line_contacts_kept_touching_fall_back_to_the_gap_when_the_mesh_fails(
     from chipstack.core.schema import Scenario
     from chipstack.meshing.kinds import MESH_KINDS
     from chipstack.meshing.resolution import separation_mm
+    from chipstack.meshing.sections import MeshSpec
 
     real, calls = conformal.conformal_mesh, []
 
@@ -891,7 +892,8 @@ def test_line_contacts_kept_touching_fall_back_to_the_gap_when_the_mesh_fails(
 
     monkeypatch.setattr(conformal, "conformal_mesh", failing_once)
     pair = arrange([((-9.99, 0.0, 1.0), 0.0), ((9.99, 0.0, 1.0), 0.0)])
-    built = MESH_KINDS.get("conformal").build(pair, Scenario(), tmp_path)
+    scenario = Scenario(mesh=MeshSpec(kind="conformal"))
+    built = MESH_KINDS.get("conformal").build(pair, scenario, tmp_path)
     assert calls[0] <= 1e-3 and 0.03 <= calls[1] <= 0.045  # touching, then cleared
     assert built.mesh.info["resolution"]["touching_lines_failed"] == "a sliver (test)"
     assert built.mesh.chip_volumes() == pytest.approx([800.0, 800.0], rel=1e-9)

@@ -394,7 +394,7 @@ def test_an_effect_in_a_set_of_three_or_more_is_not_said_to_explain_the_gap():
 
 
 def test_the_simulation_key_follows_only_what_a_drop_simulation_reads():
-    """Stored pools are found by the simulation key: a setting no drop reads (the mesh's,
+    """Stored pools are found by the simulation key: a setting no drop reads (the output's,
     the name) leaves it, so adding such a key keeps every table; one a drop reads (the
     physics, the chip, the seed its shape is drawn with) changes it."""
     from dataclasses import replace
@@ -404,7 +404,8 @@ def test_the_simulation_key_follows_only_what_a_drop_simulation_reads():
     s = load_scenario("single-chip-drop")
     key = simulation_key(s)
     assert len(key) == 16
-    unread = replace(s, name="other", mesh=replace(s.mesh, image_improve=not s.mesh.image_improve))
+    distance = s.output.contact_distance_mm
+    unread = replace(s, name="other", output=replace(s.output, contact_distance_mm=2 * distance))
     assert simulation_key(unread) == key
     assert simulation_key(replace(s, physics=replace(s.physics, friction=0.3))) != key
     assert simulation_key(replace(s, chip=replace(s.chip, length_mm=25.0))) != key
