@@ -120,29 +120,34 @@ def small_scenario(tmp_path: Path) -> Path:
 # The longest modules first, so that neither worker is left with a long one at the end
 # (``--dist loadfile`` keeps a module on one worker; ``--no-loadscope-reorder`` makes
 # xdist take this order instead of ordering modules by their number of tests). Seconds
-# of one worker, measured on 2026-11-26 (pytest 852 s on 2 cores).
+# of one worker in a whole run (pytest -n 2, 2 cores, both busy; 2026-11-29, on a loaded
+# machine: 2,066 s, about 1.85 times the 1,118 s of 2026-11-28); every module over 15 s
+# is listed, so that none of them comes last by default.
 _LONGEST_FIRST = (
-    "test_diagnosis.py",  # 262
-    "test_model_choice.py",  # about 200 (2026-11-28, beside a study)
-    "test_freezing.py",  # 179
-    "test_api.py",  # about 90 (2026-11-28, loaded machine)
-    "test_conveyor.py",  # 178
-    "test_paper_descriptors.py",  # 150
-    "test_resume.py",  # 104
-    "test_bad_input.py",  # 93
-    "test_meshing.py",  # 84
-    "test_image_mesh.py",  # 82
-    "test_validation.py",  # 81
-    "test_geometry_cli.py",  # 77
-    "test_sweep.py",  # 56
-    "test_execution.py",  # 49
-    "test_solve.py",  # 35
-    "test_architecture.py",  # 26
-    "test_resolve.py",  # 22
-    "test_plugins.py",  # 20
-    "test_figures.py",  # 15
-    "test_reliability.py",  # 13
-    "test_stack_diagnosis.py",  # 11
+    "test_image_mesh.py",  # 503
+    "test_meshing.py",  # 684 before the node moves' trials were batched (about 510 after)
+    "test_diagnosis.py",  # 355
+    "test_resume.py",  # 337
+    "test_freezing.py",  # 273
+    "test_bad_input.py",  # 240
+    "test_conveyor.py",  # 263 (about 235 with the short mat poured once)
+    "test_paper_descriptors.py",  # 219
+    "test_model_choice.py",  # 192
+    "test_validation.py",  # 163
+    "test_plugins.py",  # 109
+    "test_sweep.py",  # 99
+    "test_diagnosis_csv.py",  # 97
+    "test_geometry_cli.py",  # 82
+    "test_execution.py",  # 70
+    "test_contracts.py",  # 60
+    "test_api.py",  # 52
+    "test_solve.py",  # 50
+    "test_architecture.py",  # 48
+    "test_resolve.py",  # 31
+    "test_figures.py",  # 30
+    "test_reliability.py",  # 24
+    "test_stack_diagnosis.py",  # 23
+    "test_cli.py",  # 19
 )
 
 
