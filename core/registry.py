@@ -7,6 +7,7 @@ touching a file of the project (``tests/plugins`` holds one)."""
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Iterator
 from typing import Any, Generic, TypeVar
 
@@ -23,10 +24,16 @@ class _Named:
         self.target = target
 
     def load(self) -> Any:
-        import importlib
-
         module, _, attribute = self.target.partition(":")
         return getattr(importlib.import_module(module), attribute)
+
+
+class _Declared:
+    """An entry whose object the module ``module`` registers when it is imported (its
+    registry lists the name without importing it)."""
+
+    def __init__(self, module: str) -> None:
+        self.module = module
 
 
 class Registry(Generic[T]):
@@ -40,10 +47,17 @@ class Registry(Generic[T]):
         self._plugin_error: RuntimeError | None = None
 
     def register(self, name: str, item: T) -> T:
-        if name in self._items:
+        if name in self._items and not isinstance(self._items[name], _Declared):
             raise KeyError(f"{self.kind} {name!r} is already registered")
         self._items[name] = item
         return item
+
+    def declare(self, module: str, *names: str) -> None:
+        """Declare ``names`` (in this order), registered by ``module`` when it is imported:
+        the first :meth:`get` of one imports it (a module of light declarations lists
+        what a heavy one implements)."""
+        for name in names:
+            self.register(name, _Declared(module))  # type: ignore[arg-type]
 
     def register_named(self, name: str, target: str) -> None:
         """Register ``name`` as the object at ``target`` (``"module:attribute"``), imported
@@ -87,6 +101,11 @@ class Registry(Generic[T]):
             ) from None
         if isinstance(item, _Named):
             item = self._items[name] = item.load()
+        elif isinstance(item, _Declared):
+            importlib.import_module(item.module)
+            item = self._items[name]
+            if isinstance(item, _Declared):  # a packaging error, not user input
+                raise RuntimeError(f"{item.module} does not register {self.kind} {name!r}")
         return item
 
     def names(self) -> list[str]:

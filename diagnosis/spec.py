@@ -19,7 +19,6 @@ import numpy as np
 
 from chipstack.core.errors import InputError
 from chipstack.core.files import number, read_text
-from chipstack.core.registry import Registry
 from chipstack.core.schema import (
     MAX_LENGTH_MM,
     ChipSpec,
@@ -28,6 +27,7 @@ from chipstack.core.schema import (
     scenario_from_dict,
     scenario_to_dict,
 )
+from chipstack.diagnosis.experiment_kinds import EXPERIMENT_KINDS
 
 # The data model is re-exported: the diagnosis's readers and callers take it from here.
 from chipstack.diagnosis.model import (
@@ -585,9 +585,6 @@ class QuantityExperiment(ExperimentKind):
         )
 
 
-EXPERIMENT_KINDS: Registry[ExperimentKind] = Registry(
-    "experiment kind", "chipstack.experiment_kinds"
-)
 for _kind in (
     DropExperiment(),
     QuantityExperiment("stack", "stacks deposited per condition; contact and height figures"),

@@ -33,9 +33,9 @@ import numpy as np
 from scipy.stats import t as student_t
 
 from chipstack.core.errors import InputError
-from chipstack.core.registry import Registry
 from chipstack.core.schema import Scenario
 from chipstack.diagnosis.model import Experiment, QuantityData
+from chipstack.diagnosis.quantity_kinds import QUANTITY_MEASURES
 from chipstack.diagnosis.ranking import adjust_tests
 from chipstack.diagnosis.stack_effects import (
     BOOTSTRAP,
@@ -126,9 +126,6 @@ def _stack_quantities(scenario: Scenario, stack) -> dict:
 # How a deposition of each scenario kind is reduced to its quantities, looked up by the
 # scenario's kind (a plugin scenario kind would also need its quantities in QUANTITIES
 # and an experiment kind of its own).
-QUANTITY_MEASURES: Registry[Callable[[Scenario, object], dict]] = Registry(
-    "quantity measure", "chipstack.quantity_measures"
-)
 QUANTITY_MEASURES.register("stack", _stack_quantities)
 QUANTITY_MEASURES.register("container", _container_quantities)
 

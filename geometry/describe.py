@@ -20,7 +20,6 @@ import numpy as np
 
 from chipstack.core.arrangement import Arrangement
 from chipstack.core.errors import InputError
-from chipstack.core.registry import Registry
 from chipstack.export.tables import fmt
 from chipstack.export.vtk import write_voxel_image
 from chipstack.geometry.contacts import (
@@ -31,6 +30,7 @@ from chipstack.geometry.contacts import (
     contact_counts,
     find_contacts,
 )
+from chipstack.geometry.descriptor_kinds import DESCRIPTORS
 from chipstack.geometry.layers import LayerFilling, layer_filling, slab_fractions
 from chipstack.geometry.orientation import (
     fibre_directions_world,
@@ -169,9 +169,6 @@ class Descriptor:
     ensemble_scalars: tuple[str, ...] = ()
     headline: Callable[[dict[str, Any]], str | None] = _no_headline
     order: int = 100
-
-
-DESCRIPTORS: Registry[Descriptor] = Registry("descriptor", "chipstack.descriptors")
 
 
 def in_output_order(names) -> list[str]:

@@ -4,6 +4,7 @@ results byte-identical to those recorded before the stages became registered obj
 from __future__ import annotations
 
 import ast
+import importlib
 import json
 import re
 import subprocess
@@ -536,8 +537,8 @@ def _imported_names(path: Path) -> set[str]:
     return names
 
 
-# Registries whose declarations load no numerical library (their heavy parts named by
-# module and imported when used); the others still import theirs with the registry.
+# Every registry: its declarations load no numerical library (its heavy parts named by
+# module, or declared as registered by a module, and imported when first asked for).
 LIGHT_REGISTRIES = (
     "chipstack.core.stages:STAGES",
     "chipstack.packing.shape_kinds:SHAPES",
@@ -550,6 +551,9 @@ LIGHT_REGISTRIES = (
     "chipstack.meshing.kinds:MESH_KINDS",
     "chipstack.meshing.solve_models:SOLVE_MODELS",
     "chipstack.export.figure_kinds:FIGURES",
+    "chipstack.geometry.descriptor_kinds:DESCRIPTORS",
+    "chipstack.diagnosis.experiment_kinds:EXPERIMENT_KINDS",
+    "chipstack.diagnosis.quantity_kinds:QUANTITY_MEASURES",
 )
 
 
@@ -562,3 +566,24 @@ def test_light_registries_list_their_names_without_numerical_libraries(where):
 
 def test_the_heavy_import_probe_sees_numpy():
     assert _heavy_imported("import chipstack.packing.shapes") == ["numpy"]
+
+
+def test_every_registry_of_the_project_is_among_the_light_ones():
+    from chipstack.pipeline.reference import _registries
+
+    listed = set()
+    for where in LIGHT_REGISTRIES:
+        module, _, name = where.partition(":")
+        listed.add(id(getattr(importlib.import_module(module), name)))
+    missing = [r.kind for layer in _registries().values() for r in layer if id(r) not in listed]
+    assert not missing, f"registries not checked light: {missing}"
+
+
+def test_a_declared_entry_its_module_does_not_register_is_a_packaging_error():
+    from chipstack.core.registry import Registry
+
+    registry = Registry("widget")
+    registry.declare("chipstack.core.errors", "gadget")
+    assert registry.names() == ["gadget"]
+    with pytest.raises(RuntimeError, match="does not register widget 'gadget'"):
+        registry.get("gadget")
