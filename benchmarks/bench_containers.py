@@ -94,7 +94,7 @@ def scenario_hash(scenario) -> str:
     """A short hash of the scenario sections the packing stage depends on, seed excluded
     (the seed is in the cache file's name): a changed scenario never reuses a cached fill."""
     data = scenario_to_dict(scenario)
-    keyed = {k: data[k] for k in PACKING.sections if k != "seed"}
+    keyed = {k: data[k] for k in PACKING.sections if k != "seed" and k in data}
     text = json.dumps(keyed, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:10]
 

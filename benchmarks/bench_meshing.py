@@ -111,7 +111,8 @@ else:
     region = (-half, half, -half, half) if half > 0 else None
     from chipstack.meshing.kinds import pore_gap_mm
     from chipstack.meshing.sections import MeshSpec
-    gap = MeshSpec().gap_mm if pore == "none" else pore_gap_mm(MeshSpec(), arrangement)
+    conformal = MeshSpec(kind="conformal")
+    gap = conformal.gap_mm if pore == "none" else pore_gap_mm(conformal, arrangement)
     def attempt(touching):
         from chipstack.meshing.resolution import resolve_chips
         from chipstack.meshing.conformal import chips_near

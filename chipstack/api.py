@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 from chipstack.core.errors import InputError, brief, printable
 from chipstack.core.schema import MAX_SEED, Scenario
-from chipstack.pipeline.scenario_files import builtin_names, with_overrides
+from chipstack.pipeline.scenario_files import builtin_names, load_resolved, with_overrides
 from chipstack.pipeline.scenario_files import load_scenario as _load_file
 
 if TYPE_CHECKING:
@@ -260,7 +260,7 @@ class Run:
         """The resolved scenario the run used (``scenario.toml``)."""
         if self._given_scenario is not None:
             return self._given_scenario
-        return _load_file(self.path / "scenario.toml")
+        return load_resolved(self.path / "scenario.toml")
 
     @property
     def warnings(self) -> list[str]:

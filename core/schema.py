@@ -34,6 +34,8 @@ __all__ = [
     "sections",
     "scenario_from_dict",
     "scenario_to_dict",
+    "changed_data",
+    "kind_data",
     "key_table",
     "key",
     "printable",
@@ -161,12 +163,17 @@ class KindChoice:
     resolve: ``resolve(name, key)``, the object(s) the name stands for; an unknown name
         raises ``InputError`` naming ``key`` and listing the valid names.
     parameters: ``parameters(resolved)``, the chosen kind's parameter table.
+    follows: ``follows(tables)``, the kind's name from the scenario's other tables, when
+        no key of the file chooses it.
     """
 
     what: str
     names: Callable[[], Sequence[str]]
     resolve: Callable[[str, str], Any]
     parameters: Callable[[Any], type[Parameters]]
+    # The kind follows from the scenario's other tables (by name) instead of a key of the
+    # file: the solve model from [mesh]. The selector is then not written or read.
+    follows: Callable[[Mapping[str, Any]], str] | None = None
 
     def parameters_of(self, name: str, key: str) -> type[Parameters]:
         return self.parameters(self.resolve(name, key))
@@ -218,6 +225,11 @@ class KindKeys:
         kept = {}
         if given is not None:
             kept = {n: getattr(given, n) for n in parameter_fields(type(given)) if n in declared}
+        taken = (set(declared) & ({f.name for f in own} | set(dir(KindKeys)))) - {"check"}
+        if taken:  # a packaging error of the kind, not user input
+            raise TypeError(
+                f"{type(self).__name__}: kind keys {sorted(taken)} shadow the table's own"
+            )
         unknown = sorted(set(values) - set(declared))
         if unknown:
             raise TypeError(
@@ -262,12 +274,15 @@ class KindKeys:
         }
 
     def keys(self) -> dict[str, Any]:
-        """Every key of the table with its value, the kind's right after the selector."""
+        """Every key of the table with its value, the kind's right after the selector (a
+        selector that follows from other tables is not a key of the file)."""
+        derived = kind_choice(self.table).follows is not None
         out: dict[str, Any] = {}
         for f in dataclasses.fields(self):
             if f.name == "params":
                 continue
-            out[f.name] = getattr(self, f.name)
+            if not (derived and f.name == self.selector):
+                out[f.name] = getattr(self, f.name)
             if f.name == self.selector:
                 out.update(
                     {n: getattr(self.params, n) for n in parameter_fields(type(self.params))}
@@ -426,6 +441,11 @@ class Scenario:
                     f"got {type(value).__name__}"
                 )
             by_table[table] = value
+        for table, value in by_table.items():  # a kind that follows from other tables
+            if isinstance(value, KindKeys) and (follows := kind_choice(table).follows):
+                derived = follows(by_table)
+                if getattr(value, value.selector) != derived:
+                    by_table[table] = dataclasses.replace(value, **{value.selector: derived})
         object.__setattr__(self, "tables", tuple(by_table.values()))
         object.__setattr__(self, "_by_table", by_table)
 
@@ -518,19 +538,25 @@ def _unknown(key: Any, declared: Any, prefix: str) -> InputError:
     )
 
 
-def _build(cls: type, table: Mapping[str, Any], prefix: str) -> Any:
+def _build(
+    cls: type, table: Mapping[str, Any], prefix: str, tables: Mapping[str, Any] | None = None
+) -> Any:
     """A flat table (the chip, a section) from its TOML mapping; a table that chooses a
-    kind (:class:`KindKeys`) takes its own keys and the chosen kind's."""
+    kind (:class:`KindKeys`) takes its own keys and the chosen kind's (``tables``: the
+    scenario's tables built so far, which a kind that follows from them is read from)."""
     if not isinstance(table, Mapping):
         raise InputError(f"{prefix}: expected a table, got {type(table).__name__}")
     declared = {f.name: f for f in dataclasses.fields(cls) if f.name != "params"}
     values: dict[str, Any] = {}
     if issubclass(cls, KindKeys):
+        choice = kind_choice(cls.table)
         selector = declared[cls.selector]
-        if cls.selector in table:
+        if choice.follows is not None:
+            del declared[cls.selector]  # not a key of the file
+            values[cls.selector] = choice.follows(tables or {})
+        elif cls.selector in table:
             values[cls.selector] = _value(f"{prefix}.{cls.selector}", selector, table[cls.selector])
         kind = values.get(cls.selector, selector.default)
-        choice = kind_choice(cls.table)
         parameters = choice.parameters_of(kind, f"{prefix}.{cls.selector}")
         declared.update(parameter_fields(parameters))
         for key_ in table:
@@ -566,9 +592,10 @@ def _not_of_kind(
             continue
     if not owners:
         return _unknown(key_, declared, prefix)
+    follows = " (it follows from the scenario's other tables)" if choice.follows else ""
     return InputError(
         f"{prefix}.{printable(key_)}: a key of {choice.what} {', '.join(map(repr, owners))}, "
-        f"not of {kind!r}; keys of [{prefix}] with {choice.what} {kind!r}: "
+        f"not of {kind!r}{follows}; keys of [{prefix}] with {choice.what} {kind!r}: "
         f"{', '.join(sorted(declared))}"
     )
 
@@ -610,14 +637,14 @@ def _build_scenario(data: Mapping[str, Any]) -> Scenario:
         elif name in data:
             values[name] = _value(name, f, data[name])
     for name, cls in tables.items():
-        values[name] = _build(cls, data.get(name, {}), name)
+        values[name] = _build(cls, data.get(name, {}), name, values)
     return Scenario(**values)
 
 
 def _check_kind(kind: str) -> None:
     """The kinds the registered stages run (a stage's ``kinds``; the packing stage's come
     from the scenario-kind registry)."""
-    known = list(dict.fromkeys(k for stage in load_stages() for k in stage.kinds))
+    known = _known_kinds()
     if kind not in known:
         raise InputError(f"kind: must be one of {', '.join(map(repr, known))} (got {brief(kind)})")
 
@@ -698,10 +725,11 @@ def key_table() -> list[tuple[str, str, str, str]]:
         for g in dataclasses.fields(cls):
             if g.name == "params":
                 continue
-            rows.append(
-                (f"{prefix}.{g.name}", g.metadata["unit"], repr(g.default), g.metadata["doc"])
-            )
-            if issubclass(cls, KindKeys) and g.name == cls.selector:
+            chooses = issubclass(cls, KindKeys) and g.name == cls.selector
+            if not (chooses and kind_choice(cls.table).follows):  # else not a key of the file
+                doc = g.metadata["doc"]
+                rows.append((f"{prefix}.{g.name}", g.metadata["unit"], repr(g.default), doc))
+            if chooses:
                 rows += kind_rows(cls.table, prefix)
         return rows
 
@@ -756,3 +784,122 @@ def key_table_markdown() -> str:
         for key, unit, default, doc in key_table()
     ]
     return "\n".join(lines)
+
+
+def changed_data(scenario: Scenario, changes: Mapping[str, Any]) -> dict[str, Any]:
+    """The scenario's plain data (:func:`scenario_to_dict`) with dotted keys changed as a
+    scenario file would give them (``{"mesh.kind": "conformal", "mesh.size_mm": 1.0}``),
+    ready for :func:`scenario_from_dict`.
+
+    A change of a kind comes first: ``kind`` keeps only the new kind's tables, a table's
+    selector (``chip.shape``, ``mesh.kind``) only the table's own keys and those of the old
+    kind that the new one also declares. Every other key must be one the scenario (with
+    its new kinds) declares; an unknown one raises ``InputError`` naming it.
+    """
+    data = scenario_to_dict(scenario)
+    tables = {cls.table: cls for cls in sections()}
+    choosing = {"chip": ChipSpec, **{t: c for t, c in tables.items() if issubclass(c, KindKeys)}}
+    changes = dict(changes)
+
+    def plain(value: Any) -> Any:
+        return list(value) if isinstance(value, tuple) else value
+
+    if "kind" in changes:
+        data["kind"] = plain(changes.pop("kind"))
+        if isinstance(data["kind"], str) and data["kind"] in _known_kinds():
+            kept = tables_of(data["kind"])
+            data = {k: v for k, v in data.items() if k not in tables or k in kept}
+    declared: dict[str, set[str]] = {}
+    for table, cls in choosing.items():
+        if not isinstance(data.get(table), dict):
+            continue
+        own = {f.name for f in dataclasses.fields(cls)} - {"params"}
+        choice = kind_choice(table)
+        selector = f"{table}.{cls.selector}"
+        if choice.follows is not None:
+            own.discard(cls.selector)
+            declared[table] = own | {
+                n
+                for name in choice.names()
+                for n in parameter_fields(choice.parameters_of(name, table))
+            }
+            continue
+        if selector in changes:
+            kind = plain(changes.pop(selector))
+            keys = parameter_fields(choice.parameters_of(kind, selector))  # unknown: refused
+            data[table] = {k: v for k, v in data[table].items() if k in own or k in keys} | {
+                cls.selector: kind
+            }
+        kind = data[table].get(cls.selector, cls.selector)
+        declared[table] = own | set(parameter_fields(choice.parameters_of(kind, selector)))
+    for key_, value in changes.items():
+        section, _, name = str(key_).rpartition(".")
+        table = data.get(section) if section else data
+        known = declared.get(section, set(table) if isinstance(table, dict) else set())
+        if not isinstance(table, dict) or name not in known:
+            raise InputError(f"{printable(key_)}: no such scenario key (see docs/scenarios.md)")
+        if isinstance(table.get(name), float) and type(value) is int:
+            value = float(value)
+        table[name] = plain(value)
+    if data.get("mix"):
+        data.pop("chip", None)
+    else:
+        data.pop("mix", None)
+    return data
+
+
+def _known_kinds() -> list[str]:
+    return list(dict.fromkeys(k for stage in load_stages() for k in stage.kinds))
+
+
+def kind_data(data: Mapping[str, Any]) -> dict[str, Any]:
+    """A resolved scenario's data (``scenario.toml`` of a run directory) with what its
+    kinds do not hold dropped: the tables of other scenario kinds and, in a table that
+    chooses a kind, the keys of other kinds. Resolved files written before kinds owned
+    their keys held every key of every kind, each with no effect on the run; a scenario
+    file a user writes is not read this way (there, such a key is refused)."""
+    out = dict(data)
+    kind = out.get("kind", "stack")
+    if isinstance(kind, str) and kind in _known_kinds():
+        kept = tables_of(kind)
+        every = {cls.table for cls in sections()}
+        out = {k: v for k, v in out.items() if k not in every or k in kept}
+    choosing = {"chip": ChipSpec, "mix": ChipSpec}
+    choosing |= {c.table: c for c in sections() if issubclass(c, KindKeys)}
+
+    def trim(cls: type, table: Any) -> Any:
+        if not isinstance(table, Mapping):
+            return table
+        choice = kind_choice(cls.table)
+        own = {f.name for f in dataclasses.fields(cls)} - {"params"}
+        if choice.follows is not None:  # every model's keys may be there: the build decides
+            return {k: v for k, v in table.items() if k != cls.selector}
+        name = table.get(cls.selector, dataclasses.fields(cls)[0].default)
+        try:
+            keys = parameter_fields(choice.parameters_of(name, f"{cls.table}.{cls.selector}"))
+        except InputError:
+            return table  # an unknown kind: refused when the scenario is built
+        return {k: v for k, v in table.items() if k in own or k in keys}
+
+    for table, cls in choosing.items():
+        if table == "mix" and isinstance(out.get("mix"), list):
+            out["mix"] = [trim(cls, item) for item in out["mix"]]
+        elif table in out:
+            out[table] = trim(cls, out[table])
+    for table, cls in choosing.items():  # a kind that follows from other tables
+        choice = kind_choice(cls.table) if table != "mix" else None
+        if choice is None or choice.follows is None or not isinstance(out.get(table), Mapping):
+            continue
+        try:
+            built = {
+                t: _build(c, out.get(t, {}), t)
+                for t, c in choosing.items()
+                if t != table and t != "mix" and isinstance(out.get(t), Mapping)
+            }
+            name = choice.follows(built)
+            keys = parameter_fields(choice.parameters_of(name, f"{table}.{cls.selector}"))
+        except InputError:
+            continue  # refused when the scenario is built
+        own = {f.name for f in dataclasses.fields(cls)} - {"params", cls.selector}
+        out[table] = {k: v for k, v in out[table].items() if k in own or k in keys}
+    return out

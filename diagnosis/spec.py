@@ -173,6 +173,10 @@ def _experiment(data: dict, base: Path, load_scenario) -> Experiment:
             scenario = scenario_from_dict(merged, str(base))
         except InputError as exc:
             raise InputError(str(exc)) from None
+    if scenario is not None and behaviour.scenario_kind not in (None, scenario.kind):
+        # A base of another kind (a stack's chip dropped): the experiment's kind, with its
+        # own tables, before the conditions read them.
+        scenario = dataclasses.replace(scenario, kind=behaviour.scenario_kind)
     measurement = _table(
         data.get("measurement", {}), "measurement", {"position_sd_mm", "angle_sd_deg"}
     )

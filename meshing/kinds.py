@@ -580,7 +580,16 @@ def crop_region(scenario: Scenario) -> tuple[float, float, float, float] | None:
 for _kind in (VoxelKind(), ConformalKind(), ImageKind(), ContactKind()):
     MESH_KINDS.register(_kind.name, _kind)
 
-_UNIONS: dict[tuple[type, ...], type[Parameters]] = {}
+
+@dataclass(frozen=True)
+class VoxelKeysAndConformalKeys(ConformalKeys, VoxelKeys):
+    """The keys of ``both``: the voxel mesh's and the conformal mesh's (a class of this
+    module, so that a scenario holding it pickles)."""
+
+
+_UNIONS: dict[tuple[type, ...], type[Parameters]] = {
+    (VoxelKeys, ConformalKeys): VoxelKeysAndConformalKeys
+}
 
 
 def _parameters(kinds: list[MeshKind]) -> type[Parameters]:
@@ -590,7 +599,10 @@ def _parameters(kinds: list[MeshKind]) -> type[Parameters]:
         return own[0]
     if own not in _UNIONS:  # one class per combination: tables made twice compare equal
         name = "And".join(cls.__name__ for cls in own)
-        _UNIONS[own] = make_dataclass(name, [], bases=own[::-1], frozen=True)
+        union = make_dataclass(name, [], bases=own[::-1], frozen=True)
+        union.__module__ = __name__
+        globals()[name] = union  # found by name: a scenario with it pickles
+        _UNIONS[own] = union
     return _UNIONS[own]
 
 

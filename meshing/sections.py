@@ -12,6 +12,7 @@ from chipstack.core.schema import KindKeys, Parameters, Section, between, key, o
 __all__ = [
     "ConformalKeys",
     "ContactKeys",
+    "ContactPressKeys",
     "CropKeys",
     "ImageKeys",
     "MeshSpec",
@@ -201,17 +202,9 @@ class MeshSpec(Section, KindKeys):
 
 
 @dataclass(frozen=True)
-class SolveSpec(Section):
-    """The compaction the solve stage runs on the contact model (see docs/solve.md)."""
+class ContactPressKeys(Parameters):
+    """The contact press's own keys (the contact model's chips, pairs and springs)."""
 
-    table: ClassVar[str] = "solve"
-
-    press_fraction: float = key(
-        0.05,
-        "",
-        "the top platen moves down this fraction of the stack's height",
-        between(1e-4, 0.5),
-    )
     friction: float = key(
         0.3, "", "Coulomb friction between chips and on the platens", between(0, 2)
     )
@@ -229,6 +222,29 @@ class SolveSpec(Section):
         "per chip)",
         between(0.0, 1e3),
     )
+
+
+@dataclass(frozen=True, init=False)
+class SolveSpec(Section, KindKeys):
+    """The compaction the solve stage runs (see docs/solve.md): the press, and the keys of
+    the solve model that presses the mesh ``[mesh]`` asks for (the model follows from the
+    mesh kind; it is not a key of the file)."""
+
+    table: ClassVar[str] = "solve"
+    selector: ClassVar[str] = "model"
+
+    model: str = key(
+        "contact",
+        "",
+        "the solve model, set by [mesh]: `contact` for the contact model, `volume` for a "
+        "box with its pore space, `none` when nothing presses the mesh",
+    )
+    press_fraction: float = key(
+        0.05,
+        "",
+        "the top platen moves down this fraction of the stack's height",
+        between(1e-4, 0.5),
+    )
     increments: int = key(
         20, "", "the press is applied in at least this many increments", between(1, 10000)
     )
@@ -236,3 +252,5 @@ class SolveSpec(Section):
         7200.0, "s", "stop the solver after this wall time", between(1.0, 1e6)
     )
     threads: int = key(0, "", "solver threads (0: one per core)", between(0, 256))
+    # The solve model's own keys (its ``parameters``).
+    params: Parameters = field(default=None, metadata={"doc": "the solve model's own keys"})

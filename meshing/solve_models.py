@@ -13,10 +13,13 @@ import json
 import logging
 import shutil
 from pathlib import Path
+from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any
 
 from chipstack.core.errors import InputError
 from chipstack.core.registry import Registry
+from chipstack.core.schema import KindChoice, Parameters
+from chipstack.meshing.sections import ContactPressKeys
 
 if TYPE_CHECKING:
     import numpy as np
@@ -24,7 +27,7 @@ if TYPE_CHECKING:
     from chipstack.core.schema import Scenario
     from chipstack.core.stages import StageInputs
 
-__all__ = ["SolveModel", "SOLVE_MODELS", "solve_model"]
+__all__ = ["SolveModel", "SOLVE_MODELS", "SOLVE_CHOICE", "pressing_model", "solve_model"]
 
 log = logging.getLogger(__name__)
 
@@ -34,6 +37,8 @@ class SolveModel:
 
     name: str = ""
     needs: str = ""  # what it needs, for the message when nothing accepts a scenario
+    # Its own keys in [solve] (a core.schema.Parameters dataclass), beside the press's.
+    parameters: type[Parameters] = Parameters
 
     def accepts(self, scenario: Scenario) -> bool:
         """Whether this model can press what ``[mesh]`` asks for."""
@@ -59,13 +64,42 @@ class SolveModel:
 SOLVE_MODELS: Registry[SolveModel] = Registry("solve model", "chipstack.solve_models")
 
 
-def solve_model(scenario: Scenario) -> SolveModel:
-    """The model that presses the scenario's mesh; refused in one line when none can."""
-    for kind in scenario.mesh.chosen:
+NO_SOLVE = "none"  # [solve]'s model when nothing presses the mesh
+
+
+def pressing_model(tables) -> str:
+    """The name of the model that presses the mesh ``tables["mesh"]`` asks for: the first
+    of its kinds' models that accepts it, else :data:`NO_SOLVE`."""
+    mesh = tables.get("mesh")
+    if mesh is None:
+        return NO_SOLVE
+    for kind in mesh.chosen:
         for name in kind.solve_models:
-            model = SOLVE_MODELS.get(name)
-            if model.accepts(scenario):
-                return model
+            if SOLVE_MODELS.get(name).accepts(SimpleNamespace(mesh=mesh)):
+                return name
+    return NO_SOLVE
+
+
+def _resolve(name: str, key: str) -> SolveModel | None:
+    return None if name == NO_SOLVE else SOLVE_MODELS.get(name, key=key)
+
+
+# How [solve] gets its model's keys: the model follows from [mesh] (the solve stage
+# declares it).
+SOLVE_CHOICE = KindChoice(
+    "solve model",
+    lambda: [*SOLVE_MODELS.in_order(), NO_SOLVE],
+    _resolve,
+    lambda model: Parameters if model is None else getattr(model, "parameters", Parameters),
+    follows=pressing_model,
+)
+
+
+def solve_model(scenario: Scenario) -> SolveModel:
+    """The model that presses the scenario's mesh (``solve.chosen``, resolved when the
+    scenario was made); refused in one line when none can."""
+    if scenario.solve.chosen is not None:
+        return scenario.solve.chosen
     needs = " or ".join(SOLVE_MODELS.get(n).needs for n in SOLVE_MODELS.in_order())
     raise InputError(
         f"--to solve: needs {needs}; mesh.kind is {scenario.mesh.kind!r}, "
@@ -78,6 +112,7 @@ class ContactPress(SolveModel):
 
     name = "contact"
     needs = "the contact model (mesh.kind = 'contact')"
+    parameters = ContactPressKeys
 
     def accepts(self, scenario):
         return any(self.name in kind.solve_models for kind in scenario.mesh.chosen)

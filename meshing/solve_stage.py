@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 from chipstack.core.schema import Scenario
 from chipstack.core.stages import Stage, StageInputs, StageOutput
 from chipstack.meshing.sections import SolveSpec
-from chipstack.meshing.solve_models import solve_model
+from chipstack.meshing.solve_models import SOLVE_CHOICE, solve_model
 from chipstack.packing.kinds import stack_kinds
 
 # The solver's driver, readers and writers are imported where used: every command-line
@@ -53,6 +53,7 @@ class SolveStage(Stage):
     upstream = ("mesh",)
     sections = ("solve",)
     owned_sections = (SolveSpec,)
+    kind_choices = {"solve": SOLVE_CHOICE}  # [solve]: the pressing model's own keys
     kinds = property(lambda self: stack_kinds())  # the kinds whose stack goes on
     in_ensembles = False
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 import importlib
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from chipstack.core.errors import InputError
@@ -109,6 +109,23 @@ class FileKeys(Parameters):
 
 
 @dataclass(frozen=True)
+class LegacyShapeKeys(Parameters):
+    """The keys every shape had before each declared its own: what a shape from a plugin
+    that declares none reads."""
+
+    length_mm: float = key(20.0, "mm", "length (local x), or the outline's diameter", length)
+    width_mm: float = key(20.0, "mm", "width (local y)", length)
+    thickness_mm: float = _thickness()
+    sides: int = key(6, "", "sides, points or corners of an outline", between(3, 64))
+    inner_ratio: float = key(
+        0.5, "", "a star's notch radius over its tip radius", between(0.05, 0.95)
+    )
+    convex: bool = key(True, "", "convex outline (else star-shaped)")
+    irregularity: float = key(0.5, "", "corner radii spread (non-convex)", between(0.0, 0.9))
+    section: str = key("box", "", "cross-section `box` or `cylinder`", one_of("box", "cylinder"))
+
+
+@dataclass(frozen=True)
 class ShapeKind:
     """One registered shape: how to build it, its own keys, which sizes make one, and how
     big it is.
@@ -123,9 +140,15 @@ class ShapeKind:
     build: Builder | str  # or "module:function", imported when the first chip is built
     check: SizeCheck
     extent: Callable[[ChipSpec], tuple[float, float]]
-    parameters: type[Parameters] = Parameters
     varies_per_chip: bool = False  # a new outline for every chip
     reads_file: bool = False  # built from a geometry file (a key declared with path)
+    # Its own keys; a shape declared before shapes owned their keys reads the keys every
+    # shape then had (LegacyShapeKeys).
+    parameters: type[Parameters] = field(default=None)  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        if self.parameters is None:
+            object.__setattr__(self, "parameters", LegacyShapeKeys)
 
     @property
     def builder(self) -> Builder:
@@ -182,30 +205,41 @@ def _file_extent(spec: ChipSpec) -> tuple[float, float]:
 
 SHAPES: Registry[ShapeKind] = Registry("shape", "chipstack.shapes")
 _BUILDERS = "chipstack.packing.shapes"  # numpy and the polygon code: imported when used
-SHAPES.register("box", ShapeKind(f"{_BUILDERS}:box_shape", _box_check, _rectangle_extent, BoxKeys))
 SHAPES.register(
-    "polygon", ShapeKind(f"{_BUILDERS}:polygon_shape", _plate_check, _round_extent, PolygonKeys)
+    "box", ShapeKind(f"{_BUILDERS}:box_shape", _box_check, _rectangle_extent, parameters=BoxKeys)
 )
-SHAPES.register("star", ShapeKind(f"{_BUILDERS}:star_shape", _plate_check, _round_extent, StarKeys))
+SHAPES.register(
+    "polygon",
+    ShapeKind(f"{_BUILDERS}:polygon_shape", _plate_check, _round_extent, parameters=PolygonKeys),
+)
+SHAPES.register(
+    "star", ShapeKind(f"{_BUILDERS}:star_shape", _plate_check, _round_extent, parameters=StarKeys)
+)
 SHAPES.register(
     "random_polygon",
     ShapeKind(
         f"{_BUILDERS}:random_polygon_shape",
         _plate_check,
         _round_extent,
-        RandomPolygonKeys,
+        parameters=RandomPolygonKeys,
         varies_per_chip=True,
     ),
 )
 SHAPES.register(
-    "beam", ShapeKind(f"{_BUILDERS}:beam_shape", _slender_check, _rectangle_extent, SlenderKeys)
+    "beam",
+    ShapeKind(f"{_BUILDERS}:beam_shape", _slender_check, _rectangle_extent, parameters=SlenderKeys),
 )
 SHAPES.register(
-    "fibre", ShapeKind(f"{_BUILDERS}:fibre_shape", _slender_check, _rectangle_extent, SlenderKeys)
+    "fibre",
+    ShapeKind(
+        f"{_BUILDERS}:fibre_shape", _slender_check, _rectangle_extent, parameters=SlenderKeys
+    ),
 )
 SHAPES.register(
     "file",
-    ShapeKind(f"{_BUILDERS}:file_shape", _file_check, _file_extent, FileKeys, reads_file=True),
+    ShapeKind(
+        f"{_BUILDERS}:file_shape", _file_check, _file_extent, parameters=FileKeys, reads_file=True
+    ),
 )
 
 

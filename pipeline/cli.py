@@ -12,7 +12,7 @@ import logging
 import os
 import sys
 
-from chipstack.core.errors import ChipstackError, printable
+from chipstack.core.errors import ChipstackError, InputError, printable
 from chipstack.core.schema import MAX_DROPS, MAX_REPEATS, MAX_SEED, MAX_WORKERS
 from chipstack.core.stages import check_stage_name, stage_names
 
@@ -294,6 +294,8 @@ def _run(args: argparse.Namespace) -> None:
 
         formats = tuple(f.strip() for f in args.formats.split(",") if f.strip())
         check_formats(formats, "--formats")
+        if "mesh" not in {t.table for t in scenario.tables}:
+            raise InputError(f"--formats: a {scenario.kind} scenario is not meshed")
         scenario = dataclasses.replace(
             scenario, mesh=dataclasses.replace(scenario.mesh, formats=formats)
         )

@@ -115,7 +115,10 @@ def mesh_kinds_markdown() -> str:
 def solve_models_markdown() -> str:
     from chipstack.meshing.solve_models import SOLVE_MODELS
 
-    rows = [(n, _first_line(type(SOLVE_MODELS.get(n)).__doc__)) for n in SOLVE_MODELS.in_order()]
+    rows = [
+        (n, _first_line(type(model).__doc__) + _keys(model.parameters))
+        for n, model in ((n, SOLVE_MODELS.get(n)) for n in SOLVE_MODELS.in_order())
+    ]
     return _table(("solve model", "what it presses"), rows)
 
 

@@ -11,7 +11,14 @@ from typing import Any
 
 from chipstack.core.errors import InputError
 from chipstack.core.files import read_text
-from chipstack.core.schema import Scenario, printable, scenario_from_dict, scenario_to_dict
+from chipstack.core.schema import (
+    Scenario,
+    changed_data,
+    kind_data,
+    printable,
+    scenario_from_dict,
+    scenario_to_dict,
+)
 
 __all__ = ["BUILTIN", "builtin_names", "load_scenario", "dumps_toml", "with_overrides"]
 
@@ -51,27 +58,23 @@ def load_scenario(source: str | Path | None) -> Scenario:
     return _parse(text, shown, str(path.resolve().parent))
 
 
+def load_resolved(path: str | Path) -> Scenario:
+    """The resolved scenario of a run directory (its ``scenario.toml``): read as
+    :func:`load_scenario` reads a file, but without the keys and tables of other kinds
+    that the files of earlier versions held (:func:`core.schema.kind_data`)."""
+    shown = printable(path)
+    text = read_text(Path(path), "scenario file", MAX_SCENARIO_BYTES)
+    return _parse(text, shown, str(Path(path).resolve().parent), kind_data)
+
+
 def with_overrides(scenario: Scenario, overrides: Mapping[str, Any]) -> Scenario:
     """``scenario`` with the dotted keys of ``overrides`` changed (``{"deposition.chips":
-    60}``), every value checked as if written in the file; an unknown key is refused,
-    naming it."""
-    data = json.loads(json.dumps(scenario_to_dict(scenario)))  # a deep copy of plain values
-    for key, value in overrides.items():
-        section, _, name = str(key).rpartition(".")
-        table = data.get(section) if section else data
-        if not isinstance(table, dict) or name not in table:
-            raise InputError(f"{printable(key)}: no such scenario key (see docs/scenarios.md)")
-        if isinstance(table[name], float) and type(value) is int:
-            value = float(value)
-        table[name] = list(value) if isinstance(value, tuple) else value
-    if data.get("mix"):
-        data.pop("chip", None)
-    else:
-        data.pop("mix", None)
-    return scenario_from_dict(data)
+    60}``, ``{"mesh.kind": "conformal", "mesh.size_mm": 1.0}``), every value checked as if
+    written in the file; an unknown key is refused, naming it."""
+    return scenario_from_dict(changed_data(scenario, overrides))
 
 
-def _parse(text: str, origin: str, base_dir: str | None) -> Scenario:
+def _parse(text: str, origin: str, base_dir: str | None, prepare=None) -> Scenario:
     if not text.strip():
         raise InputError(f"{origin}: the scenario file is empty")
     try:
@@ -81,7 +84,7 @@ def _parse(text: str, origin: str, base_dir: str | None) -> Scenario:
     except RecursionError:
         raise InputError(f"{origin}: malformed TOML: arrays or tables nested too deeply") from None
     try:
-        return scenario_from_dict(data, base_dir)
+        return scenario_from_dict(prepare(data) if prepare else data, base_dir)
     except InputError as exc:
         raise InputError(f"{origin}: {exc}") from None
 

@@ -14,7 +14,7 @@ from chipstack.core.files import read_json, read_text
 from chipstack.core.schema import MAX_LENGTH_MM, Scenario, printable
 from chipstack.export.tables import POSE_COLUMNS
 from chipstack.packing.shapes import make_shape, shape_from_record, varies_per_chip
-from chipstack.pipeline.scenario_files import load_scenario
+from chipstack.pipeline.scenario_files import load_resolved
 
 __all__ = ["load_run"]
 
@@ -44,7 +44,7 @@ def load_run(run_dir: str | Path) -> tuple[Scenario, list[Arrangement], dict]:
     scenario_path = run / "scenario.toml"
     if not scenario_path.is_file():
         raise InputError(f"{shown}: no scenario.toml; the packing result cannot be read")
-    scenario = load_scenario(str(scenario_path))
+    scenario = load_resolved(scenario_path)
     if not scenario.chosen.later_stages:  # a conveyor's stack: its panel
         raise InputError(
             f"{shown}: a {scenario.kind} run has no stack to describe (see its manifest)"

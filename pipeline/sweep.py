@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from chipstack.core.errors import InputError, brief, printable
-from chipstack.core.schema import Scenario, scenario_from_dict, scenario_to_dict
+from chipstack.core.schema import Scenario, changed_data, scenario_from_dict
 from chipstack.pipeline.rundir import write_atomically
 from chipstack.pipeline.scenario_files import dumps_toml
 
@@ -88,7 +88,6 @@ def sweep_points(
 ) -> list[tuple[dict[str, Any], Scenario]]:
     """Every point of the grid: (its values, its validated scenario). Any value the
     scenario refuses is refused here, before anything runs, naming the key."""
-    base = scenario_to_dict(scenario)
     for key, _ in vary:
         if scenario.mix and key.startswith("chip."):
             raise InputError(
@@ -100,22 +99,14 @@ def sweep_points(
         raise InputError(f"--vary: {len(grid)} points, more than {MAX_POINTS}")
     for combination in grid:
         values = dict(zip([key for key, _ in vary], combination, strict=True))
-        data = json.loads(json.dumps(base))  # a deep copy of plain values
-        for key, value in values.items():
-            section, _, name = key.rpartition(".")
-            table = data.get(section) if section else data
-            if not isinstance(table, dict) or name not in table:
-                raise InputError(
-                    f"--vary {printable(key)}: no such scenario key (see docs/scenarios.md; "
-                    "e.g. conveyor.belt_speed_mm_s)"
+        try:
+            data = changed_data(scenario, values)
+        except InputError as exc:  # an unknown key: named with an example
+            raise InputError(
+                f"--vary {exc}".replace(
+                    "see docs/scenarios.md", "see docs/scenarios.md; e.g. conveyor.belt_speed_mm_s"
                 )
-            if isinstance(table[name], float) and isinstance(value, int):
-                value = float(value)
-            table[name] = value
-        if data.get("mix"):
-            data.pop("chip", None)
-        else:
-            data.pop("mix", None)
+            ) from None
         try:
             points.append((values, scenario_from_dict(data)))
         except InputError as exc:

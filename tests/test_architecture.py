@@ -307,7 +307,8 @@ def test_every_scenario_table_is_in_some_stage_key():
     from chipstack.core.schema import Scenario, scenario_to_dict
 
     declared = {section for stage in load_stages() for section in stage.sections}
-    assert set(scenario_to_dict(Scenario())) - {"name"} <= declared
+    for kind in dict.fromkeys(k for stage in load_stages() for k in stage.kinds):
+        assert set(scenario_to_dict(Scenario(kind=kind))) - {"name"} <= declared, kind
 
 
 def test_each_stage_owns_its_scenario_tables():
@@ -587,3 +588,82 @@ def test_a_declared_entry_its_module_does_not_register_is_a_packaging_error():
     assert registry.names() == ["gadget"]
     with pytest.raises(RuntimeError, match="does not register widget 'gadget'"):
         registry.get("gadget")
+
+
+def test_overrides_and_sweeps_change_a_kind_with_the_new_kinds_keys():
+    """A change of a kind (``mesh.kind``, ``chip.shape``, ``kind``) keeps only what the
+    new kind has (the old kind's keys that it also declares), takes the new kind's keys,
+    and refuses a key no kind of the scenario declares, naming it."""
+    from chipstack.core.errors import InputError
+    from chipstack.pipeline.scenario_files import load_scenario, with_overrides
+    from chipstack.pipeline.sweep import sweep_points
+
+    base = load_scenario("paper-squares")
+    conformal = with_overrides(base, {"mesh.kind": "conformal", "mesh.size_mm": 1.0})
+    assert (conformal.mesh.kind, conformal.mesh.size_mm) == ("conformal", 1.0)
+    assert conformal.mesh.pore_space == base.mesh.pore_space  # a key both kinds declare
+    star = with_overrides(base, {"chip.shape": "star", "chip.sides": 5})
+    assert (star.chip.sides, star.chip.length_mm) == (5, base.chip.length_mm)
+    assert with_overrides(base, {"kind": "drop"}).tables[-1].table == "drop"
+    pressed = with_overrides(base, {"mesh.kind": "contact", "solve.friction": 0.1})
+    assert (pressed.solve.model, pressed.solve.friction) == ("contact", 0.1)
+    with pytest.raises(InputError, match=r"^chip\.sides: no such scenario key"):
+        with_overrides(base, {"chip.sides": 5})  # a box has none
+    with pytest.raises(InputError, match=r"^solve\.friction: a key of solve model 'contact'"):
+        with_overrides(base, {"solve.friction": 0.1})  # nothing presses a voxel mesh alone
+    points = sweep_points(base, [("mesh.kind", ["voxel", "conformal"])])
+    assert [p.mesh.kind for _, p in points] == ["voxel", "conformal"]
+
+
+def test_a_resolved_scenario_of_an_earlier_version_loads_from_its_run_directory(tmp_path):
+    """Run directories written before kinds owned their keys hold every key of every kind
+    and every kind's tables; read from a run directory they load as the scenario they
+    ran (a scenario file a user writes is held to its kinds' keys)."""
+    from chipstack.core.errors import InputError
+    from chipstack.pipeline.scenario_files import dumps_toml, load_resolved, load_scenario
+
+    for name in ("paper-squares", "single-chip-drop", "paper-volume"):
+        scenario = load_scenario(name)
+        text = dumps_toml(scenario)
+        text = text.replace("[chip]\n", '[chip]\nsides = 6\ninner_ratio = 0.5\nfile = ""\n')
+        text += "\n[container]\nradius_mm = 25.0\n"
+        if "[mesh]" in text:
+            text = text.replace("[mesh]\n", '[mesh]\nsize_mm = 1.5\nelement = "C3D8I"\n')
+            text = text.replace("[solve]\n", "[solve]\nspring_n_mm = 0.001\n")
+        old = tmp_path / f"{name}.toml"
+        old.write_text(text)
+        assert load_resolved(old) == scenario, name
+        with pytest.raises(InputError):
+            load_scenario(old)
+
+
+def test_a_shape_that_declares_no_keys_reads_the_keys_every_shape_had():
+    """A plugin's shape written before shapes declared their keys (no ``parameters``)
+    reads the keys all shapes then shared (length, width, thickness, sides, ...)."""
+    from chipstack.core.schema import scenario_from_dict
+    from chipstack.packing.shape_kinds import SHAPES, LegacyShapeKeys, ShapeKind
+
+    built = SHAPES.get("box")
+    SHAPES.register("old_box", ShapeKind(built.build, built.check, built.extent))
+    try:
+        assert SHAPES.get("old_box").parameters is LegacyShapeKeys
+        chip = scenario_from_dict(
+            {"chip": {"shape": "old_box", "length_mm": 30.0, "sides": 4}}
+        ).chip
+        assert (chip.length_mm, chip.width_mm, chip.sides) == (30.0, 20.0, 4)
+    finally:
+        SHAPES._items.pop("old_box")
+
+
+def test_a_scenario_meshed_both_ways_pickles_into_a_fresh_process(tmp_path):
+    import pickle
+
+    from chipstack.core.schema import scenario_from_dict
+
+    path = tmp_path / "both.pkl"
+    path.write_bytes(pickle.dumps(scenario_from_dict({"mesh": {"kind": "both"}})))
+    code = (
+        f"import pickle; s = pickle.loads(open({str(path)!r}, 'rb').read()); print(s.mesh.size_mm)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == 0 and out.stdout.strip() == "1.5", out.stderr

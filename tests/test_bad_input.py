@@ -124,6 +124,14 @@ BAD_SCENARIOS = {
         '[mesh]\nkind = "both"\ncrop = "target"\npore_space = "box"\nperiodic = true\n',
         "mesh.periodic: the voxel mesh only (mesh.kind is 'both'",
     ),
+    "the contact press's key for a voxel volume": (
+        '[mesh]\nkind = "voxel"\npore_space = "box"\n[solve]\nfriction = 0.2\n',
+        "solve.friction: a key of solve model 'contact', not of 'volume'",
+    ),
+    "a table of another scenario kind": (
+        "[conveyor]\nbelt_speed_mm_s = 5.0\n",
+        "conveyor: not a table",
+    ),
     "a voxel key for the contact model": (
         '[mesh]\nkind = "contact"\nvoxel_mm = 1.0\n',
         "mesh.voxel_mm: a key of mesh kind 'voxel', 'both', not of 'contact'",

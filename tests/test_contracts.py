@@ -237,7 +237,7 @@ def _kind_tables() -> dict[str, object]:
     return {t: c for stage in load_stages() for t, c in stage.kind_choices.items()}
 
 
-TABLE_OF_REGISTRY = {"shape": "chip", "mesh kind": "mesh"}
+TABLE_OF_REGISTRY = {"shape": "chip", "mesh kind": "mesh", "solve model": "solve"}
 
 
 def _kind_params() -> list:
@@ -256,6 +256,22 @@ def test_every_registry_whose_kinds_a_table_chooses_is_in_the_kit():
     for registry, table in TABLE_OF_REGISTRY.items():
         names = set(_kind_tables()[table].names())
         assert set(REGISTRIES[registry].names()) <= names, registry
+
+
+def _scenario_giving(table: str, name: str) -> dict:
+    """Scenario tables whose kind of ``table`` follows as ``name`` (the solve model from
+    the mesh): each mesh kind, alone and with its pore space, the first that gives it."""
+    from chipstack.core.schema import scenario_from_dict
+
+    for kind in REGISTRIES["mesh kind"].in_order():
+        pores = [{}] + (
+            [{"pore_space": "box"}] if REGISTRIES["mesh kind"].get(kind).takes("pore_space") else []
+        )
+        for extra in pores:
+            data = {"mesh": {"kind": kind, **extra}, table: {}}
+            if getattr(scenario_from_dict(data), table).model == name:
+                return data
+    raise AssertionError(f"no mesh gives {table} kind {name!r}")
 
 
 def _bad_values(f) -> list:
@@ -297,8 +313,12 @@ def test_every_kind_with_keys_refuses_each_bad_value_and_round_trips(tmp_path, t
     from chipstack.pipeline.scenario_files import dumps_toml
 
     choice = _kind_tables()[table]
-    selector = {"chip": "shape", "mesh": "kind"}[table]
-    base = {table: {selector: name}}
+    if choice.follows is None:  # a key of the table chooses the kind
+        selector = {"chip": "shape", "mesh": "kind"}[table]
+        base = {table: {selector: name}}
+    else:  # the kind follows from the other tables: the first mesh that gives it
+        selector = "model"
+        base = _scenario_giving(table, name)
     keys = parameter_fields(choice.parameters_of(name, f"{table}.{selector}"))
     if any(f.metadata.get("path") for f in keys.values()):  # a file key: a 10 x 10 x 2 box
         path = tmp_path / "chip.obj"
@@ -313,14 +333,16 @@ def test_every_kind_with_keys_refuses_each_bad_value_and_round_trips(tmp_path, t
     assert scenario_from_dict(tomllib.loads(text)) == scenario
     written = tomllib.loads(text)[table]
     own = {f.name for f in dataclasses.fields(type(getattr(scenario, table)))} - {"params"}
+    if choice.follows is not None:
+        own.discard(selector)  # not a key of the file
     assert set(written) == own | set(keys), sorted(written)
     for key_, f in keys.items():
         for value in _bad_values(f):
             with pytest.raises(InputError, match=rf"^{table}\.{key_}(\[\d+\])?: ") as refused:
-                scenario_from_dict({table: {**base[table], key_: value}})
+                scenario_from_dict({**base, table: {**base[table], key_: value}})
             assert "\n" not in str(refused.value)
     with pytest.raises(InputError, match=rf"^{table}\.no_such_key: unknown key"):
-        scenario_from_dict({table: {**base[table], "no_such_key": 1}})
+        scenario_from_dict({**base, table: {**base[table], "no_such_key": 1}})
 
 
 @pytest.mark.parametrize("name", names("effect"))
@@ -334,7 +356,7 @@ def test_every_effect_refuses_a_strength_out_of_its_prior_and_a_kind_it_does_not
     for bad in (hi + (hi - lo) + 1, "strong"):
         with pytest.raises(InputError, match=rf"^effects\.{name}: "):
             check_effects({name: bad}, effect.kinds[0])
-    other = [k for k in ("drop", "stack", "container", "conveyor") if k not in effect.kinds]
+    other = [k for k in REGISTRIES["scenario kind"].in_order() if k not in effect.kinds]
     if other:
         with pytest.raises(InputError, match=rf"^effects\.{name}: effect acts on"):
             check_effects({name: (lo + hi) / 2}, other[0])

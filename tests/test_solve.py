@@ -205,7 +205,10 @@ def test_a_contact_model_round_trips_through_its_archive(tmp_path):
 
 def test_solve_refuses_a_model_it_cannot_run(tmp_path):
     scenario = tmp_path / "one.toml"
-    scenario.write_text(ONE_CHIP.replace('kind = "contact"', 'kind = "voxel"'))
+    # A voxel mesh without its pore space: nothing presses it, so [solve] holds the press's
+    # keys only (the contact press's friction and stiffness would be refused by name).
+    voxel = ONE_CHIP.replace('kind = "contact"', 'kind = "voxel"')
+    scenario.write_text(voxel.replace("friction = 0.0\ncontact_stiffness_mpa_mm = 1e6\n", ""))
     result = run_cli("run", str(scenario), "--to", "solve", "--out", str(tmp_path / "run"))
     assert result.returncode == 2
     assert result.stderr.strip().splitlines() == [

@@ -64,7 +64,7 @@ def _triangle_extent(spec):
     return float(sides.max()), float(np.hypot(radius, spec.thickness_mm / 2))
 
 
-TRIANGLE = ShapeKind(_triangle, _triangle_check, _triangle_extent, TriangleKeys)
+TRIANGLE = ShapeKind(_triangle, _triangle_check, _triangle_extent, parameters=TriangleKeys)
 
 
 def _centre_heights(ctx):
