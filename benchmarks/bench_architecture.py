@@ -122,7 +122,8 @@ def main() -> None:
             "kinds chosen by a table that declare keys of their own",
             own,
             "",
-            f"of {total} (shapes; mesh kinds with `both`; solve models with `none`: `volume` and `none` read the press's keys only)",
+            f"of {total} (shapes; mesh kinds with `both`; solve models with `none`: "
+            "`volume` and `none` read the press's keys only)",
         ),
     ]
     for name, value, unit, note in figures:
