@@ -46,11 +46,13 @@ STEADY_DRIFT = 0.1  # a steady part whose thickness drifts more than this is fla
 
 class ChipExtent(NamedTuple):
     """One chip spec's size, grown by its size spread: its key (``chip``, ``mix[i]``),
-    how far it reaches across (mm) and its circumradius (mm)."""
+    how far it reaches across (mm), its circumradius (mm) and the key that sets its size
+    (``chip.length_mm``; a file chip's ``chip.file``)."""
 
     key: str
     across_mm: float
     radius_mm: float
+    size_key: str = ""
 
 
 class ScenarioKind:
@@ -175,7 +177,7 @@ class StackKind(ScenarioKind):
         d = scenario.deposition
         if chip.across_mm > d.target_size_mm:
             raise InputError(
-                f"{chip.key}.length_mm: the chip ({chip.across_mm:.1f} mm across) is larger "
+                f"{chip.size_key or chip.key}: the chip ({chip.across_mm:.1f} mm across) is larger "
                 f"than the target (deposition.target_size_mm = {d.target_size_mm:g} mm)"
             )
 
@@ -271,8 +273,8 @@ class ContainerKind(StackKind):
         wide = 2 * scenario.container.radius_mm
         if chip.across_mm > wide:
             raise InputError(
-                f"{chip.key}.length_mm: the chip ({chip.across_mm:.1f} mm) is longer than the "
-                f"container is wide (2 x container.radius_mm = {wide:g} mm)"
+                f"{chip.size_key or chip.key}: the chip ({chip.across_mm:.1f} mm) is longer than "
+                f"the container is wide (2 x container.radius_mm = {wide:g} mm)"
             )
 
     def check(self, scenario: Scenario, chips: list[ChipExtent]) -> None:

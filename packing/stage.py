@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any
 from chipstack.core.errors import InputError
 from chipstack.core.files import file_sha256
 from chipstack.core.provenance import code_versions
-from chipstack.core.schema import Scenario
+from chipstack.core.schema import Scenario, parameter_fields
 from chipstack.core.stages import Stage, StageInputs, StageOutput
 from chipstack.packing.kinds import SCENARIO_CHOICE, SCENARIO_KINDS, ChipExtent, kind_of_summary
 from chipstack.packing.presets import PRESETS
@@ -100,6 +100,9 @@ def check_packing(scenario: Scenario) -> None:
         key = f"mix[{index}]" if scenario.mix else "chip"
         across, radius = check_chip(spec, key)
         grow = 1 + spec.size_spread if spec.size_distribution == "uniform" else 1.0
-        chips.append(ChipExtent(key, across * grow, radius * grow))
+        # The key that sets its size: its length, else its geometry file, else its shape.
+        sized = "length_mm" if "length_mm" in parameter_fields(type(spec.params)) else None
+        sized = sized or next(iter(spec.paths()), "shape")
+        chips.append(ChipExtent(key, across * grow, radius * grow, f"{key}.{sized}"))
         kind.check_chip(scenario, chips[-1])
     kind.check(scenario, chips)
