@@ -25,9 +25,20 @@ from typing import Any
 
 import numpy as np
 
+from chipstack.core.arrangement import arrangements_from_stack
 from chipstack.core.errors import InputError
+from chipstack.core.overlap import vertex_heights_mm
 from chipstack.core.schema import MAX_DROPS, MAX_REPEATS, printable
-from chipstack.pipeline.run import derive_seed
+from chipstack.export.figures import plot_drops, render_stack
+from chipstack.export.vtk import stack_polydata
+from chipstack.geometry.contacts import find_contacts
+from chipstack.packing import deposit
+from chipstack.packing.drop import drop_chips
+from chipstack.packing.files import container_summary
+from chipstack.packing.scatter import drop_statistics
+from chipstack.packing.shapes import shape_from_record, shape_record
+from chipstack.pipeline.execution import Executor
+from chipstack.pipeline.run import compute_run, derive_seed, write_run
 from chipstack.pipeline.rundir import RunDirectory
 from chipstack.pipeline.scenario_files import load_scenario
 
@@ -48,9 +59,6 @@ MEASURED = {"container AR 25": 18.0, "container AR 10": 37.0}
 
 
 def _drop_task(scenario) -> dict:
-    from chipstack.packing.drop import drop_chips
-    from chipstack.packing.scatter import drop_statistics
-
     drops = drop_chips(scenario)
     stats = drop_statistics(drops.positions[:, :2], scenario.drop.yaw_deg)
     stats["xy"] = drops.positions[:, :2].tolist()
@@ -58,12 +66,6 @@ def _drop_task(scenario) -> dict:
 
 
 def _mat_task(scenario) -> dict:
-    from chipstack.core.arrangement import arrangements_from_stack
-    from chipstack.core.overlap import vertex_heights_mm
-    from chipstack.geometry.contacts import find_contacts
-    from chipstack.packing import deposit
-    from chipstack.packing.shapes import shape_record
-
     stack = deposit(scenario)
     arrangement = arrangements_from_stack(stack)[-1]
     g = scenario.geometry
@@ -90,15 +92,10 @@ def _mat_task(scenario) -> dict:
 
 
 def _container_task(scenario) -> dict:
-    from chipstack.packing import deposit
-    from chipstack.packing.files import container_summary
-
     return container_summary(deposit(scenario), scenario)
 
 
 def _mixed_task(scenario):
-    from chipstack.pipeline.run import compute_run
-
     return compute_run(scenario, "geometry", None)
 
 
@@ -194,7 +191,6 @@ def _run(
     progress: Callable[[int, int], None] | None,
 ) -> tuple[dict[str, list], list[str]]:
     """Run the tasks on the execution layer: results by key, and one line per failure."""
-    from chipstack.pipeline.execution import Executor
 
     results: dict[str, list] = {}
     errors: list[str] = []
@@ -259,8 +255,6 @@ def _rows(results: dict[str, list], folder: Path, seed: int) -> list[dict[str, A
 
 def _drop_rows(runs: list[dict], folder: Path) -> list[dict[str, Any]]:
     """Fig. 15: the scatter of the single-chip drops, per experiment and pooled."""
-    from chipstack.export.figures import plot_drops
-    from chipstack.packing.scatter import drop_statistics
 
     first = runs[0]
     plot_drops(folder / "fig15_drops.png", np.array(first["xy"]), first)
@@ -354,7 +348,6 @@ def _container_row(runs: list[dict], label: str) -> dict[str, Any]:
 
 def _mixed_row(result, folder: Path) -> dict[str, Any]:
     """Fig. 18: the mixed stack written as a run (described, meshed and rendered)."""
-    from chipstack.pipeline.run import write_run
 
     run = RunDirectory(folder / "mixed", overwrite=True)
     with run:
@@ -371,9 +364,6 @@ def _mixed_row(result, folder: Path) -> dict[str, Any]:
 def _mat_figure(path: Path, run: dict) -> None:
     """Fig. 16: the fibre mat rendered (pyvista, off screen); skipped with a warning if no
     renderer is available."""
-    from chipstack.export.figures import render_stack
-    from chipstack.export.vtk import stack_polydata
-    from chipstack.packing.shapes import shape_from_record
 
     shape = shape_from_record(run["shape"], "fibre-mat run")
     positions = np.array(run["positions"])
