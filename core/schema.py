@@ -178,6 +178,17 @@ class KindChoice:
     def parameters_of(self, name: str, key: str) -> type[Parameters]:
         return self.parameters(self.resolve(name, key))
 
+    @classmethod
+    def of_registry(cls, registry: Any) -> KindChoice:
+        """The kinds of ``registry`` (a :class:`core.registry.Registry`), each with its
+        ``parameters`` (none declared: no keys of its own)."""
+        return cls(
+            registry.kind,
+            registry.in_order,
+            lambda name, key: registry.get(name, key=key),
+            lambda kind: getattr(kind, "parameters", Parameters),
+        )
+
 
 def kind_choice(table: str) -> KindChoice:
     """The :class:`KindChoice` a registered stage declares for ``table``."""
@@ -191,6 +202,21 @@ def kind_choice(table: str) -> KindChoice:
 def parameter_fields(cls: type) -> dict[str, dataclasses.Field]:
     """The declared keys of a :class:`Parameters` table, by name, in order."""
     return {f.name: f for f in dataclasses.fields(cls)}
+
+
+def _set_fields(obj: Any, values: dict[str, Any], skip: str) -> list[dataclasses.Field]:
+    """Set a frozen dataclass's fields (but ``skip``) from ``values`` (popping what it
+    takes) or their defaults, for a custom ``__init__``; returns the fields set."""
+    fields = [f for f in dataclasses.fields(obj) if f.name != skip]
+    for f in fields:
+        if f.name in values:
+            value = values.pop(f.name)
+        elif f.default_factory is not dataclasses.MISSING:
+            value = f.default_factory()
+        else:
+            value = f.default
+        object.__setattr__(obj, f.name, value)
+    return fields
 
 
 class KindKeys:
@@ -207,15 +233,7 @@ class KindKeys:
     selector: ClassVar[str] = ""
 
     def __init__(self, **values: Any) -> None:
-        own = [f for f in dataclasses.fields(self) if f.name != "params"]
-        for f in own:
-            if f.name in values:
-                value = values.pop(f.name)
-            elif f.default_factory is not dataclasses.MISSING:
-                value = f.default_factory()
-            else:
-                value = f.default
-            object.__setattr__(self, f.name, value)
+        own = _set_fields(self, values, skip="params")
         choice = kind_choice(self.table)
         chosen = choice.resolve(getattr(self, self.selector), f"{self.table}.{self.selector}")
         object.__setattr__(self, "_chosen", chosen)
@@ -413,16 +431,7 @@ class Scenario:
     tables: tuple[Section, ...] = field(default=())
 
     def __init__(self, **values: Any) -> None:
-        for f in dataclasses.fields(self):
-            if f.name == "tables":
-                continue
-            if f.name in values:
-                value = values.pop(f.name)
-            elif f.default_factory is not dataclasses.MISSING:
-                value = f.default_factory()
-            else:
-                value = f.default
-            object.__setattr__(self, f.name, value)
+        _set_fields(self, values, skip="tables")
         values.pop("_by_table", None)  # Scenario(**other.__dict__): derived from the tables
         values.pop("_chosen", None)
         by_table = {table: cls() for table, cls in tables_of(self.kind).items()}
@@ -786,6 +795,11 @@ def key_table_markdown() -> str:
     return "\n".join(lines)
 
 
+def _own_keys(cls: type) -> set[str]:
+    """The keys a table that chooses a kind holds itself (not its kind's)."""
+    return {f.name for f in dataclasses.fields(cls)} - {"params"}
+
+
 def changed_data(scenario: Scenario, changes: Mapping[str, Any]) -> dict[str, Any]:
     """The scenario's plain data (:func:`scenario_to_dict`) with dotted keys changed as a
     scenario file would give them (``{"mesh.kind": "conformal", "mesh.size_mm": 1.0}``),
@@ -813,7 +827,7 @@ def changed_data(scenario: Scenario, changes: Mapping[str, Any]) -> dict[str, An
     for table, cls in choosing.items():
         if not isinstance(data.get(table), dict):
             continue
-        own = {f.name for f in dataclasses.fields(cls)} - {"params"}
+        own = _own_keys(cls)
         choice = kind_choice(table)
         selector = f"{table}.{cls.selector}"
         if choice.follows is not None:
@@ -871,7 +885,7 @@ def kind_data(data: Mapping[str, Any]) -> dict[str, Any]:
         if not isinstance(table, Mapping):
             return table
         choice = kind_choice(cls.table)
-        own = {f.name for f in dataclasses.fields(cls)} - {"params"}
+        own = _own_keys(cls)
         if choice.follows is not None:  # every model's keys may be there: the build decides
             return {k: v for k, v in table.items() if k != cls.selector}
         name = table.get(cls.selector, dataclasses.fields(cls)[0].default)
@@ -900,6 +914,6 @@ def kind_data(data: Mapping[str, Any]) -> dict[str, Any]:
             keys = parameter_fields(choice.parameters_of(name, f"{table}.{cls.selector}"))
         except InputError:
             continue  # refused when the scenario is built
-        own = {f.name for f in dataclasses.fields(cls)} - {"params", cls.selector}
+        own = _own_keys(cls) - {cls.selector}
         out[table] = {k: v for k, v in out[table].items() if k in own or k in keys}
     return out

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple
 
 from chipstack.core.errors import InputError, brief
 from chipstack.core.registry import Registry
-from chipstack.core.schema import KindChoice, Parameters, Scenario
+from chipstack.core.schema import KindChoice, Scenario
 from chipstack.core.stages import StageInputs, StageOptions, StageOutput
 from chipstack.packing.files import (
     container_summary,
@@ -123,12 +123,7 @@ class ScenarioKind:
 
 SCENARIO_KINDS: Registry[ScenarioKind] = Registry("scenario kind", "chipstack.scenario_kinds")
 # How the scenario's ``kind`` chooses its kind (the packing stage declares it).
-SCENARIO_CHOICE = KindChoice(
-    "scenario kind",
-    SCENARIO_KINDS.in_order,
-    lambda name, key: SCENARIO_KINDS.get(name, key=key),
-    lambda kind: Parameters,
-)
+SCENARIO_CHOICE = KindChoice.of_registry(SCENARIO_KINDS)
 
 
 def _register(cls: type[ScenarioKind]) -> type[ScenarioKind]:

@@ -243,14 +243,8 @@ SHAPES.register(
 )
 
 
-def _shape_parameters(kind: ShapeKind) -> type[Parameters]:
-    return getattr(kind, "parameters", Parameters)
-
-
 # How [chip] (and each [[mix]] table) chooses its shape: the packing stage declares it.
-SHAPE_CHOICE = KindChoice(
-    "shape", SHAPES.in_order, lambda name, key: SHAPES.get(name, key=key), _shape_parameters
-)
+SHAPE_CHOICE = KindChoice.of_registry(SHAPES)
 
 
 def varies_per_chip(spec: ChipSpec) -> bool:

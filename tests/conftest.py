@@ -61,6 +61,17 @@ def drop_spec(
     return spec
 
 
+def write_box_obj(path: Path, side_mm: float, thickness_mm: float) -> Path:
+    """A square plate ``side_mm`` wide and ``thickness_mm`` thick as an OBJ file (a
+    ``file`` chip's geometry)."""
+    corners = [(x, y, z) for x in (0, side_mm) for y in (0, side_mm) for z in (0, thickness_mm)]
+    faces = ["1 2 4 3", "5 7 8 6", "1 5 6 2", "3 4 8 7", "1 3 7 5", "2 6 8 4"]
+    path.write_text(
+        "".join(f"v {x} {y} {z}\n" for x, y, z in corners) + "".join(f"f {f}\n" for f in faces)
+    )
+    return path
+
+
 def run_cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
     return subprocess.run(
         [sys.executable, "-m", "chipstack.pipeline", *args],

@@ -21,6 +21,7 @@ import meshio
 import numpy as np
 import pytest
 import pyvista
+from conftest import write_box_obj
 
 from chipstack.pipeline.reference import GENERATED, _registries
 
@@ -321,12 +322,7 @@ def test_every_kind_with_keys_refuses_each_bad_value_and_round_trips(tmp_path, t
         base = _scenario_giving(table, name)
     keys = parameter_fields(choice.parameters_of(name, f"{table}.{selector}"))
     if any(f.metadata.get("path") for f in keys.values()):  # a file key: a 10 x 10 x 2 box
-        path = tmp_path / "chip.obj"
-        corners = [(x, y, z) for x in (0, 10) for y in (0, 10) for z in (0, 2)]
-        faces = ["1 2 4 3", "5 7 8 6", "1 5 6 2", "3 4 8 7", "1 3 7 5", "2 6 8 4"]
-        path.write_text(
-            "".join(f"v {x} {y} {z}\n" for x, y, z in corners) + "".join(f"f {f}\n" for f in faces)
-        )
+        path = write_box_obj(tmp_path / "chip.obj", 10.0, 2.0)
         base[table].update({n: str(path) for n, f in keys.items() if f.metadata.get("path")})
     scenario = scenario_from_dict(base)
     text = dumps_toml(scenario)
@@ -395,14 +391,7 @@ def _chip_keys(table, name: str, folder: Path) -> dict:
     fields = parameter_fields(table.parameters_of(name, "chip.shape"))
     for key_, f in fields.items():
         if f.metadata.get("path"):
-            path = folder / "chip.obj"
-            corners = [(x, y, z) for x in (0, 10) for y in (0, 10) for z in (0, 2)]
-            faces = ["1 2 4 3", "5 7 8 6", "1 5 6 2", "3 4 8 7", "1 3 7 5", "2 6 8 4"]
-            path.write_text(
-                "".join(f"v {x} {y} {z}\n" for x, y, z in corners)
-                + "".join(f"f {f}\n" for f in faces)
-            )
-            keys[key_] = str(path)
+            keys[key_] = str(write_box_obj(folder / "chip.obj", 10.0, 2.0))
     return keys
 
 

@@ -396,12 +396,9 @@ def test_effects_that_reshape_a_chip_ask_its_geometry_not_its_name():
 
 def test_a_chip_too_large_for_its_target_names_the_key_that_sets_its_size(tmp_path):
     """A box is sized by its length; a chip read from a file by its file."""
-    corners = [(x, y, z) for x in (0, 100) for y in (0, 100) for z in (0, 2)]
-    faces = ["1 2 4 3", "5 7 8 6", "1 5 6 2", "3 4 8 7", "1 3 7 5", "2 6 8 4"]
-    path = tmp_path / "plate.obj"
-    path.write_text(
-        "".join(f"v {x} {y} {z}\n" for x, y, z in corners) + "".join(f"f {f}\n" for f in faces)
-    )
+    from conftest import write_box_obj
+
+    path = write_box_obj(tmp_path / "plate.obj", 100.0, 2.0)
     small = {"target_size_mm": 50.0, "release_height_mm": [100.0, 200.0]}
     with pytest.raises(InputError, match=r"^chip\.file: the chip \(141\.4 mm across\)"):
         scenario_from_dict({"chip": {"shape": "file", "file": str(path)}, "deposition": small})
