@@ -1,4 +1,9 @@
-"""Packages whose re-exported names are imported on first use.
+"""Packages whose re-exported names are imported on first use, and objects named by
+``"module:attribute"`` imported when first used.
+
+A light declaration (a shape, a mesh kind, a stage) names the heavy object that does its
+work by such a string, resolved by :func:`named`: the declarations load at every start
+without the numerical libraries, and the implementing modules import theirs at the top.
 
 The stage registry imports every stage module, hence its package's ``__init__``, at each
 command-line start; a package that re-exported its numerical modules eagerly would make
@@ -13,7 +18,14 @@ import types
 from collections.abc import Mapping
 from typing import Any
 
-__all__ = ["lazy_package"]
+__all__ = ["lazy_package", "named"]
+
+
+def named(target: str) -> Any:
+    """The object ``target`` names (``"package.module:attribute"``), its module imported
+    on the first call (Python keeps it: later calls only look it up)."""
+    module, _, attribute = target.partition(":")
+    return getattr(importlib.import_module(module), attribute)
 
 
 class _LazyPackage(types.ModuleType):

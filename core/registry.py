@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import importlib
 from collections.abc import Iterator
+from importlib import metadata
 from typing import Any, Generic, TypeVar
 
 from chipstack.core.errors import InputError
+from chipstack.core.lazy import named
 
 T = TypeVar("T")
 
@@ -24,8 +26,7 @@ class _Named:
         self.target = target
 
     def load(self) -> Any:
-        module, _, attribute = self.target.partition(":")
-        return getattr(importlib.import_module(module), attribute)
+        return named(self.target)
 
 
 class _Declared:
@@ -75,8 +76,6 @@ class Registry(Generic[T]):
         # Set first: a plugin module that imports this registry's module while it loads
         # must not start loading again.
         self._plugins_loaded = True
-        from importlib import metadata
-
         for entry in sorted(metadata.entry_points(group=self.entry_points), key=lambda e: e.name):
             where = f"{self.kind} plugin {entry.name!r} ({entry.value})"
             try:

@@ -17,6 +17,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import manifold3d as m3
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -31,12 +33,16 @@ from chipstack.meshing.mesh import VolumeMesh
 
 __all__ = [
     "check_mesh",
+    "check_volume",
     "assert_valid",
     "exact_chip_volumes",
     "element_faces",
     "chip_pieces",
     "split_warning",
 ]
+
+# Chips in pieces are the mesh stage's warning (it names the kind).
+_STAGE_LOG = logging.getLogger("chipstack.meshing.stage")
 
 
 def element_faces(mesh: VolumeMesh) -> tuple[np.ndarray, np.ndarray]:
@@ -260,3 +266,22 @@ def assert_valid(report: dict) -> None:
     for ok, problem in checks:
         if not ok:
             raise MeshingError(f"mesh check failed: {problem}")
+
+
+def check_volume(mesh, arrangement, pairs, min_quality, tolerance, kind) -> dict:
+    """The check report of a volume mesh of the stack (``meshing.checks.check_mesh``),
+    raising when it is not valid: what a kind's ``check`` returns. ``pairs``: the chip
+    pairs in surface contact, whose meshes must share faces; ``tolerance``: the largest
+    accepted relative error of a chip's volume; ``kind``: the kind's name, for the log."""
+    report = check_mesh(
+        mesh,
+        arrangement,
+        pairs,
+        min_quality,
+        chip_tolerance=tolerance,
+        region_mm=mesh.info.get("region_mm"),
+    )
+    assert_valid(report)
+    if (warning := split_warning(report, kind)) is not None:
+        _STAGE_LOG.warning("%s", warning)
+    return report

@@ -32,8 +32,10 @@ from chipstack.core.errors import ChipstackError, InputError
 from chipstack.core.overlap import penetrating_pairs
 from chipstack.meshing.boundaries import side_node_sets
 from chipstack.meshing.gmsh_session import GmshSession
+from chipstack.meshing.kinds import CROP_SHIFT_MM
 from chipstack.meshing.mesh import PORE, VolumeMesh, element_attributes
 from chipstack.meshing.resolution import convex_pieces, place_chip, separation_between
+from chipstack.meshing.slivers import improve_tetrahedra
 
 __all__ = [
     "GmshSession",
@@ -235,7 +237,6 @@ def _chips_reaching(arrangement: Arrangement, region_mm, reach_mm: float = 0.0) 
     return np.flatnonzero(near)
 
 
-CROP_SHIFT_MM = 1.0  # how far a side of a crop may move to clear the chips' corners
 _SHALLOW_DEG = 15.0  # a face closer than this to parallel with a crop side is not crossed
 _HOPELESS_FRACTION = 0.01  # elements below the quality bar beyond which no polish is tried
 _DELAUNAY_MAX_ELEMENTS = 100_000  # the largest volume meshed again by Delaunay for a sliver
@@ -896,7 +897,6 @@ def _move_sliver_nodes(mesh: VolumeMesh) -> VolumeMesh:
     quality = np.asarray(mesh.quality)
     if not (quality < SLIVER_FLOOR).any():
         return mesh
-    from chipstack.meshing.slivers import improve_tetrahedra
 
     improved = improve_tetrahedra(
         mesh.points, mesh.cells, mesh.chip, floor=SLIVER_FLOOR, rounds=1, optimise=False

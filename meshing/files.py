@@ -10,11 +10,13 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+import meshio
 import numpy as np
 
 from chipstack.export.figure_kinds import FIGURES, FigureKind
 from chipstack.meshing.boundaries import FACET_TAGS, boundary_facets
 from chipstack.meshing.formats import MESH_FORMATS
+from chipstack.meshing.gmsh_session import GmshSession
 from chipstack.meshing.interfaces import find_interfaces
 from chipstack.meshing.mesh import PORE, VolumeMesh
 
@@ -47,7 +49,6 @@ def to_meshio(mesh: VolumeMesh):
     normal (the chip's material frame: its plies' in-plane directions and its normal, in
     the world frame; zeros in the pore space), quality (one value or vector per
     element)."""
-    import meshio
 
     return meshio.Mesh(
         np.asarray(mesh.points, dtype=float),
@@ -67,7 +68,6 @@ def to_meshio(mesh: VolumeMesh):
 def interface_surface(mesh: VolumeMesh):
     """The faces chips share as a ``meshio.Mesh`` (triangles or quads) with cell data
     interface (its tag), chip_a and chip_b, or None when no chips touch."""
-    import meshio
 
     found = find_interfaces(mesh)
     if not len(found.pairs):
@@ -87,7 +87,6 @@ def write_vtu(path: Path, mesh: VolumeMesh) -> list[Path]:
     """VTK unstructured grid (binary, compressed) and a one-step .pvd beside it; the
     faces chips share as a surface mesh in ``<stem>_interfaces.vtu`` (cell data
     interface, chip_a, chip_b; see :func:`interface_surface`)."""
-    import meshio
 
     path = Path(path)
     meshio.write(path, to_meshio(mesh), file_format="vtu", binary=True)
@@ -123,7 +122,6 @@ def write_msh(path: Path, mesh: VolumeMesh) -> list[Path]:
     side of the domain as a physical surface (tags and names in ``FACET_TAGS``); the
     faces each pair of touching chips shares as a physical surface named interface_A_B
     (tags from ``INTERFACE_TAG_START``)."""
-    from chipstack.meshing.gmsh_session import GmshSession
 
     path = Path(path)
     physical = np.where(mesh.chip >= 0, mesh.chip + 1, mesh.n_chips + 1).astype(np.int64)
@@ -180,7 +178,6 @@ def write_xdmf(path: Path, mesh: VolumeMesh) -> list[Path]:
     tags (``facet_tag``: the domain's sides, values in ``FACET_TAGS``, and the faces each
     pair of touching chips shares, tags from ``INTERFACE_TAG_START`` as listed in the
     interface table) in ``<stem>_facets.xdmf`` beside it."""
-    import meshio
 
     path = Path(path)
     meshio.write(path, to_meshio(mesh), file_format="xdmf")

@@ -34,19 +34,30 @@ from __future__ import annotations
 import importlib.util
 import logging
 import math
+import os
+import signal
+import subprocess
+import sys
+import tempfile
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
+from scipy import ndimage
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from chipstack.core.arrangement import Arrangement
 from chipstack.core.errors import InputError
+from chipstack.geometry.contacts import candidate_pairs
 from chipstack.geometry.voxels import voxelize
 from chipstack.meshing.boundaries import side_node_sets
 from chipstack.meshing.checks import face_neighbours
 from chipstack.meshing.conformal import MeshingError
 from chipstack.meshing.mesh import PORE, VolumeMesh, check_voxel_below_thinnest, element_attributes
-from chipstack.meshing.slivers import tetra_sicn
+from chipstack.meshing.slivers import improve_tetrahedra, tetra_sicn
+from chipstack.meshing.voxel import _crop
 
 __all__ = ["image_mesh", "image_voxel_mm", "tetra_sicn", "cgal_available", "require_cgal"]
 
@@ -162,8 +173,6 @@ def image_mesh(
         )
     slivers, quality = None, None
     if improve:
-        from chipstack.meshing.slivers import improve_tetrahedra
-
         improved = improve_tetrahedra(points, cells, chip, seed=seed)
         points, cells, chip = improved.points, improved.cells, improved.labels
         slivers, quality = improved.info, improved.quality
@@ -206,12 +215,6 @@ def _clusters(
 ) -> tuple[list[_Cluster], list[float] | None]:
     """The images to mesh (one per face-connected piece of each group of chips; the whole
     box with the pore space) and the crop as meshed (voxel boundaries), if any."""
-    from scipy import ndimage
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    from chipstack.geometry.contacts import candidate_pairs
-    from chipstack.meshing.voxel import _crop
 
     n = arrangement.n_chips
     near = np.ones(n, dtype=bool)
@@ -308,11 +311,6 @@ def _mesh_clusters(clusters, voxel, size_mm, optimise, seed):
     """Mesh_3 on every cluster's image, each in a child process (:mod:`meshing._mesh3`):
     [(points, tetrahedra, subdomain of each tetrahedron)], points in the cluster's frame
     (mm)."""
-    import os
-    import subprocess
-    import sys
-    import tempfile
-    from pathlib import Path
 
     # Mesh_3 takes a C int as its seed.
     settings = [voxel, size_mm * _CIRCUMRADIUS_PER_EDGE, voxel / 2, int(optimise), seed % 2**31]
@@ -355,7 +353,6 @@ def _mesh_clusters(clusters, voxel, size_mm, optimise, seed):
 
 def _failure(status: int, errors) -> str:
     """What ended a Mesh_3 child, in a few words: the signal, or its last error line."""
-    import signal
 
     if status < 0:
         name = signal.Signals(-status).name
@@ -378,8 +375,6 @@ def _absorb_strays(
     of its volume goes to the region it shares most faces with; one that shares no face with
     anything (a sliver hanging by an edge: the reference stack, seed 0, three pieces of
     0.001 to 0.006 mm3) is dropped."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
 
     a, b = face_neighbours(cells, "tetra")
     n = len(cells)

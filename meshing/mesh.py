@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from chipstack.core.errors import InputError
+from chipstack.geometry.orientation import fibre_directions_world
 from chipstack.meshing.boundaries import PeriodicPairs
 
 # The arrangement (scipy) only when attributes are computed: meshing.files imports this
@@ -106,7 +107,6 @@ def check_voxel_below_thinnest(
 def chip_attributes(arrangement: Arrangement, layer_mm: float) -> tuple[np.ndarray, ...]:
     """Per chip: batch (n,), layer by centre of mass (n,), two fibre directions (n, 2, 3)
     and the chip's normal (n, 3), in the world frame."""
-    from chipstack.geometry.orientation import fibre_directions_world
 
     n = arrangement.n_chips
     layer = np.maximum(np.floor(arrangement.positions[:, 2] / layer_mm), 0).astype(np.int64)

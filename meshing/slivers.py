@@ -34,6 +34,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from chipstack.meshing.gmsh_session import GmshSession
+
 __all__ = ["ImprovedTetrahedra", "improve_tetrahedra", "tetra_sicn"]
 
 log = logging.getLogger(__name__)
@@ -247,7 +249,6 @@ def _incidence(items: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
 def _gmsh_optimise(points, cells, labels):
     """gmsh's tetrahedral optimiser on the labelled mesh (each region a discrete volume
     bounded by one discrete surface per pair of regions); returns the new mesh."""
-    from chipstack.meshing.gmsh_session import GmshSession
 
     tris, low, high = _boundary_faces(cells, labels)
     pairs, surface_of = np.unique(np.column_stack([low, high]), axis=0, return_inverse=True)

@@ -9,14 +9,13 @@ new model is a subclass of :class:`SolveModel` and one ``SOLVE_MODELS.register``
 
 from __future__ import annotations
 
-import json
 import logging
-import shutil
 from pathlib import Path
 from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any
 
 from chipstack.core.errors import InputError
+from chipstack.core.lazy import named
 from chipstack.core.registry import Registry
 from chipstack.core.schema import KindChoice, Parameters
 from chipstack.meshing.sections import ContactPressKeys
@@ -118,20 +117,15 @@ class ContactPress(SolveModel):
         return any(self.name in kind.solve_models for kind in scenario.mesh.chosen)
 
     def prepare(self, mesh_folder, scratch, job, scenario):
-        from chipstack.meshing.calculix_deck import write_contact_compaction
-        from chipstack.meshing.contact_model import load_contact_model
-
-        shutil.copy(mesh_folder / "stack_contact.inp", scratch / "stack_contact.inp")
-        model = load_contact_model(mesh_folder / "stack_contact_model.npz")
-        write_contact_compaction(scratch / f"{job}.inp", "stack_contact.inp", model, scenario.solve)
-        return None
+        deck = named("chipstack.meshing.compaction:prepare_contact_deck")
+        return deck(mesh_folder, scratch, job, scenario)
 
     def forces(self, prints, prepared):
         top, bottom = prints["REF_TOP"], prints["REF_BOTTOM"]  # the platens' reference nodes
         return -top["displacements"][:, 2], -top["forces"][:, 2], bottom["forces"][:, 2]
 
     def summary(self, vtu, inputs):
-        return contact_summary(vtu, inputs)
+        return named("chipstack.meshing.compaction:contact_summary")(vtu, inputs)
 
 
 class VolumePress(SolveModel):
@@ -162,64 +156,13 @@ class VolumePress(SolveModel):
             )
 
     def prepare(self, mesh_folder, scratch, job, scenario):
-        from chipstack.meshing.calculix_deck import write_volume_compaction
-
-        stem = self.stem(scenario)
-        shutil.copy(mesh_folder / f"{stem}.inp", scratch / f"{stem}.inp")
-        checks = json.loads((mesh_folder / f"{stem}_checks.json").read_text())
-        low, high = checks["bounds_mm"]
-        return write_volume_compaction(
-            scratch / f"{job}.inp",
-            f"{stem}.inp",
-            high[2] - low[2],
-            scenario.solve,
-            getattr(scenario.mesh, "periodic", False),
-        )
+        deck = named("chipstack.meshing.compaction:prepare_volume_deck")
+        return deck(self.stem(scenario), mesh_folder, scratch, job, scenario)
 
     def forces(self, prints, press):
         # The faces' forces summed; the press ramps with the step time.
         top, bottom = prints["TOP"], prints["BOTTOM"]
         return press * top["time"], -top["forces"][:, 2], bottom["forces"][:, 2]
-
-
-def contact_summary(vtu: Path, inputs: StageInputs) -> dict[str, Any]:
-    """How many chips carry contact pressure at the end of the press, and the largest
-    pressure (MPa). CalculiX writes the contact state at slave nodes, which are chip
-    nodes: COPEN, CSLIP1, CSLIP2, CPRESS, CSHEAR1, CSHEAR2."""
-    import meshio
-    import numpy as np
-
-    if not vtu.is_file():
-        return {"chips_in_contact": 0, "contact_pressure_max_mpa": 0.0}
-    solved = meshio.read(vtu)
-    contact = solved.point_data.get("CONTACT")
-    if contact is None or np.ndim(contact) != 2 or contact.shape[1] < 4:
-        return {"chips_in_contact": 0, "contact_pressure_max_mpa": 0.0}
-    pressure = np.asarray(contact)[:, 3]
-    owner = chip_of_node(inputs, solved.points)
-    touched = np.unique(owner[(pressure > 0) & (owner >= 0)])
-    return {
-        "chips_in_contact": int(len(touched)),
-        "contact_pressure_max_mpa": round(float(pressure.max(initial=0.0)), 4),
-    }
-
-
-def chip_of_node(inputs: StageInputs, points: np.ndarray) -> np.ndarray:
-    """(N,) the chip of every node of the solved mesh (-1: platens). The converter keeps
-    the deck's node order, chips first; the coordinates are checked to be sure."""
-    import meshio
-    import numpy as np
-
-    model = meshio.read(inputs.result("mesh").folder / "stack_contact.vtu")
-    cells = model.cells[0].data
-    chip = np.asarray(model.cell_data["chip"][0])
-    n = int(cells.max()) + 1  # the chips' nodes come first in the deck
-    owner = np.full(len(points), -1)
-    if len(points) < n or not np.allclose(points[:n], model.points[:n], rtol=1e-4, atol=1e-3):
-        log.warning("solve: the result's nodes are not the model's; no contact count")
-        return owner
-    owner[cells.ravel()] = np.repeat(chip, cells.shape[1])
-    return owner
 
 
 for _model in (ContactPress(), VolumePress()):

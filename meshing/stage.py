@@ -3,39 +3,30 @@
 from __future__ import annotations
 
 import logging
-import tempfile
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from chipstack.core.errors import InputError, printable
+from chipstack.core.lazy import named
 from chipstack.core.schema import Scenario
 from chipstack.core.stages import Stage, StageInputs, StageOptions, StageOutput
-from chipstack.meshing.kinds import MESH_CHOICE, MESH_KINDS, Built, crop_region
+from chipstack.meshing.formats import MESH_FORMATS
+from chipstack.meshing.kinds import MESH_CHOICE, MESH_KINDS
 from chipstack.meshing.sections import MeshSpec
 from chipstack.packing.kinds import stack_kinds
 
-# The meshers, checks and writers are imported where used: every command-line start
-# registers this stage, and they bring numpy, scipy, manifold3d and gmsh (~1 s).
+# The meshers, checks and writers (meshing.meshers) are named, imported when a stack is
+# first meshed: every command-line start registers this stage, and they bring numpy,
+# scipy, manifold3d and gmsh (~1 s).
 if TYPE_CHECKING:
-    import numpy as np
+    from chipstack.meshing.meshers import MeshedStack
 
 
 __all__ = ["MeshStage", "STAGE", "check_formats"]
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class MeshedStack:
-    """The checked meshes of one stack, by kind (:mod:`meshing.kinds`); a failed kind
-    carries its error."""
-
-    built: dict[str, Built] = field(default_factory=dict)
-    reports: dict[str, dict[str, Any]] = field(default_factory=dict)
-    errors: dict[str, str] = field(default_factory=dict)
-    scratch: tempfile.TemporaryDirectory | None = None
 
 
 class MeshStage(Stage):
@@ -75,55 +66,10 @@ class MeshStage(Stage):
         return {"figures": options.figures, "algorithms": versions}
 
     def compute(self, inputs: StageInputs) -> MeshedStack:
-        from chipstack.core.arrangement import stack_history
-        from chipstack.geometry.contacts import find_contacts
-
-        arrangement = stack_history(inputs.result("packing"))[-1]
-        scenario = inputs.scenario
-        kinds = scenario.mesh.chosen
-        result = MeshedStack(scratch=tempfile.TemporaryDirectory(prefix="chipstack-mesh-"))
-        found: list = []
-
-        def contacts():
-            if not found:
-                g = scenario.geometry
-                found.append(find_contacts(arrangement, g.contact_gap_mm, g.contact_extent_mm))
-            return found[0]
-
-        def surface_pairs() -> np.ndarray:
-            return _surface_pairs(contacts(), scenario)
-
-        report = inputs.options.progress
-        for done, kind in enumerate(kinds):
-            if report is not None:
-                report(self.name, done, len(kinds), {"mesh": kind.name})
-            try:
-                built = kind.build(arrangement, scenario, Path(result.scratch.name))
-            except kind.failures as exc:
-                if len(kinds) == 1:
-                    raise
-                # Several were asked for: the others stand; the failure is reported.
-                log.warning("%s", exc)
-                result.errors[kind.name] = str(exc)
-                continue
-            result.reports[kind.name] = kind.check(built, arrangement, scenario, surface_pairs)
-            built.extra["contact_classes"] = contact_classes(contacts())
-            result.built[kind.name] = built
-        if report is not None:
-            report(self.name, len(kinds), len(kinds), {})
-        return result
+        return named("chipstack.meshing.meshers:mesh_stack")(inputs, self.name)
 
     def write(self, result: MeshedStack, folder: Path, inputs: StageInputs) -> StageOutput:
-        try:
-            summary = {kind: {"error": error} for kind, error in result.errors.items()}
-            for kind in inputs.scenario.mesh.chosen:
-                if kind.name in result.built:
-                    built, report = result.built[kind.name], result.reports[kind.name]
-                    summary[kind.name] = kind.write(folder, built, report, inputs)
-        finally:
-            if result.scratch is not None:
-                result.scratch.cleanup()
-        return StageOutput(summary)
+        return named("chipstack.meshing.meshers:write_meshes")(result, folder, inputs)
 
     def load(self, folder: Path, scenario: Scenario) -> MeshFiles:
         """The mesh files written, by kind (downstream stages read the files)."""
@@ -156,8 +102,6 @@ class MeshFiles:
 
 def check_formats(formats: tuple[str, ...], key: str) -> None:
     """Refuse an empty list or an unknown mesh format, listing the valid ones."""
-    from chipstack.meshing.formats import MESH_FORMATS
-
     valid = ", ".join(MESH_FORMATS.names())
     if not formats:
         raise InputError(f"{key}: give at least one format ({valid})")
@@ -166,34 +110,3 @@ def check_formats(formats: tuple[str, ...], key: str) -> None:
             raise InputError(
                 f"{key}: unknown mesh format {printable(name)!r}; valid formats: {valid}"
             )
-
-
-def contact_classes(table) -> dict[tuple[int, int], str]:
-    """(lower chip, upper chip) -> the contact's class (point, line, surface) for every
-    pair of chips in contact (``table``: ``geometry.contacts.find_contacts``)."""
-    from chipstack.geometry.contacts import KINDS
-
-    out = {}
-    rows = zip(table.chip_a.tolist(), table.chip_b.tolist(), table.kind.tolist(), strict=True)
-    for a, b, kind in rows:
-        if a >= 0 and b >= 0:
-            out[min(a, b), max(a, b)] = KINDS[kind]
-    return out
-
-
-def _surface_pairs(table, scenario: Scenario) -> np.ndarray:
-    """(k, 2) the chip pairs in surface contact (``table``: the stack's contacts), whose
-    meshes must share faces; a crop keeps those whose patch lies inside it, clear of its
-    sides by each mesh kind's ``crop_margin_mm``."""
-    import numpy as np
-
-    from chipstack.geometry.contacts import KINDS
-
-    checked = (table.chip_b >= 0) & (table.kind == KINDS.index("surface"))
-    if (region := crop_region(scenario)) is not None:
-        x0, x1, y0, y1 = region
-        margin = max(kind.crop_margin_mm(scenario.mesh) for kind in scenario.mesh.chosen)
-        x, y = table.centre_mm[:, 0], table.centre_mm[:, 1]
-        checked &= (x > x0 + margin) & (x < x1 - margin)
-        checked &= (y > y0 + margin) & (y < y1 - margin)
-    return np.column_stack([table.chip_a, table.chip_b])[checked]

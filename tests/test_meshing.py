@@ -512,7 +512,7 @@ def test_interfaces_are_named_with_their_faces_area_and_normal_in_every_format(t
         find_interfaces,
         write_interface_table,
     )
-    from chipstack.meshing.stage import contact_classes
+    from chipstack.meshing.meshers import contact_classes
 
     a = arrange([((0, 0, 1.0), 0.0), ((10, 0, 3.0), 0.0), ((20, 0, 1.0), 0.0)])
     mesh = voxel_mesh(a, 0.5, "box")

@@ -16,7 +16,8 @@ from chipstack.core.errors import InputError
 from chipstack.core.schema import Parameters, Section, between, key, length
 from chipstack.export.figure_kinds import FigureKind
 from chipstack.geometry.describe import Descriptor
-from chipstack.meshing.kinds import Built, MeshKind, check_volume
+from chipstack.meshing.checks import check_volume
+from chipstack.meshing.kinds import Built, MeshKind
 from chipstack.packing.effects import Effect
 from chipstack.packing.files import StackWriter
 from chipstack.packing.kinds import StackKind
