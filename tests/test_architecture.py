@@ -422,6 +422,80 @@ def test_the_packing_stage_asks_the_scenario_kind_and_never_tests_its_name():
     assert not SCENARIO_KINDS.get("drop").makes_stack
 
 
+# What a kind's name is read from: ``spec.shape``, ``mesh.kind``, ``kind.name``, ``shape``.
+_NAME_HOLDERS = {"name", "kind", "shape", "model", "site", "effect"}
+
+
+def _kind_names() -> dict[str, str]:
+    """Every registered name of every registry whose entries a table or scenario
+    chooses (shapes, mesh kinds, solve models, effects, scenario kinds, sites) -> its
+    registry's kind."""
+    from chipstack.core.stages import load_stages
+    from chipstack.meshing.kinds import COMBINED
+    from chipstack.packing.effect_kinds import EFFECTS
+    from chipstack.packing.kinds import SCENARIO_KINDS
+    from chipstack.packing.site_kinds import SITES
+
+    names = {n: "mesh kind" for n in COMBINED}
+    registries = [EFFECTS, SCENARIO_KINDS, SITES]
+    for stage in load_stages():
+        names.update({n: c.what for c in stage.kind_choices.values() for n in c.names()})
+    for registry in registries:
+        names.update({n: registry.kind for n in registry.names()})
+    return names
+
+
+def _name_tests(source: str, names: dict[str, str]) -> list[str]:
+    """The comparisons in ``source`` of a name-holding expression (``x.kind``, ``shape``)
+    with a registered kind's name (``== "box"``, ``in ("box", "polygon")``)."""
+
+    def strings(node) -> list[str]:
+        if isinstance(node, ast.Constant) and isinstance(node.value, str):
+            return [node.value]
+        if isinstance(node, ast.Tuple | ast.List | ast.Set):
+            return [s for element in node.elts for s in strings(element)]
+        return []
+
+    def holds_name(node) -> bool:
+        if isinstance(node, ast.Attribute):
+            return node.attr in _NAME_HOLDERS
+        return isinstance(node, ast.Name) and node.id in _NAME_HOLDERS
+
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Compare):
+            sides = [node.left, *node.comparators]
+            if any(holds_name(side) for side in sides):
+                hit = [s for side in sides for s in strings(side) if s in names]
+                if hit:
+                    found.append(f"line {node.lineno}: {ast.unparse(node)}")
+    return found
+
+
+def test_no_code_tests_a_kinds_name():
+    """Callers ask a kind what it can do, never what it is called: no module of the
+    project compares a shape's, mesh kind's, solve model's, effect's, site's or scenario
+    kind's name (its own module included: a kind knows itself without its name)."""
+    names = _kind_names()
+    assert {"box", "voxel", "contact", "air_drag", "drop"} <= set(names)
+    found = {
+        str(path.relative_to(ROOT)): tests
+        for package in PACKAGES
+        for path in sorted((ROOT / package).rglob("*.py"))
+        if (tests := _name_tests(path.read_text(), names))
+    }
+    assert found == {}
+
+
+def test_the_name_test_check_finds_one():
+    names = _kind_names()
+    assert _name_tests("if spec.shape in ('box', 'polygon'):\n    pass", names)
+    assert _name_tests("ok = kind.name == 'voxel'", names)
+    assert _name_tests("ok = 'air_drag' != effect", names)
+    # A beam's section is not a shape, nor a pore space a mesh kind.
+    assert not _name_tests("ok = spec.section == 'box' or spec.pore_space == 'box'", names)
+
+
 def test_unknown_stage_lists_the_registered_ones(tmp_path):
     result = run_cli("run", "--to", "press", "--out", str(tmp_path / "x"))
     assert result.returncode == 2
