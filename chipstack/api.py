@@ -14,15 +14,19 @@ from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import meshio
+import pandas as pd
+
 from chipstack.core.errors import InputError, brief, printable
+from chipstack.core.files import read_json
 from chipstack.core.schema import MAX_SEED, Scenario
+from chipstack.packing.stage import STAGE as _PACKING
+from chipstack.pipeline.run import run_pipeline
 from chipstack.pipeline.scenario_files import builtin_names, load_resolved, with_overrides
 from chipstack.pipeline.scenario_files import load_scenario as _load_file
 
 if TYPE_CHECKING:
-    import meshio
     import numpy as np
-    import pandas as pd
     import pyvista as pv
 
     from chipstack.core.stack import Stack
@@ -160,8 +164,6 @@ def run(
     >>> sorted(result.mesh().cell_data)[:3]
     ['batch', 'chip', 'fibre_1']
     """
-    from chipstack.pipeline.run import run_pipeline
-
     resolved = load_scenario(scenario, overrides, seed)
     path = Path(out) if out is not None else Path(f"runs/{resolved.name}-seed{resolved.seed}")
     folder, first, manifest = run_pipeline(
@@ -233,8 +235,6 @@ class Run:
                 raise InputError(
                     f"{printable(path)}: not a finished run directory (no manifest.json)"
                 )
-            from chipstack.core.files import read_json
-
             _manifest = read_json(manifest, "manifest")
         self._manifest = _manifest
         self._given_scenario = _scenario
@@ -293,9 +293,7 @@ class Run:
         shapes, batches, poses and contacts after every batch)."""
         if self._given_stack is not None:
             return self._given_stack
-        from chipstack.packing.stage import STAGE
-
-        stack = STAGE.load(self._folder("packing"), self.scenario)
+        stack = _PACKING.load(self._folder("packing"), self.scenario)
         if stack is None:
             raise InputError(f"{printable(self.path)}: a {self.scenario.kind} run has no stack")
         return stack
@@ -327,7 +325,7 @@ class Run:
         --------
         >>> # run.stack_grid().plot(scalars="batch")
         """
-        import pyvista as pv
+        import pyvista as pv  # here: only this method and mesh_grid need VTK
 
         files = sorted(self._folder("packing").glob("stack_after_batch_*.vtp"))
         if not files:
@@ -345,8 +343,6 @@ class Run:
     def description(self) -> dict[str, Any]:
         """``geometry/descriptors.json`` as written: every descriptor's scalars (value,
         unit, doc) and profiles."""
-        from chipstack.core.files import read_json
-
         return read_json(self._folder("geometry") / "descriptors.json", "descriptors")
 
     @property
@@ -362,8 +358,6 @@ class Run:
     @property
     def descriptor_table(self) -> pd.DataFrame:
         """The scalar descriptors as a table: descriptor, name, value, unit, doc."""
-        import pandas as pd
-
         rows = [
             (name, key, entry["value"], entry.get("unit", ""), entry.get("doc", ""))
             for name, section in self.description["descriptors"].items()
@@ -410,8 +404,6 @@ class Run:
         kind : str, optional
             ``"voxel"``, ``"conformal"`` or ``"image"`` when the run holds several.
         """
-        import meshio
-
         return meshio.read(self._mesh_file(kind))
 
     def mesh_grid(self, kind: str | None = None) -> pv.UnstructuredGrid:
@@ -421,14 +413,12 @@ class Run:
         --------
         >>> # run.mesh_grid().plot(scalars="chip", show_edges=True)
         """
-        import pyvista as pv
+        import pyvista as pv  # here: as in stack_grid
 
         return pv.read(self._mesh_file(kind))
 
 
 def _csv(path: Path) -> pd.DataFrame:
-    import pandas as pd
-
     if not path.is_file():
         raise InputError(f"{printable(path)}: missing from the run directory")
     return pd.read_csv(path)

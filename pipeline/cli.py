@@ -1,20 +1,23 @@
 """Command line: ``pipeline run``, ``sweep``, ``describe``, ``compare``, ``validate``,
 ``diagnose`` and ``synth``.
 
-The only place that prints or exits. Every expected failure (bad input, a physics error)
-becomes one line on stderr and exit status 2.
+The parser and ``main``; each command's handler is a module of
+:mod:`chipstack.pipeline.commands`. These are the only places that print or exit. Every
+expected failure (bad input, a physics error) becomes one line on stderr and exit status 2.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import logging
 import os
 import sys
+from collections.abc import Callable
 
-from chipstack.core.errors import ChipstackError, InputError, printable
+from chipstack.core.errors import ChipstackError, printable
 from chipstack.core.schema import MAX_DROPS, MAX_REPEATS, MAX_SEED, MAX_WORKERS
-from chipstack.core.stages import check_stage_name, stage_names
+from chipstack.core.stages import stage_names
 
 __all__ = ["main"]
 
@@ -50,6 +53,24 @@ def _bounded(low: float, high: float, kind: type = int):
 
 WORKERS = _bounded(1, MAX_WORKERS)
 SEED = _bounded(0, MAX_SEED)
+
+# Each command's handler, named by module and imported when that command runs: the
+# handlers import the stages' libraries at their top, which --help and a mistyped flag
+# must not wait for.
+HANDLERS = {
+    "run": "chipstack.pipeline.commands.run:main",
+    "sweep": "chipstack.pipeline.commands.sweep:main",
+    "describe": "chipstack.pipeline.commands.describe:main",
+    "compare": "chipstack.pipeline.commands.compare:main",
+    "validate": "chipstack.pipeline.commands.validate:main",
+    "diagnose": "chipstack.pipeline.commands.diagnose:main",
+    "synth": "chipstack.pipeline.commands.synth:main",
+}
+
+
+def _handler(command: str) -> Callable[[argparse.Namespace], None]:
+    module, _, name = HANDLERS[command].partition(":")
+    return getattr(importlib.import_module(module), name)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -267,375 +288,9 @@ def _add_synth(commands) -> None:
     synth.add_argument("-v", "--verbose", action="store_true", help="log progress details")
 
 
-def _names(text: str | None) -> list[str] | None:
-    if text is None:
-        return None
-    names = [n.strip() for n in text.split(",") if n.strip()]
-    if not names:
-        raise ChipstackError("--descriptors: give at least one descriptor name")
-    return names
-
-
-def _run(args: argparse.Namespace) -> None:
-    from chipstack.pipeline.run import run_pipeline
-    from chipstack.pipeline.scenario_files import load_scenario
-
-    scenario = load_scenario(args.scenario)
-    if args.seed is not None:
-        scenario = scenario.with_seed(args.seed)
-    out = args.out or f"runs/{scenario.name}-seed{scenario.seed}"
-    descriptors = _names(args.descriptors)
-    if descriptors is not None and args.to in (None, stage_names()[0]):
-        raise ChipstackError("--descriptors: only with --to geometry or a later stage")
-    if args.formats is not None:
-        import dataclasses
-
-        from chipstack.meshing.stage import check_formats
-
-        formats = tuple(f.strip() for f in args.formats.split(",") if f.strip())
-        check_formats(formats, "--formats")
-        if "mesh" not in {t.table for t in scenario.tables}:
-            raise InputError(f"--formats: a {scenario.kind} scenario is not meshed")
-        scenario = dataclasses.replace(
-            scenario, mesh=dataclasses.replace(scenario.mesh, formats=formats)
-        )
-    if args.repeats is not None:
-        _ensemble(args, scenario, out, descriptors)
-        return
-    if args.workers is not None or args.scheduler is not None:
-        raise ChipstackError("--workers, --scheduler: only with --repeats (a single run is local)")
-    bars = _StageBars(args.quiet)
-    try:
-        path, _, manifest = run_pipeline(
-            scenario,
-            out,
-            to=args.to,
-            overwrite=args.overwrite,
-            progress=bars.update,
-            command=sys.argv,
-            descriptors=descriptors,
-        )
-    finally:
-        bars.close()
-    if not args.quiet:
-        _print_run(path, manifest)
-
-
-class _StageBars:
-    """One progress bar per stage, drawn at its first report (so that early errors
-    stay one line) and closed when the next stage starts."""
-
-    def __init__(self, quiet: bool) -> None:
-        self.quiet = quiet
-        self.bar = None
-        self.stage = None
-
-    def update(self, stage: str, done: int, total: int, detail: dict) -> None:
-        from tqdm import tqdm
-
-        if stage != self.stage:
-            self.close()
-            self.stage = stage
-            registered = check_stage_name(stage)
-            self.bar = tqdm(
-                total=total,
-                desc=registered.progress_label or stage,
-                unit=registered.progress_unit,
-                disable=self.quiet,
-                file=sys.stderr,
-            )
-        if detail:
-            self.bar.set_postfix(detail)
-        self.bar.update(done - self.bar.n)
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.close()
-            self.bar = None
-
-
-def _print_run(path, manifest: dict) -> None:
-    """Each completed stage's lines of summary, with where the run was written."""
-    from pathlib import Path
-
-    from chipstack.core.stages import load_stages
-
-    times = manifest["wall_time_s"]
-    if manifest["stages_reused"]:
-        print(f"reused (inputs unchanged): {', '.join(manifest['stages_reused'])}")
-    first = load_stages()[0]
-    for stage in load_stages():
-        if stage.name not in manifest["stages_completed"]:
-            continue
-        summary = manifest if stage is first else manifest.get(stage.name, {})
-        lines = stage.report(summary, Path(path) / stage.name)
-        if stage is first and lines and "drop" not in manifest:
-            took = f"{times[stage.name]:.1f} s" if stage.name in times else "reused"
-            lines[0] += f"; deposition {took}; written to {path}"
-        for line in lines:
-            print(line)
-
-
-def _ensemble(args: argparse.Namespace, scenario, out: str, descriptors) -> None:
-    from tqdm import tqdm
-
-    from chipstack.pipeline.ensemble import run_ensemble
-
-    bars: list[tqdm] = []
-
-    def progress(finished: int, total: int) -> None:
-        """``finished`` more runs are done (the first call: those resumed from disk)."""
-        if not bars:
-            bars.append(
-                tqdm(total=total, desc="repeats", unit="run", disable=args.quiet, file=sys.stderr)
-            )
-        bars[0].update(finished)
-
-    try:
-        path, manifest = run_ensemble(
-            scenario,
-            out,
-            args.repeats,
-            to=args.to,
-            overwrite=args.overwrite,
-            progress=progress,
-            command=sys.argv,
-            descriptors=descriptors,
-            workers=args.workers,
-            scheduler=args.scheduler,
-        )
-    except KeyboardInterrupt:
-        for bar in bars:
-            bar.close()
-        _resumable_interrupt("runs", out)
-    finally:
-        for bar in bars:
-            bar.close()
-    if not args.quiet:
-        _print_ensemble(path, manifest, args.repeats)
-
-
-def _resumable_interrupt(what: str, out) -> None:
-    """Ctrl-C in a resumable command: say what is kept, exit 130."""
-    sys.stderr.write(
-        f"pipeline: interrupted; the {what} already written are kept in {out}: "
-        "run the same command to resume\n"
-    )
-    raise SystemExit(130) from None
-
-
-def _print_ensemble(path, manifest: dict, repeats: int) -> None:
-    resumed = len(manifest["resumed_runs"])
-    if resumed:
-        print(f"resumed: {resumed} runs were already written")
-    failed = len(manifest["failed_runs"])
-    if failed:
-        print(f"{failed} of {repeats} runs failed (see the warnings and the manifest)")
-    seconds = manifest["wall_time_s"]["total"]
-    print(f"{repeats - failed} of {repeats} repeats in {seconds:.1f} s; written to {path}")
-    if "geometry" in manifest["stages_completed"]:
-        import json
-        from pathlib import Path
-
-        summary = json.loads((Path(path) / "ensemble.json").read_text())
-        d = summary["descriptors"]
-        from chipstack.geometry.describe import DESCRIPTORS, in_output_order
-
-        shown = in_output_order(d)
-        for section in shown:
-            for key in DESCRIPTORS.get(section).ensemble_scalars:
-                s = d[section]["scalars"][key]
-                print(
-                    f"  {section}.{key}: {s['mean']:.4g} "
-                    f"(95 % CI {s['ci_low']:.4g} to {s['ci_high']:.4g}) {s['unit']}"
-                )
-
-
-def _describe(args: argparse.Namespace) -> None:
-    from chipstack.pipeline.describe import describe_run
-
-    manifest = describe_run(
-        args.run_dir,
-        _names(args.descriptors),
-        figures=not args.no_figures,
-        overwrite=args.overwrite,
-    )
-    if not args.quiet:
-        from pathlib import Path
-
-        from chipstack.geometry.stage import STAGE
-
-        folder = Path(args.run_dir) / "geometry"
-        for line in STAGE.report(manifest["geometry"], folder):
-            print(line)
-        print(f"written to {args.run_dir}/geometry ({len(manifest['geometry']['files'])} files)")
-
-
-def _compare(args: argparse.Namespace) -> None:
-    from pathlib import Path
-
-    from chipstack.pipeline.compare import compare_runs
-
-    out = args.out or f"runs/compare-{Path(args.run_a).name}-{Path(args.run_b).name}"
-    _, table = compare_runs(args.run_a, args.run_b, out, overwrite=args.overwrite, command=sys.argv)
-    if not args.quiet:
-        print(table, end="")
-        print(f"written to {out}")
-
-
-def _validate(args: argparse.Namespace) -> None:
-    from tqdm import tqdm
-
-    from chipstack.pipeline.validate import CASES, table_markdown, validate
-
-    cases = [c.strip() for c in args.cases.split(",") if c.strip()] if args.cases else CASES
-    if not cases:
-        raise ChipstackError("--cases: give at least one case")
-    bar = None
-
-    def progress(step: int, total: int) -> None:
-        nonlocal bar
-        if bar is None:
-            bar = tqdm(total=total, unit="run", desc="validating")
-        bar.update(step)
-
-    try:
-        rows = validate(
-            args.out,
-            cases,
-            args.repeats,
-            args.drops,
-            args.seed,
-            args.workers,
-            args.scheduler,
-            progress,
-            overwrite=args.overwrite,
-            command=sys.argv,
-        )
-    finally:
-        if bar is not None:
-            bar.close()
-    print(table_markdown(rows))
-    print(f"written to {args.out}")
-
-
 class _Formatter(logging.Formatter):
     def format(self, record: logging.LogRecord) -> str:
         return f"pipeline: {record.levelname.lower()}: {record.getMessage()}"
-
-
-def _diagnose(args: argparse.Namespace) -> None:
-    from pathlib import Path
-
-    from chipstack.pipeline.diagnose import diagnose
-
-    out = args.out or f"runs/diagnose-{Path(args.spec).stem}"
-
-    def progress(message: str) -> None:
-        # The reference table's build takes minutes the first time: always shown.
-        long_work = message.startswith(("reference table", "model choice"))
-        if args.verbose or (long_work and not args.quiet):
-            sys.stderr.write(f"pipeline: {message}\n")
-
-    path, result = diagnose(
-        args.spec,
-        out,
-        seed=args.seed,
-        workers=args.workers,
-        scheduler=args.scheduler,
-        overwrite=args.overwrite,
-        progress=progress,
-        command=sys.argv,
-        tables=args.tables,
-    )
-    if not args.quiet:
-        print(f"{result['verdict']['kind']}: {result['verdict']['text']}")
-        print(f"diagnosis in {result['wall_time_s']:.1f} s; report written to {path}/diagnosis.md")
-
-
-def _synth(args: argparse.Namespace) -> None:
-    from chipstack.pipeline.diagnose import synth
-
-    path, rows = synth(
-        args.spec,
-        args.effect,
-        args.seed,
-        args.output,
-        drops=args.drops,
-        measurements=args.measurements,
-        overwrite=args.overwrite,
-        workers=args.workers,
-        position_sd_mm=args.position_sd_mm,
-        angle_sd_deg=args.angle_sd_deg,
-    )
-    print(f"{rows} observations written to {path}")
-
-
-def _sweep(args: argparse.Namespace) -> None:
-    from tqdm import tqdm
-
-    from chipstack.pipeline.scenario_files import load_scenario
-    from chipstack.pipeline.sweep import parse_vary, run_sweep, sweep_points
-
-    scenario = load_scenario(args.scenario)
-    if args.seed is not None:
-        scenario = scenario.with_seed(args.seed)
-    vary = parse_vary(args.vary)
-    check_stage_name(args.to)
-    points = sweep_points(scenario, vary)  # every point checked before anything runs
-    out = args.out or f"runs/sweep-{scenario.name}"
-    bar = tqdm(
-        total=len(points) * args.repeats,
-        desc="sweep",
-        unit="run",
-        disable=args.quiet,
-        file=sys.stderr,
-    )
-
-    def progress(done: int, total: int) -> None:
-        bar.update(done - bar.n)
-
-    try:
-        path, record = run_sweep(
-            scenario,
-            vary,
-            out,
-            args.repeats,
-            to=args.to,
-            overwrite=args.overwrite,
-            progress=progress,
-            command=sys.argv,
-            workers=args.workers,
-            scheduler=args.scheduler,
-        )
-    except KeyboardInterrupt:
-        bar.close()
-        _resumable_interrupt("points and runs", out)
-    finally:
-        bar.close()
-    if args.quiet:
-        return
-    print(f"{len(record['points'])} points x {args.repeats} repeats; written to {path}")
-    shown = [
-        n
-        for n in (
-            "conveyor.areal_weight.mean_g_m2",
-            "conveyor.areal_weight.cv",
-            "conveyor.thickness.mean_mm",
-            "conveyor.orientation.order_cos2",
-            "stack.mean_height_mm",
-            "stack.volume_fraction",
-        )
-        if any(n in p["scalars"] for p in record["points"])
-    ]
-    for point in record["points"]:
-        cells = []
-        for name in shown:
-            s = point["scalars"].get(name)
-            if s and s["mean"] is not None:
-                half = "" if s["ci_high"] is None else f" +- {(s['ci_high'] - s['mean']):.3g}"
-                cells.append(f"{name.split('.', 1)[1]} {s['mean']:.4g}{half}")
-        print(f"{point['dir']}: " + "; ".join(cells))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -653,20 +308,7 @@ def main(argv: list[str] | None = None) -> int:
     if not verbose:
         os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "critical")
     try:
-        if args.command == "run":
-            _run(args)
-        elif args.command == "sweep":
-            _sweep(args)
-        elif args.command == "describe":
-            _describe(args)
-        elif args.command == "compare":
-            _compare(args)
-        elif args.command == "validate":
-            _validate(args)
-        elif args.command == "diagnose":
-            _diagnose(args)
-        elif args.command == "synth":
-            _synth(args)
+        _handler(args.command)(args)
     except ChipstackError as exc:
         sys.stderr.write(f"pipeline: error: {exc}\n")
         return EXIT_BAD_INPUT

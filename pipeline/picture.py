@@ -11,6 +11,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pyvista
+from PIL import Image  # a pyvista dependency
+
+from chipstack.pipeline.run import run_pipeline
+from chipstack.pipeline.scenario_files import load_scenario
 
 __all__ = ["draw"]
 
@@ -22,11 +27,6 @@ WINDOW_MM = (-35.0, 35.0, -35.0, 0.0)
 
 def draw(run_dir: Path = ROOT / "runs" / "paper-squares", out: Path = PICTURE) -> Path:
     """Run (or reuse) the reference stack to its mesh in ``run_dir`` and draw ``out``."""
-    import pyvista
-
-    from chipstack.pipeline.run import run_pipeline
-    from chipstack.pipeline.scenario_files import load_scenario
-
     scenario = load_scenario("paper-squares").with_seed(0)
     run_pipeline(scenario, run_dir, to="mesh")
     stack = pyvista.read(sorted((run_dir / "packing").glob("stack_after_batch_*.vtp"))[-1])
@@ -74,8 +74,6 @@ def draw(run_dir: Path = ROOT / "runs" / "paper-squares", out: Path = PICTURE) -
             image = plotter.screenshot(return_img=True)
         finally:
             plotter.close()
-    from PIL import Image  # a pyvista dependency
-
     out.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(np.asarray(image)).save(out, format="PNG", optimize=True)
     return out

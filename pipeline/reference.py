@@ -5,15 +5,27 @@ test checks they are up to date, so the documentation cannot drift from the code
 
 from __future__ import annotations
 
+import dataclasses
+import importlib
+import logging
+import pkgutil
 import re
 from collections.abc import Callable
 from pathlib import Path
 
-from chipstack.core.schema import key_table_markdown
+import chipstack.meshing.files  # noqa: F401  (registers the mesh's figure)
+from chipstack.core.registry import Registry
+from chipstack.core.schema import key_table_markdown, sections
 from chipstack.core.stages import load_stages
+from chipstack.diagnosis.spec import EXPERIMENT_KINDS
+from chipstack.diagnosis.stacks import QUANTITY_MEASURES
+from chipstack.export.figure_kinds import FIGURES, SUBJECT_FOLDERS
 from chipstack.geometry.describe import DESCRIPTORS
 from chipstack.meshing.formats import MESH_FORMATS
+from chipstack.meshing.kinds import MESH_KINDS
+from chipstack.meshing.solve_models import SOLVE_MODELS
 from chipstack.packing.effects import EFFECTS
+from chipstack.packing.files import STACK_WRITERS
 from chipstack.packing.kinds import SCENARIO_KINDS
 from chipstack.packing.presets import PRESETS
 from chipstack.packing.shapes import SHAPES
@@ -53,8 +65,6 @@ def stages_markdown() -> str:
 
 def _keys(parameters: type) -> str:
     """A kind's own keys, for its row (each key's meaning is in the scenario key table)."""
-    import dataclasses
-
     names = [f"`{f.name}`" for f in dataclasses.fields(parameters)]
     return f" Keys: {', '.join(names)}." if names else " No keys of its own."
 
@@ -78,8 +88,6 @@ def mesh_formats_markdown() -> str:
 
 
 def stack_writers_markdown() -> str:
-    from chipstack.packing.files import STACK_WRITERS
-
     rows = []
     for name in STACK_WRITERS.in_order():
         writer = STACK_WRITERS.get(name)
@@ -89,9 +97,6 @@ def stack_writers_markdown() -> str:
 
 
 def figures_markdown() -> str:
-    import chipstack.meshing.files  # noqa: F401  (registers the mesh's figure)
-    from chipstack.export.figure_kinds import FIGURES, SUBJECT_FOLDERS
-
     rows = []
     for name in FIGURES.in_order():
         kind = FIGURES.get(name)
@@ -101,8 +106,6 @@ def figures_markdown() -> str:
 
 
 def mesh_kinds_markdown() -> str:
-    from chipstack.meshing.kinds import MESH_KINDS
-
     rows = []
     for name in MESH_KINDS.in_order():
         kind = MESH_KINDS.get(name)
@@ -113,8 +116,6 @@ def mesh_kinds_markdown() -> str:
 
 
 def solve_models_markdown() -> str:
-    from chipstack.meshing.solve_models import SOLVE_MODELS
-
     rows = [
         (n, _first_line(type(model).__doc__) + _keys(model.parameters))
         for n, model in ((n, SOLVE_MODELS.get(n)) for n in SOLVE_MODELS.in_order())
@@ -143,8 +144,6 @@ def effects_markdown() -> str:
 def scenario_kinds_markdown() -> str:
     """The registered scenario kinds, their own tables, deposition sites and which later
     stages run."""
-    from chipstack.core.schema import sections
-
     rows = []
     for name in SCENARIO_KINDS.in_order():
         kind = SCENARIO_KINDS.get(name)
@@ -163,8 +162,6 @@ def scenario_kinds_markdown() -> str:
 
 def experiment_kinds_markdown() -> str:
     """The diagnosis's experiment kinds, what they observe and what the spec may set."""
-    from chipstack.diagnosis.spec import EXPERIMENT_KINDS
-
     rows = []
     for name in EXPERIMENT_KINDS.in_order():
         kind = EXPERIMENT_KINDS.get(name)
@@ -201,11 +198,6 @@ def _registries() -> dict[str, list]:
     """Every registry of the project, by the layer that defines it (found by importing
     every module of each layer: a registry is first met in its own layer, since only
     higher layers import it)."""
-    import importlib
-    import pkgutil
-
-    from chipstack.core.registry import Registry
-
     found: dict[int, tuple[str, Registry]] = {}
     for layer, _ in LAYERS:
         name = layer if layer == "chipstack" else f"chipstack.{layer}"
@@ -245,8 +237,6 @@ def sites_markdown() -> str:
 
 
 def quantity_measures_markdown() -> str:
-    from chipstack.diagnosis.stacks import QUANTITY_MEASURES
-
     rows = [
         (n, _first_line(QUANTITY_MEASURES.get(n).__doc__)) for n in QUANTITY_MEASURES.in_order()
     ]
@@ -307,8 +297,6 @@ def refresh(folder: Path = DOCS) -> list[str]:
 
 
 if __name__ == "__main__":
-    import logging
-
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     for name in refresh():
         logging.getLogger(__name__).info("refreshed docs/%s", name)

@@ -7,11 +7,15 @@ so a failed or interrupted run leaves nothing half-written under the requested n
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import io
 import json
 import logging
 import os
 import shutil
+import zipfile
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -376,10 +380,7 @@ def write_atomically(path: Path, data: bytes | str) -> Path:
 
 def save_npz_atomically(path: Path, arrays: dict[str, Any]) -> str:
     """Write ``arrays`` as an ``.npz`` file atomically; returns the SHA-256 of its bytes."""
-    import hashlib
-    import io
-
-    import numpy as np
+    import numpy as np  # here: every run imports this module before its scenario's checks
 
     buffer = io.BytesIO()
     np.savez(buffer, **arrays)
@@ -715,9 +716,7 @@ class RunCheckpoint(Checkpoint):
 
     @staticmethod
     def _decode(path: Path, decode):
-        import zipfile
-
-        import numpy as np
+        import numpy as np  # here, not at the top: see save_npz_atomically
 
         try:
             with np.load(path, allow_pickle=False) as arrays:
@@ -762,6 +761,4 @@ def _remove(path: Path) -> None:
 
 
 def _now() -> str:
-    from datetime import UTC, datetime
-
     return datetime.now(UTC).isoformat(timespec="seconds")

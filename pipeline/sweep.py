@@ -24,6 +24,8 @@ from typing import Any
 
 from chipstack.core.errors import InputError, brief, printable
 from chipstack.core.schema import Scenario, changed_data, scenario_from_dict
+from chipstack.pipeline.ensemble import run_ensemble
+from chipstack.pipeline.run import stages_to
 from chipstack.pipeline.rundir import write_atomically
 from chipstack.pipeline.scenario_files import dumps_toml
 
@@ -136,9 +138,6 @@ def run_sweep(
 ) -> tuple[Path, dict[str, Any]]:
     """An ensemble of ``repeats`` runs at every point of ``vary``'s grid, then the sweep's
     table and figures in ``out``. Returns (out, the sweep record)."""
-    from chipstack.pipeline.ensemble import run_ensemble
-    from chipstack.pipeline.run import stages_to
-
     points = sweep_points(scenario, vary)
     for _, point in points:
         stages_to(to, point)  # a stage the kind lacks: refused before anything is written
@@ -225,6 +224,7 @@ def _point_scalars(folder: Path, manifest: dict[str, Any]) -> dict[str, Any]:
     """Mean and 95 % interval of every scalar of one point: the geometry's descriptors
     (its ``ensemble.json``) and the numbers of the packing's result entries (a
     conveyor's mat, a container's fill) over the repeats' manifests."""
+    # scipy.stats, 0.7 s to import: not for a sweep whose --vary is refused.
     from chipstack.geometry.stats import summarize
 
     scalars: dict[str, dict[str, Any]] = {}
