@@ -9,13 +9,13 @@ expected failure (bad input, a physics error) becomes one line on stderr and exi
 from __future__ import annotations
 
 import argparse
-import importlib
 import logging
 import os
 import sys
 from collections.abc import Callable
 
 from chipstack.core.errors import ChipstackError, printable
+from chipstack.core.lazy import named
 from chipstack.core.schema import MAX_DROPS, MAX_REPEATS, MAX_SEED, MAX_WORKERS
 from chipstack.core.stages import stage_names
 
@@ -69,8 +69,7 @@ HANDLERS = {
 
 
 def _handler(command: str) -> Callable[[argparse.Namespace], None]:
-    module, _, name = HANDLERS[command].partition(":")
-    return getattr(importlib.import_module(module), name)
+    return named(HANDLERS[command])
 
 
 def _parser() -> argparse.ArgumentParser:
