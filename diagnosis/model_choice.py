@@ -33,7 +33,7 @@ import math
 import pickle
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import sklearn
@@ -46,16 +46,19 @@ from sklearn.neighbors import NearestNeighbors
 from sklearn.preprocessing import StandardScaler
 
 from chipstack.diagnosis.learned_summary import LearnedSummary
-from chipstack.diagnosis.model import DropData, Experiment
+from chipstack.diagnosis.model import Condition, DropData, Experiment
 from chipstack.diagnosis.reference_table import (
     DEFAULT_POOL_DROPS,
     NO_EFFECT,
+    NUISANCE_TILT_DEG,
     ReferenceTable,
     TableDataset,
     TableStore,
     pool_drops_for,
+    simulation_key,
 )
 from chipstack.diagnosis.summaries import condition_summaries, summary_names
+from chipstack.packing.drop import DropProtocol
 from chipstack.packing.effects import EFFECTS
 
 __all__ = [
@@ -637,8 +640,6 @@ def _train(design: _Design, counts, models, seed, curve, progress) -> ModelChoic
         )
     tilts = {}
     if design.table.release_tilt == "fitted":
-        from chipstack.diagnosis.reference_table import NUISANCE_TILT_DEG
-
         for k, m in enumerate(models):
             mine = y == k
             tilts[m] = _fit_interval(hand[mine], tilt[mine], groups[mine], NUISANCE_TILT_DEG, seed)
@@ -751,8 +752,6 @@ def next_experiment(
     """Which extra condition would tell the ``tied`` models apart best
     (:func:`_score_next_experiment`), kept in ``store`` by a key of the design, the tied
     models and their pools, so that a second diagnosis of the design scores nothing."""
-    from chipstack.diagnosis.reference_table import simulation_key
-
     text = json.dumps(
         dict(
             version=MODEL_CHOICE_VERSION,
@@ -804,11 +803,6 @@ def _score_next_experiment(
     design as it is. The candidates' pools share the tied models' strengths pool by pool
     (the same Halton draws), so a dataset of the design and one of the extra condition
     come from one setting."""
-    from dataclasses import replace as _replace
-
-    from chipstack.diagnosis.model import Condition
-    from chipstack.packing.drop import DropProtocol
-
     n = int(np.median(list(drops.values())))
     pool_drops = pool_drops_for(drops)
     tied_counts = {m: counts[m] for m in tied}
@@ -852,7 +846,7 @@ def _score_next_experiment(
     for height, yaw in releases:
         name = f"next-h{height:g}-yaw{yaw:g}"
         condition = Condition(name, DropProtocol(height_mm=height, yaw_deg=yaw, tilt_deg=tilt))
-        extra_x = _replace(experiment, conditions=(condition,))
+        extra_x = replace(experiment, conditions=(condition,))
         extra = ReferenceTable(extra_x, tied, store, max(DEFAULT_POOL_DROPS // 2, 2 * n))
         extra.load()
         progress(f"model choice: scoring a next experiment at {height:g} mm, yaw {yaw:g} deg")

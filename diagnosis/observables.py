@@ -11,6 +11,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.distance import cdist
 
+from chipstack.packing.shapes import make_shape
+
 __all__ = [
     "DROP_OBSERVABLES",
     "drop_features",
@@ -48,8 +50,6 @@ def symmetry_order(scenario) -> int:
     geometry's :attr:`~core.chipshape.ChipShape.plan_symmetry`: 4 for a square, 6 for
     a hexagon, 5 for a five-pointed star, 1 for an irregular polygon). It was read from
     the shape's name before, which gave a hexagon 4 and a star 2."""
-    from chipstack.packing.shapes import make_shape
-
     return make_shape(scenario.chips[0], np.random.default_rng(scenario.seed)).plan_symmetry
 
 

@@ -37,6 +37,7 @@ from chipstack.diagnosis.model import (
     Experiment,
     QuantityData,
 )
+from chipstack.diagnosis.quantity_kinds import QUANTITIES
 from chipstack.packing.drop import DropProtocol
 from chipstack.packing.effects import EFFECTS
 
@@ -569,8 +570,6 @@ class QuantityExperiment(ExperimentKind):
         return _scenario_condition(entry, key, self.name, scenario, base, load_scenario)
 
     def read_observations(self, experiment):
-        from chipstack.diagnosis.stacks import QUANTITIES
-
         return read_quantity_observations(experiment, tuple(QUANTITIES))
 
     def diagnose(self, experiment, data, run_many, seed, progress=None, tables=None):

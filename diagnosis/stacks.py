@@ -32,10 +32,11 @@ from collections.abc import Callable
 import numpy as np
 from scipy.stats import t as student_t
 
+from chipstack.core.arrangement import arrangements_from_stack
 from chipstack.core.errors import InputError
 from chipstack.core.schema import Scenario
 from chipstack.diagnosis.model import Experiment, QuantityData
-from chipstack.diagnosis.quantity_kinds import QUANTITY_MEASURES
+from chipstack.diagnosis.quantity_kinds import MAX_LAYERS, QUANTITIES, QUANTITY_MEASURES
 from chipstack.diagnosis.ranking import adjust_tests
 from chipstack.diagnosis.stack_effects import (
     BOOTSTRAP,
@@ -47,8 +48,10 @@ from chipstack.diagnosis.stack_effects import (
 )
 from chipstack.diagnosis.statistics import holm
 from chipstack.diagnosis.verdicts import applicable_effects, effect_verdict
+from chipstack.geometry.describe import describe
 from chipstack.packing.deposition import deposit
 from chipstack.packing.effects import EFFECTS, contact_model
+from chipstack.packing.fill import container_fill
 from chipstack.packing.presets import PRESETS
 
 __all__ = [
@@ -61,37 +64,11 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-# name -> (unit, meaning, kinds)
-QUANTITIES: dict[str, tuple[str, str, tuple[str, ...]]] = {
-    "volume_fraction": (
-        "",
-        "chip volume over the container's (containers: centres inside) or over "
-        "the target area times the mean height (stacks)",
-        ("stack", "container"),
-    ),
-    "chips_inside": ("", "chips whose centre of mass is inside the container", ("container",)),
-    "height_mean_mm": ("mm", "mean height of the stack's top surface", ("stack",)),
-    "height_max_mm": ("mm", "highest point of the stack", ("stack",)),
-    "contacts_per_chip": ("", "contacts (point + line + surface) per chip", ("stack",)),
-    "contacts_point_per_chip": ("", "point contacts per chip", ("stack",)),
-    "contacts_line_per_chip": ("", "line contacts per chip", ("stack",)),
-    "contacts_surface_per_chip": ("", "surface contacts per chip", ("stack",)),
-}
-MAX_LAYERS = 30
 BASELINE_REPEATS = 8
-for _k in range(MAX_LAYERS):
-    QUANTITIES[f"layer_filling_{_k}"] = (
-        "",
-        f"chips whose centre lies in layer {_k} (2 mm layers by default) over a full layer "
-        "(target area over chip area)",
-        ("stack",),
-    )
 
 
 def _container_quantities(scenario: Scenario, stack) -> dict:
     """A container fill's volume fraction and the chips inside it."""
-    from chipstack.packing.fill import container_fill
-
     volumes = np.array([stack.shapes[k].volume_mm3 for k in stack.shape_index])
     c = scenario.container
     fill = container_fill(stack.positions, volumes, c.radius_mm, c.height_mm)
@@ -100,8 +77,6 @@ def _container_quantities(scenario: Scenario, stack) -> dict:
 
 def _stack_quantities(scenario: Scenario, stack) -> dict:
     """A stack's contacts per chip, heights, volume fraction and layer filling."""
-    from chipstack.geometry import arrangements_from_stack, describe
-
     description = describe(
         arrangements_from_stack(stack), scenario.geometry, ["contacts", "stack", "layers"]
     )

@@ -10,6 +10,7 @@ import numpy as np
 from chipstack.core.errors import InputError
 from chipstack.diagnosis.model import Experiment
 from chipstack.diagnosis.observables import DROP_OBSERVABLES
+from chipstack.diagnosis.statistics import combined_p, holm
 from chipstack.packing.deposition import draw_shapes
 from chipstack.packing.effects import EFFECTS, shaped
 
@@ -162,8 +163,6 @@ def _still_off(conditions: list[dict], alpha: float, overall_p: float | None = N
     adjusting for their number would hide a gap that every one of them sees a little of.
     ``overall_p``: the overall combination calibrated by simulation (drops:
     ``drop_effects.calibrated_adequacy``), which decides in place of Fisher's."""
-    from chipstack.diagnosis.statistics import combined_p, holm
-
     if overall_p is None:
         overall_p = combined_p([row["p_after"] for row in conditions]) if conditions else 1.0
     if not conditions or overall_p >= alpha:

@@ -6,11 +6,14 @@ makes and what it shows; a stage draws every registered figure of the subjects i
 (``draw_figures``) and never names one. Plugins add figures through the entry point
 group ``chipstack.figures``. A descriptor's figures (Fig. 7, 9, 10 and their ensemble and
 comparison versions) belong to the descriptor (``geometry.describe.Descriptor``).
+
+The built-in figures are declared here by name and registered, with what draws them, by
+:mod:`export.builtin_figures` when one is first asked for: listing them loads no
+numerical library.
 """
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,8 +30,6 @@ __all__ = [
     "MeshPicture",
     "draw_figures",
 ]
-
-log = logging.getLogger(__name__)
 
 # What a figure may be drawn from, and the folder of a run the stage that holds it puts
 # its figures in.
@@ -88,6 +89,11 @@ class MeshPicture:
 
 
 FIGURES: Registry[FigureKind] = Registry("figure", "chipstack.figures")
+# The built-in figures, in the order they are drawn: declared by name, since what draws
+# them brings matplotlib and pyvista (registered by that module when one is asked for).
+FIGURES.declare(
+    "chipstack.export.builtin_figures", "stack_view", "drop_scatter", "mat_profiles", "force_travel"
+)
 
 
 def draw_figures(subject: str, folder: Path, data: Any) -> list[str]:
@@ -109,75 +115,3 @@ def draw_figures(subject: str, folder: Path, data: Any) -> list[str]:
     if made and not written and not any(folder.iterdir()):
         folder.rmdir()
     return written
-
-
-def _stack_view(folder: Path, arrangement) -> list[str]:
-    from chipstack.export import figures, stack_polydata  # pyvista only when drawing
-
-    a = arrangement
-    mesh = stack_polydata(a.shapes, a.shape_index, a.positions, a.quaternions, a.batch)
-    try:
-        figures.render_stack(folder / "stack.png", mesh)
-    except RuntimeError as exc:  # no OpenGL on this machine: the other outputs still count
-        log.warning("3-D view not rendered: %s", exc)
-        return []
-    return ["stack.png"]
-
-
-def _drop_scatter(folder: Path, drops: DropScatter) -> list[str]:
-    from chipstack.export.figures import plot_drops  # matplotlib only when drawing
-
-    plot_drops(folder / "fig15_drops.png", drops.xy, drops.statistics, drops.yaw_deg)
-    return ["fig15_drops.png"]
-
-
-def _mat_profiles(folder: Path, record: Mapping[str, Any]) -> list[str]:
-    if not (record["areal_weight"] and record["thickness"]):
-        return []  # no steady part of the mat to draw
-    from chipstack.export.figures import plot_mat
-
-    plot_mat(folder / "mat.png", record)
-    return ["mat.png"]
-
-
-def _force_travel(folder: Path, compaction) -> list[str]:
-    from chipstack.export.figures import plot_force_displacement
-
-    plot_force_displacement(
-        folder / "force_displacement.png", compaction.press_mm, compaction.force_n
-    )
-    return ["force_displacement.png"]
-
-
-for _figure in (
-    FigureKind(
-        "stack_view",
-        "stack",
-        "stack.png",
-        "Fig. 6: the chips in 3-D, coloured by batch (needs OpenGL; without, skipped with a "
-        "warning)",
-        _stack_view,
-    ),
-    FigureKind(
-        "drop_scatter",
-        "drops",
-        "fig15_drops.png",
-        "Fig. 15: where the chips landed, with the paper's statistics",
-        _drop_scatter,
-    ),
-    FigureKind(
-        "mat_profiles",
-        "mat",
-        "mat.png",
-        "the mat's areal weight and thickness along the belt (when it has a steady part)",
-        _mat_profiles,
-    ),
-    FigureKind(
-        "force_travel",
-        "compaction",
-        "force_displacement.png",
-        "the platen's force against the press's travel",
-        _force_travel,
-    ),
-):
-    FIGURES.register(_figure.name, _figure)

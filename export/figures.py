@@ -28,8 +28,9 @@ from matplotlib import colormaps
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import BoundaryNorm, ListedColormap
 from matplotlib.figure import Figure
-from matplotlib.patches import Patch, Rectangle
+from matplotlib.patches import Circle, Patch, Rectangle
 from matplotlib.ticker import MaxNLocator
+from PIL import Image  # matplotlib's own dependency: imported with it
 
 from chipstack.core.errors import InputError
 
@@ -650,8 +651,6 @@ def render_stack(
         image = _render(
             pyvista, mesh, conveyor, colour_by, style, what, scalars, window_size, show_edges
         )
-    from PIL import Image  # a pyvista dependency
-
     Image.fromarray(np.asarray(image)).save(path, format="PNG")
 
 
@@ -694,8 +693,6 @@ def _render(pyvista, mesh, conveyor, colour_by, style, what, scalars, window_siz
 def plot_drops(path: object, xy: np.ndarray, statistics: Mapping, yaw_deg: float = 0.0) -> Path:
     """Fig. 15: final positions of dropped chips (mm) with the disc holding 95 % of them
     and the chip's corner directions at release (dashed), the 4-fold axis (solid)."""
-    from matplotlib.patches import Circle
-
     path = _path(path)
     xy = np.asarray(xy, dtype=float).reshape(-1, 2)
     if not np.isfinite(xy).all():

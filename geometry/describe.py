@@ -14,6 +14,7 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -224,9 +225,16 @@ def _contact_tables(history: ContactHistory) -> dict[str, Table]:
     return {"contacts_by_batch.csv": (by_batch, rows), "contacts.csv": (header, pairs)}
 
 
-def _contact_figures(history: ContactHistory, section: dict[str, Any], folder: Path) -> list[str]:
-    from chipstack.export import figures  # matplotlib only when drawing
+def _figures() -> ModuleType:
+    """:mod:`export.figures`, imported when a descriptor's figure is first drawn: it brings
+    matplotlib, which a description without figures never needs."""
+    from chipstack.export import figures
 
+    return figures
+
+
+def _contact_figures(history: ContactHistory, section: dict[str, Any], folder: Path) -> list[str]:
+    figures = _figures()
     profiles = section["profiles"]
     mean = {kind: np.array(profiles[f"{kind}_per_chip_by_batch"]["values"]) for kind in KINDS}
     batches = np.array(profiles["point_per_chip_by_batch"]["index"])
@@ -236,8 +244,7 @@ def _contact_figures(history: ContactHistory, section: dict[str, Any], folder: P
 
 def _contact_ensemble_figures(summary: dict[str, Any], folder: Path) -> list[str]:
     """Fig. 7 with 95 % confidence bands over the repeats."""
-    from chipstack.export import figures  # matplotlib only when drawing
-
+    figures = _figures()
     profiles = summary["profiles"]
     batches = np.array(profiles["point_per_chip_by_batch"]["index"])
     mean, low, high = {}, {}, {}
@@ -346,8 +353,7 @@ def _thickness_tables(maps: RayMaps) -> dict[str, Table]:
 
 
 def _thickness_figures(maps: RayMaps, section: dict[str, Any], folder: Path) -> list[str]:
-    from chipstack.export import figures  # matplotlib only when drawing
-
+    figures = _figures()
     grid = maps.grid
     figures.plot_neh_map(
         folder / "neh_map.png",
@@ -424,8 +430,7 @@ def _layer_tables(f: LayerFilling) -> dict[str, Table]:
 
 
 def _layer_figures(filling: LayerFilling, section: dict[str, Any], folder: Path) -> list[str]:
-    from chipstack.export import figures  # matplotlib only when drawing
-
+    figures = _figures()
     layers = np.arange(len(filling.chips))
     figures.plot_layer_filling(
         folder / "layer_filling.png", layers, filling.chips, filling.full_layer
@@ -442,8 +447,7 @@ def _layer_figures(filling: LayerFilling, section: dict[str, Any], folder: Path)
 
 def _layer_ensemble_figures(summary: dict[str, Any], folder: Path) -> list[str]:
     """Fig. 10 with 95 % confidence bands over the repeats."""
-    from chipstack.export import figures  # matplotlib only when drawing
-
+    figures = _figures()
     chips = summary["profiles"]["chips"]
     mean, low, high = bands(chips)
     full = summary["scalars"]["full_layer"]["mean"]
@@ -457,8 +461,7 @@ def _layer_comparison_figures(
     labels: tuple[str, str], summaries: tuple[dict[str, Any], dict[str, Any]], folder: Path
 ) -> list[str]:
     """Fig. 12: the two ensembles' layer filling side by side."""
-    from chipstack.export import figures  # matplotlib only when drawing
-
+    figures = _figures()
     series = []
     longest: list[Any] = []
     for label, summary in zip(labels, summaries, strict=True):

@@ -8,33 +8,31 @@ scenario is made) and never tests its name; a package adds a kind through the
 ``[container]``, ``[conveyor]``) is a :class:`~core.schema.Section` of
 :mod:`packing.sections` with that kind in its ``kinds``; where its chips are released and
 what holds them is its deposition site (:mod:`packing.sites`, ``kind.site``).
+
+Every command-line start registers the kinds, so they are declared here without the
+numerical libraries: what they run, write and read back is :mod:`packing.kind_work`'s,
+imported when a kind first does one of these.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-import zipfile
 from collections.abc import Mapping
 from pathlib import Path
+from types import ModuleType
 from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple
 
-from chipstack.core.errors import InputError, brief
+from chipstack.core.errors import InputError
 from chipstack.core.registry import Registry
 from chipstack.core.schema import KindChoice, Scenario
 from chipstack.core.stages import StageInputs, StageOptions, StageOutput
-from chipstack.packing.files import (
-    container_summary,
-    packing_summary,
-    write_drop_files,
-    write_mat_files,
-    write_stack_files,
-)
+from chipstack.packing.files import write_stack_files
 from chipstack.packing.sections import ContainerSpec, ConveyorSpec, DropSpec
+from chipstack.packing.site_kinds import SITES
 
-# The simulation is imported where used: every command-line start registers the stage.
 if TYPE_CHECKING:
-    from chipstack.core.stack import BatchResult, Stack
+    from chipstack.core.stack import Stack
     from chipstack.packing.conveyor import ConveyorResult
 
 __all__ = ["SCENARIO_KINDS", "ScenarioKind", "ChipExtent", "kind_of_summary", "stack_kinds"]
@@ -42,6 +40,13 @@ __all__ = ["SCENARIO_KINDS", "ScenarioKind", "ChipExtent", "kind_of_summary", "s
 log = logging.getLogger(__name__)
 
 STEADY_DRIFT = 0.1  # a steady part whose thickness drifts more than this is flagged
+
+
+def _work() -> ModuleType:
+    """:mod:`packing.kind_work`, imported the first time a kind runs, writes or loads."""
+    from chipstack.packing import kind_work
+
+    return kind_work
 
 
 class ChipExtent(NamedTuple):
@@ -77,8 +82,6 @@ class ScenarioKind:
     @property
     def site(self):
         """Where its chips are released and what holds them (:mod:`packing.sites`)."""
-        from chipstack.packing.site_kinds import SITES
-
         return SITES.get(self.name, key="kind")
 
     def check_chip(self, scenario: Scenario, chip: ChipExtent) -> None:
@@ -105,16 +108,7 @@ class ScenarioKind:
         """The stack back from a written folder (None for a kind that makes none)."""
         if not self.makes_stack:
             return None
-        import numpy as np
-
-        from chipstack.packing.checkpoint import stack_from_arrays
-
-        path = folder / "stack.npz"
-        try:
-            with np.load(path, allow_pickle=False) as arrays:
-                return stack_from_arrays(dict(arrays), str(path))
-        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
-            raise InputError(f"{path}: unreadable stack record ({brief(str(exc))})") from None
+        return _work().load_stack(folder)
 
     def report(self, summary: Mapping[str, Any], folder: Path) -> list[str]:
         """Lines for the command line's summary of a finished packing."""
@@ -180,35 +174,11 @@ class StackKind(ScenarioKind):
         _release_clears_the_floor(scenario, chips)
 
     def compute(self, inputs: StageInputs, stage_name: str) -> Stack:
-        from chipstack.packing.checkpoint import state_from_arrays, state_to_arrays
-        from chipstack.packing.deposition import deposit
-
-        scenario = inputs.scenario
-        n_batches = -(-scenario.deposition.chips // scenario.deposition.batch_size)
-        report = inputs.options.progress
-
-        def progress(batch: int, result: BatchResult | None) -> None:
-            if report is not None:
-                detail = {}
-                if result is not None:  # containers report only their last batch
-                    detail = {"chips": len(result.positions), "sim_s": f"{result.sim_time_s:.2f}"}
-                report(stage_name, batch, n_batches, detail)
-
-        checkpoint = inputs.checkpoint
-        resume = checkpoint.resume(state_from_arrays) if checkpoint is not None else None
-        if resume is not None:
-            progress(resume.batches_done, resume.results[-1] if resume.results else None)
-        on_batch = None
-        if checkpoint is not None:
-
-            def on_batch(state) -> None:
-                checkpoint.save(state_to_arrays(state), state.batches_done)
-
-        return deposit(scenario, progress=progress, resume=resume, on_batch=on_batch)
+        return _work().deposit_stack(inputs, stage_name)
 
     def write(self, result: Stack, folder: Path, inputs: StageInputs) -> StageOutput:
         write_stack_files(folder, result)
-        return StageOutput({"packing": packing_summary(result)}, list(result.warnings))
+        return StageOutput({"packing": _work().packing_summary(result)}, list(result.warnings))
 
     def report(self, summary: Mapping[str, Any], folder: Path) -> list[str]:
         packing = summary["packing"]
@@ -242,12 +212,11 @@ class DropKind(ScenarioKind):
         return {"figures": options.figures}  # the drop stage draws Fig. 15
 
     def compute(self, inputs: StageInputs, stage_name: str):
-        from chipstack.packing.drop import drop_chips
-
-        return drop_chips(inputs.scenario)
+        return _work().drop_chips(inputs.scenario)
 
     def write(self, result, folder: Path, inputs: StageInputs) -> StageOutput:
-        statistics = write_drop_files(folder, inputs.scenario, result, inputs.options.figures)
+        figures = inputs.options.figures
+        statistics = _work().write_drop_files(folder, inputs.scenario, result, figures)
         return StageOutput({"drop": statistics}, list(result.warnings))
 
     def report(self, summary: Mapping[str, Any], folder: Path) -> list[str]:
@@ -277,7 +246,7 @@ class ContainerKind(StackKind):
 
     def write(self, result: Stack, folder: Path, inputs: StageInputs) -> StageOutput:
         output = super().write(result, folder, inputs)
-        output.summary["container"] = container_summary(result, inputs.scenario)
+        output.summary["container"] = _work().container_summary(result, inputs.scenario)
         return output
 
 
@@ -294,29 +263,17 @@ class ConveyorKind(StackKind):
         pass  # the panel is cut from the mat: check_conveyor weighs it against the chips
 
     def check(self, scenario: Scenario, chips: list[ChipExtent]) -> None:
-        from chipstack.packing.conveyor import check_conveyor
-
         largest_radius = _largest_radius(chips)
-        check_conveyor(scenario, 2 * largest_radius)
+        _work().check_conveyor(scenario, 2 * largest_radius)
         _release_clears_the_floor(scenario, chips)
 
     def compute(self, inputs: StageInputs, stage_name: str) -> ConveyorResult:
-        from chipstack.packing.conveyor import pour_mat, pour_timing
-
-        report = inputs.options.progress
-
-        def progress(done: int, pours: int) -> None:
-            if report is not None:
-                report(stage_name, done, pours, {})
-
-        if report is not None:
-            report(stage_name, 0, pour_timing(inputs.scenario)[0], {})
-        return pour_mat(inputs.scenario, progress)
+        return _work().pour(inputs, stage_name)
 
     def write(self, result: ConveyorResult, folder: Path, inputs: StageInputs) -> StageOutput:
         scenario = inputs.scenario
         write_stack_files(folder, result.panel)
-        summary = write_mat_files(folder, scenario, result.mat, inputs.options.figures)
+        summary = _work().write_mat_files(folder, scenario, result.mat, inputs.options.figures)
         warnings = list(result.warnings)
         drift = (summary["thickness"] or {}).get("drift", 0.0)
         if math.isfinite(drift) and abs(drift) > STEADY_DRIFT:
@@ -328,7 +285,7 @@ class ConveyorKind(StackKind):
             log.warning(message)
             warnings.append(message)
         return StageOutput(
-            {"packing": packing_summary(result.panel), "conveyor": summary}, warnings
+            {"packing": _work().packing_summary(result.panel), "conveyor": summary}, warnings
         )
 
     def handoff(self, result: ConveyorResult) -> Stack:

@@ -153,10 +153,13 @@ class ShapeKind:
     @property
     def builder(self) -> Builder:
         """The builder function (imported from its module the first time, if named)."""
-        if not isinstance(self.build, str):
-            return self.build
-        module, _, name = self.build.partition(":")
-        return getattr(importlib.import_module(module), name)
+        return _named(self.build) if isinstance(self.build, str) else self.build
+
+
+def _named(target: str) -> Callable:
+    """The function at ``target`` (``"module:function"``), imported when first asked for."""
+    module, _, name = target.partition(":")
+    return getattr(importlib.import_module(module), name)
 
 
 def _plate_check(spec: ChipSpec, key: str) -> None:
@@ -194,13 +197,8 @@ def _round_extent(spec: ChipSpec) -> tuple[float, float]:
 
 
 def _file_extent(spec: ChipSpec) -> tuple[float, float]:
-    import numpy as np
-
-    from chipstack.packing.shapefiles import shape_from_file
-
-    shape = shape_from_file(spec)
-    across = 2 * float(np.linalg.norm(shape.vertices[:, :2], axis=1).max())
-    return across, shape.circumradius_mm
+    # The file is read with numpy and trimesh: only when a file chip is checked.
+    return _named("chipstack.packing.shapefiles:file_extent")(spec)
 
 
 SHAPES: Registry[ShapeKind] = Registry("shape", "chipstack.shapes")

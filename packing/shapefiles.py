@@ -30,7 +30,7 @@ from chipstack.core.files import check_geometry_file
 from chipstack.core.schema import LENGTH_UNITS_MM, ChipSpec
 from chipstack.packing.polygons import convex_partition, counter_clockwise
 
-__all__ = ["shape_from_file", "FILE_SUFFIXES", "MAX_DECOMPOSITION_ERROR"]
+__all__ = ["shape_from_file", "file_extent", "FILE_SUFFIXES", "MAX_DECOMPOSITION_ERROR"]
 
 log = logging.getLogger(__name__)
 
@@ -206,3 +206,11 @@ def shape_from_file(spec: ChipSpec, size: float = 1.0):
         box_centre=frozen_array((hi + lo) / 2),
         collision="hull",
     )
+
+
+def file_extent(spec: ChipSpec) -> tuple[float, float]:
+    """(largest in-plane extent, circumradius) in mm of the chip in ``spec.file``, at its
+    nominal size (the ``file`` shape's ``extent``)."""
+    shape = shape_from_file(spec)
+    across = 2 * float(np.linalg.norm(shape.vertices[:, :2], axis=1).max())
+    return across, shape.circumradius_mm
