@@ -5,13 +5,13 @@ reading and checking a scenario loads no numerical library."""
 
 from __future__ import annotations
 
-import importlib
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from chipstack.core.errors import InputError
+from chipstack.core.lazy import named
 from chipstack.core.registry import Registry
 from chipstack.core.schema import (
     LENGTH_UNITS_MM,
@@ -153,13 +153,7 @@ class ShapeKind:
     @property
     def builder(self) -> Builder:
         """The builder function (imported from its module the first time, if named)."""
-        return _named(self.build) if isinstance(self.build, str) else self.build
-
-
-def _named(target: str) -> Callable:
-    """The function at ``target`` (``"module:function"``), imported when first asked for."""
-    module, _, name = target.partition(":")
-    return getattr(importlib.import_module(module), name)
+        return named(self.build) if isinstance(self.build, str) else self.build
 
 
 def _plate_check(spec: ChipSpec, key: str) -> None:
@@ -198,7 +192,7 @@ def _round_extent(spec: ChipSpec) -> tuple[float, float]:
 
 def _file_extent(spec: ChipSpec) -> tuple[float, float]:
     # The file is read with numpy and trimesh: only when a file chip is checked.
-    return _named("chipstack.packing.shapefiles:file_extent")(spec)
+    return named("chipstack.packing.shapefiles:file_extent")(spec)
 
 
 SHAPES: Registry[ShapeKind] = Registry("shape", "chipstack.shapes")

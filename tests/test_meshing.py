@@ -876,21 +876,22 @@ def test_line_contacts_kept_touching_fall_back_to_the_gap_when_the_mesh_fails(
     """Two chips side by side in a line contact: resolved with the contact touching first;
     when that mesh fails, the contact is cleared by the gap and the stack meshed again,
     and the report says so."""
-    import chipstack.meshing.conformal as conformal
+    import chipstack.meshing.meshers as meshers
     from chipstack.core.schema import Scenario
     from chipstack.meshing.kinds import MESH_KINDS
     from chipstack.meshing.resolution import separation_mm
     from chipstack.meshing.sections import MeshSpec
 
-    real, calls = conformal.conformal_mesh, []
+    real, calls = meshers.conformal_mesh, []
 
     def failing_once(arrangement, *args, **kwargs):
         calls.append(separation_mm(arrangement, 0, 1))
         if len(calls) == 1:
-            raise conformal.MeshingError("a sliver (test)")
+            raise meshers.MeshingError("a sliver (test)")
         return real(arrangement, *args, **kwargs)
 
-    monkeypatch.setattr(conformal, "conformal_mesh", failing_once)
+    # Where the conformal kind's mesher calls it.
+    monkeypatch.setattr(meshers, "conformal_mesh", failing_once)
     pair = arrange([((-9.99, 0.0, 1.0), 0.0), ((9.99, 0.0, 1.0), 0.0)])
     scenario = Scenario(mesh=MeshSpec(kind="conformal"))
     built = MESH_KINDS.get("conformal").build(pair, scenario, tmp_path)
