@@ -1,11 +1,10 @@
-"""The packing stage's files and manifest entries, declared: the stack writers by name (the
-stack record and its time series), and the writers of the drops, the container's fill
-and the conveyor's mat (each scenario kind writes with these, :mod:`packing.kinds`).
+"""The packing stage's stack writers, declared by name (the stack record and its time
+series; plugins add more), and the loop that writes a settled stack with each.
 
 Every command-line start loads the scenario kinds that write with these, and the
-writers bring numpy, scipy and the packing's records: they are :mod:`packing.writers`'s,
-imported when a stack is first written (the built-in stack writers are declared as
-registered by it; the other names here are its, imported when first used)."""
+writers bring numpy, scipy and the packing's records: they are :mod:`packing.writers`'s
+(with the drops', the container's and the conveyor mat's files and manifest entries),
+which registers the declared names when a stack is first written."""
 
 from __future__ import annotations
 
@@ -14,31 +13,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from chipstack.core.lazy import lazy_package
 from chipstack.core.registry import Registry
 
 if TYPE_CHECKING:
     from chipstack.core.stack import Stack
-    from chipstack.packing.writers import (
-        container_summary,
-        mat_summary,
-        packing_summary,
-        top_mm,
-        write_drop_files,
-        write_mat_files,
-    )
 
-__all__ = [
-    "STACK_WRITERS",
-    "StackWriter",
-    "container_summary",
-    "mat_summary",
-    "packing_summary",
-    "top_mm",
-    "write_drop_files",
-    "write_mat_files",
-    "write_stack_files",
-]
+__all__ = ["STACK_WRITERS", "StackWriter", "write_stack_files"]
 
 
 @dataclass(frozen=True)
@@ -66,19 +46,3 @@ def write_stack_files(folder: Path, stack: Stack) -> list[str]:
     for name in STACK_WRITERS.in_order():
         written += STACK_WRITERS.get(name).write(folder, stack)
     return written
-
-
-lazy_package(
-    __name__,
-    {
-        name: "chipstack.packing.writers"
-        for name in (
-            "container_summary",
-            "mat_summary",
-            "packing_summary",
-            "top_mm",
-            "write_drop_files",
-            "write_mat_files",
-        )
-    },
-)

@@ -34,9 +34,9 @@ from chipstack.export.vtk import stack_polydata
 from chipstack.geometry.contacts import find_contacts
 from chipstack.packing import deposit
 from chipstack.packing.drop import drop_chips
-from chipstack.packing.files import container_summary
 from chipstack.packing.scatter import drop_statistics
 from chipstack.packing.shapes import shape_from_record, shape_record
+from chipstack.packing.writers import container_summary
 from chipstack.pipeline.execution import Executor
 from chipstack.pipeline.run import compute_run, derive_seed, write_run
 from chipstack.pipeline.rundir import RunDirectory

@@ -21,7 +21,7 @@ from chipstack.core.errors import InputError
 from chipstack.core.schema import scenario_from_dict, scenario_to_dict
 from chipstack.packing import deposit
 from chipstack.packing.conveyor import ON_BELT, SPILLED, pour_mat
-from chipstack.packing.files import mat_summary
+from chipstack.packing.writers import mat_summary
 from chipstack.pipeline.scenario_files import dumps_toml, load_scenario
 
 
