@@ -14,9 +14,6 @@ from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import meshio
-import pandas as pd
-
 from chipstack.core.errors import InputError, brief, printable
 from chipstack.core.files import read_json
 from chipstack.core.schema import MAX_SEED, Scenario
@@ -26,7 +23,9 @@ from chipstack.pipeline.scenario_files import builtin_names, load_resolved, with
 from chipstack.pipeline.scenario_files import load_scenario as _load_file
 
 if TYPE_CHECKING:
+    import meshio
     import numpy as np
+    import pandas as pd
     import pyvista as pv
 
     from chipstack.core.stack import Stack
@@ -363,6 +362,8 @@ class Run:
             for name, section in self.description["descriptors"].items()
             for key, entry in section.get("scalars", {}).items()
         ]
+        import pandas as pd  # here: listing and loading scenarios must not wait for pandas
+
         return pd.DataFrame(rows, columns=["descriptor", "name", "value", "unit", "doc"])
 
     @cached_property
@@ -404,6 +405,8 @@ class Run:
         kind : str, optional
             ``"voxel"``, ``"conformal"`` or ``"image"`` when the run holds several.
         """
+        import meshio  # here: as pandas, only for what reads a run's files
+
         return meshio.read(self._mesh_file(kind))
 
     def mesh_grid(self, kind: str | None = None) -> pv.UnstructuredGrid:
@@ -419,6 +422,8 @@ class Run:
 
 
 def _csv(path: Path) -> pd.DataFrame:
+    import pandas as pd  # here: as in descriptor_table
+
     if not path.is_file():
         raise InputError(f"{printable(path)}: missing from the run directory")
     return pd.read_csv(path)

@@ -51,7 +51,8 @@ class _LazyPackage(types.ModuleType):
 
 def lazy_package(name: str, sources: Mapping[str, str]) -> None:
     """Make package ``name`` (call it from its ``__init__`` with ``__name__``) import
-    attribute ``attr`` from module ``sources[attr]`` when it is first read."""
+    attribute ``attr`` from module ``sources[attr]`` when it is first read. A light module
+    does the same for names it held before they moved to a heavy one."""
     module = sys.modules[name]
     module.__dict__["_lazy_sources"] = dict(sources)
     module.__class__ = _LazyPackage

@@ -14,7 +14,8 @@ from chipstack.export import figures
 from chipstack.export.figure_kinds import FIGURES, DropScatter, FigureKind
 from chipstack.export.vtk import stack_polydata
 
-log = logging.getLogger(__name__)
+# The registry's logger, as before the built-in figures moved here.
+log = logging.getLogger("chipstack.export.figure_kinds")
 
 
 def _stack_view(folder: Path, arrangement) -> list[str]:

@@ -43,7 +43,8 @@ __all__ = [
     "chip_of_node",
 ]
 
-log = logging.getLogger(__name__)
+# The logger of the solve models, whose summary this is (a user's filters name it).
+log = logging.getLogger("chipstack.meshing.solve_models")
 
 JOB = "compaction"  # the deck's job name: compaction.inp, .dat, .frd, .vtu
 

@@ -8,8 +8,8 @@ models (:mod:`meshing.solve_models`) that can run on what it writes.
 
 This module holds the declarations only (names, keys, what each kind can do): every
 command-line start imports this registry. Each built-in kind names its mesher
-(:mod:`meshing.meshers`, which imports numpy, gmsh and the meshers at its top), imported
-when a stack is first meshed.
+(:mod:`meshing.meshers`, which imports numpy, scipy and the meshers at its top; gmsh
+when a session opens), imported when a stack is first meshed.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from chipstack.core.errors import InputError, printable
-from chipstack.core.lazy import named
+from chipstack.core.lazy import lazy_package, named
 from chipstack.core.registry import Registry
 from chipstack.core.schema import KindChoice, Parameters
 from chipstack.meshing.sections import ConformalKeys, ContactKeys, ImageKeys, VoxelKeys
@@ -88,11 +88,10 @@ class MeshKind:
             _MESHERS[cls] = cls()
         return _MESHERS[cls]
 
-    @property
-    def failures(self) -> tuple[type[Exception], ...]:
-        """Errors of the mesher that mean "this stack cannot be meshed this way" (a
-        one-line message); with mesh.kind = "both" the other kind's mesh still stands."""
-        return self.work.failures if self.mesher else ()
+    # Errors of the mesher that mean "this stack cannot be meshed this way" (a one-line
+    # message); with mesh.kind = "both" the other kind's mesh still stands. A kind with a
+    # mesher reads them from it (meshing.meshers), when a stack is meshed.
+    failures: tuple[type[Exception], ...] = ()
 
     def crop_margin_mm(self, spec) -> float:
         """How far inside a crop's sides a surface contact must lie for its two chips'
@@ -106,9 +105,8 @@ class MeshKind:
 
     def check_available(self) -> None:
         """Refuse, before any work, a kind whose mesher is not installed (``InputError``
-        naming what installs it)."""
-        if self.mesher:
-            self.work.check_available()
+        naming what installs it); checked on every run that meshes, so it must not import
+        the mesher."""
 
     def build(self, arrangement: Arrangement, scenario: Scenario, scratch: Path) -> Built:
         """Its mesh of the settled ``arrangement`` (scratch: a folder for its files)."""
@@ -188,6 +186,10 @@ class ConformalKind(MeshKind):
     doc = "gmsh tetrahedra of the resolved arrangement, touching chips sharing faces"
     crop_shift_mm = CROP_SHIFT_MM
 
+    @property
+    def failures(self):
+        return self.work.failures
+
     def report(self, summary):
         lines = super().report(summary)
         if (r := summary["info"].get("resolution")) is not None:
@@ -211,6 +213,13 @@ class ImageKind(MeshKind):
         "pygalmesh), touching chips sharing faces"
     )
     solve_models = ("volume",)
+
+    @property
+    def failures(self):
+        return self.work.failures
+
+    def check_available(self) -> None:
+        named("chipstack.meshing.image:require_cgal")()
 
 
 class ContactKind(MeshKind):
@@ -291,4 +300,18 @@ def _parameters(kinds: list[MeshKind]) -> type[Parameters]:
 # How [mesh] chooses its kinds (a combined name several): the mesh stage declares it.
 MESH_CHOICE = KindChoice(
     "mesh kind", lambda: [*MESH_KINDS.in_order(), *COMBINED], mesh_kinds, _parameters
+)
+
+
+# Where the names this module held before its meshers moved out are now (found when
+# first read, so that plugins importing them from here keep working).
+lazy_package(
+    __name__,
+    {
+        "check_volume": "chipstack.meshing.checks",
+        "write_volume_mesh": "chipstack.meshing.meshers",
+        "check_contact_model": "chipstack.meshing.meshers",
+        "contact_volume_mesh": "chipstack.meshing.meshers",
+        "write_contact": "chipstack.meshing.meshers",
+    },
 )

@@ -11,8 +11,6 @@ from chipstack.core.errors import InputError
 from chipstack.geometry.orientation import fibre_directions_world
 from chipstack.meshing.boundaries import PeriodicPairs
 
-# The arrangement (scipy) only when attributes are computed: meshing.files imports this
-# module to check a scenario's mesh formats at every run.
 if TYPE_CHECKING:
     from chipstack.core.arrangement import Arrangement
 

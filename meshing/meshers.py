@@ -28,7 +28,7 @@ from chipstack.meshing.checks import check_volume
 from chipstack.meshing.conformal import MeshingError, chips_near, conformal_mesh
 from chipstack.meshing.contact_model import ContactModel, contact_model, save_contact_model
 from chipstack.meshing.files import write_mesh
-from chipstack.meshing.image import image_mesh, require_cgal
+from chipstack.meshing.image import image_mesh
 from chipstack.meshing.interfaces import find_interfaces, write_interface_table
 from chipstack.meshing.kinds import Built, crop_region, pore_gap_mm
 from chipstack.meshing.mesh import VolumeMesh, check_voxel_below_thinnest, element_attributes
@@ -59,7 +59,10 @@ __all__ = [
     "write_volume_mesh",
 ]
 
-log = logging.getLogger(__name__)
+# The warnings keep the loggers they had before the work moved here from the stage and
+# the kinds' declarations (a user's logging filters name them).
+log = logging.getLogger("chipstack.meshing.stage")
+kinds_log = logging.getLogger("chipstack.meshing.kinds")
 
 
 @dataclass
@@ -160,9 +163,6 @@ class Mesher:
     # with mesh.kind = "both" the other kind's mesh still stands.
     failures: tuple[type[Exception], ...] = ()
 
-    def check_available(self) -> None:
-        """Refuse, before any work, a mesher that is not installed (``InputError``)."""
-
     def build(self, kind: MeshKind, arrangement, scenario, scratch: Path):
         raise NotImplementedError
 
@@ -260,7 +260,7 @@ class ConformalMesher(Mesher):
                 fell_back = str(exc)
                 resolution, mesh = resolve_and_mesh(False)
                 # Said once it worked: when it fails too, its error is the one line.
-                log.warning(
+                kinds_log.warning(
                     "conformal mesh with line contacts touching failed (%s); they were "
                     "cleared by the gap instead",
                     exc,
@@ -297,9 +297,6 @@ class ImageMesher(Mesher):
     """The image mesh kind's work (:class:`meshing.kinds.ImageKind`)."""
 
     failures = (MeshingError,)
-
-    def check_available(self) -> None:
-        require_cgal()
 
     def build(self, kind, arrangement, scenario, scratch):
         spec = scenario.mesh

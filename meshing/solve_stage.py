@@ -4,12 +4,11 @@ force against the press as CSV and a figure."""
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from chipstack.core.lazy import named
+from chipstack.core.lazy import lazy_package, named
 from chipstack.core.schema import Scenario
 from chipstack.core.stages import Stage, StageInputs, StageOutput
 from chipstack.meshing.sections import SolveSpec
@@ -23,8 +22,6 @@ if TYPE_CHECKING:
     from chipstack.meshing.compaction import Compaction
 
 __all__ = ["SolveStage", "STAGE"]
-
-log = logging.getLogger(__name__)
 
 
 class SolveStage(Stage):
@@ -68,3 +65,10 @@ class SolveStage(Stage):
 
 
 STAGE = SolveStage()
+
+
+# Names this module held before its work moved out, found where they are now when first
+# read (code importing them from here keeps working).
+lazy_package(
+    __name__, {"Compaction": "chipstack.meshing.compaction", "JOB": "chipstack.meshing.compaction"}
+)

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from chipstack.core.errors import InputError, printable
-from chipstack.core.lazy import named
+from chipstack.core.lazy import lazy_package, named
 from chipstack.core.schema import Scenario
 from chipstack.core.stages import Stage, StageInputs, StageOptions, StageOutput
 from chipstack.meshing.formats import MESH_FORMATS
@@ -25,8 +24,6 @@ if TYPE_CHECKING:
 
 
 __all__ = ["MeshStage", "STAGE", "check_formats"]
-
-log = logging.getLogger(__name__)
 
 
 class MeshStage(Stage):
@@ -110,3 +107,11 @@ def check_formats(formats: tuple[str, ...], key: str) -> None:
             raise InputError(
                 f"{key}: unknown mesh format {printable(name)!r}; valid formats: {valid}"
             )
+
+
+# Names this module held before its work moved out, found where they are now when first
+# read (code importing them from here keeps working).
+lazy_package(
+    __name__,
+    {"MeshedStack": "chipstack.meshing.meshers", "contact_classes": "chipstack.meshing.meshers"},
+)

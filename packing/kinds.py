@@ -11,7 +11,8 @@ what holds them is its deposition site (:mod:`packing.sites`, ``kind.site``).
 
 Every command-line start registers the kinds, so they are declared here without the
 numerical libraries: what they run, write and read back is :mod:`packing.kind_work`'s,
-imported when a kind first does one of these.
+imported when a kind first does one of these (a conveyor's check weighs its pour zone
+with :mod:`packing.conveyor`'s numerics).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from types import ModuleType
 from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple
 
 from chipstack.core.errors import InputError
+from chipstack.core.lazy import named
 from chipstack.core.registry import Registry
 from chipstack.core.schema import KindChoice, Scenario
 from chipstack.core.stages import StageInputs, StageOptions, StageOutput
@@ -264,7 +266,8 @@ class ConveyorKind(StackKind):
 
     def check(self, scenario: Scenario, chips: list[ChipExtent]) -> None:
         largest_radius = _largest_radius(chips)
-        _work().check_conveyor(scenario, 2 * largest_radius)
+        # The pour zone's numerics only, not the deposition's work.
+        named("chipstack.packing.conveyor:check_conveyor")(scenario, 2 * largest_radius)
         _release_clears_the_floor(scenario, chips)
 
     def compute(self, inputs: StageInputs, stage_name: str) -> ConveyorResult:

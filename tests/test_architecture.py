@@ -323,6 +323,16 @@ def test_command_line_start_imports_no_heavy_library():
             f"load_scenario({name!r})"
         )
         assert loaded == [], (name, loaded)
+    # Nor the checks a run makes before any work (each stage's check_run: the mesh kinds'
+    # availability), nor the Python API's listing and loading of scenarios.
+    before_work = (
+        "from chipstack.pipeline.run import stages_to\n"
+        "from chipstack.pipeline.scenario_files import load_scenario\n"
+        "stages_to('mesh', load_scenario('paper-squares'))"
+    )
+    assert _heavy_imported(before_work) == []
+    api = "import chipstack\nchipstack.scenarios()\nchipstack.load_scenario('paper-squares')"
+    assert _heavy_imported(api) == []
 
 
 def test_every_scenario_table_is_in_some_stage_key():
