@@ -70,14 +70,34 @@ def _imports(path: Path) -> set[str]:
 
 
 def _named(source: str) -> set[str]:
-    """Project modules ``source`` names as ``"chipstack.module:attribute"`` (a light
+    """Project modules ``source`` names: as ``"chipstack.module:attribute"`` (a light
     declaration's builder, mesher or stage work, resolved by ``core.lazy.named`` when it
-    is first used)."""
+    is first used), the same as the start of an f-string (``f"chipstack.x:{name}"``),
+    or as a module whose names are imported when first read (``Registry.declare``'s
+    module, ``lazy_package``'s sources)."""
     found = set()
     for node in ast.walk(ast.parse(source)):
+        text = None
         if isinstance(node, ast.Constant) and isinstance(node.value, str):
-            if match := re.fullmatch(r"(chipstack(?:\.\w+)+):\w+", node.value):
+            text = node.value
+        elif isinstance(node, ast.JoinedStr) and node.values:
+            first = node.values[0]
+            text = first.value if isinstance(first, ast.Constant) else None
+        if isinstance(text, str):
+            if match := re.match(r"(chipstack(?:\.\w+)+):", text):
                 found.add(match.group(1))
+        if isinstance(node, ast.Call):
+            name = getattr(node.func, "attr", getattr(node.func, "id", ""))
+            if name == "declare" and node.args:
+                arguments = node.args[:1]
+            elif name == "lazy_package" and len(node.args) > 1:
+                arguments = list(ast.walk(node.args[1]))
+            else:
+                arguments = []
+            for argument in arguments:
+                if isinstance(argument, ast.Constant) and isinstance(argument.value, str):
+                    if re.fullmatch(r"chipstack(?:\.\w+)+", argument.value):
+                        found.add(argument.value)
     return found
 
 
@@ -175,6 +195,10 @@ def test_no_import_runs_up_the_layers():
 def test_the_layer_check_finds_an_upward_import():
     named = 'STEP = "chipstack.pipeline.run:run_pipeline"\nNOT = "chipstack: a name"'
     assert _named(named) == {"chipstack.pipeline.run"}
+    assert _named('x = f"chipstack.diagnosis.report:{name}"') == {"chipstack.diagnosis.report"}
+    assert _named('R.declare("chipstack.pipeline.sweep", "a", "b")') == {"chipstack.pipeline.sweep"}
+    forwarded = 'lazy_package(__name__, {"f": "chipstack.pipeline.run"})'
+    assert _named(forwarded) == {"chipstack.pipeline.run"}
     assert _upward(
         {"chipstack.export.vtk": {"chipstack.packing.shapes"}, "chipstack.packing.shapes": set()}
     ) == ["chipstack.export.vtk -> chipstack.packing.shapes"]
