@@ -35,7 +35,7 @@ class _LazyPackage(types.ModuleType):
         source = self.__dict__["_lazy_sources"].get(name)
         if source is None:
             raise AttributeError(f"module {self.__name__!r} has no attribute {name!r}")
-        value = getattr(importlib.import_module(source), name)
+        value = named(f"{source}:{name}")
         self.__dict__[name] = value  # found directly from now on
         return value
 

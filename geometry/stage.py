@@ -13,6 +13,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
+from chipstack.core.lazy import lazy_package
 from chipstack.core.schema import Scenario
 from chipstack.core.stages import Stage, StageInputs, StageOptions, StageOutput
 from chipstack.geometry.sections import GeometrySpec
@@ -21,7 +22,7 @@ from chipstack.packing.kinds import stack_kinds
 if TYPE_CHECKING:
     from chipstack.geometry.describe import Description
 
-__all__ = ["GeometryStage", "STAGE", "write_geometry"]
+__all__ = ["GeometryStage", "STAGE"]
 
 
 def _work() -> ModuleType:
@@ -75,8 +76,6 @@ class GeometryStage(Stage):
 STAGE = GeometryStage()
 
 
-def write_geometry(
-    folder: Path, description: Description, history, scenario: Scenario, figures: bool
-) -> dict[str, Any]:
-    """Write a computed description's files into ``folder``; returns the manifest entry."""
-    return _work().write_geometry(folder, description, history, scenario, figures)
+# The description writer this module offered before the stage's work moved out, found
+# there when first read.
+lazy_package(__name__, {"write_geometry": "chipstack.geometry.stage_work"})

@@ -76,17 +76,14 @@ class MeshKind:
     # reusing the old mesh.
     version: int = 1
     solve_models: tuple[str, ...] = ()  # names in meshing.solve_models.SOLVE_MODELS
-    # The "module:Class" of its mesher (a meshing.meshers.Mesher), imported when a stack
-    # is first meshed; a kind may instead override build, check and write itself.
+    # The "module:attribute" of its mesher (a meshing.meshers.Mesher), imported when a
+    # stack is first meshed; a kind may instead override build, check and write itself.
     mesher: str = ""
 
     @property
     def work(self) -> Mesher:
-        """Its mesher (one instance per class, made when first asked for)."""
-        cls = named(self.mesher or "chipstack.meshing.meshers:Mesher")
-        if cls not in _MESHERS:
-            _MESHERS[cls] = cls()
-        return _MESHERS[cls]
+        """Its mesher (a kind that names none writes with the default one)."""
+        return named(self.mesher or "chipstack.meshing.meshers:DEFAULT_MESHER")
 
     # Errors of the mesher that mean "this stack cannot be meshed this way" (a one-line
     # message); with mesh.kind = "both" the other kind's mesh still stands. A kind with a
@@ -143,7 +140,6 @@ class MeshKind:
 
 
 MESH_KINDS: Registry[MeshKind] = Registry("mesh kind", "chipstack.mesh_kinds")
-_MESHERS: dict[type, Mesher] = {}
 
 
 def mesh_kinds(name: str, key: str = "mesh.kind") -> list[MeshKind]:
@@ -164,7 +160,7 @@ CROP_SHIFT_MM = 1.0
 class VoxelKind(MeshKind):
     name = "voxel"
     parameters = VoxelKeys
-    mesher = "chipstack.meshing.meshers:VoxelMesher"
+    mesher = "chipstack.meshing.meshers:VOXEL_MESHER"
     doc = "hexahedra from the exact voxel image (always succeeds)"
     solve_models = ("volume",)
 
@@ -175,7 +171,7 @@ class VoxelKind(MeshKind):
 class ConformalKind(MeshKind):
     name = "conformal"
     parameters = ConformalKeys
-    mesher = "chipstack.meshing.meshers:ConformalMesher"
+    mesher = "chipstack.meshing.meshers:CONFORMAL_MESHER"
     # 2: line contacts kept touching for a mesh of the chips alone; with the pore space,
     # the clearance mesh.pore_gap_mm. 3: crop sides off shallow faces and concave chips'
     # notches, grading toward corners near the box's planes, the sliver fallback keeping
@@ -207,7 +203,7 @@ class ConformalKind(MeshKind):
 class ImageKind(MeshKind):
     name = "image"
     parameters = ImageKeys
-    mesher = "chipstack.meshing.meshers:ImageMesher"
+    mesher = "chipstack.meshing.meshers:IMAGE_MESHER"
     doc = (
         "CGAL Mesh_3 tetrahedra of the labelled voxel image (any chip shape; needs "
         "pygalmesh), touching chips sharing faces"
@@ -225,7 +221,7 @@ class ImageKind(MeshKind):
 class ContactKind(MeshKind):
     name = "contact"
     parameters = ContactKeys
-    mesher = "chipstack.meshing.meshers:ContactMesher"
+    mesher = "chipstack.meshing.meshers:CONTACT_MESHER"
     doc = (
         "every chip meshed on its own, contact pairs and rigid platens: the model the "
         "solve stage runs"

@@ -3,7 +3,7 @@ by its kind's mesher.
 
 :mod:`meshing.kinds` declares the kinds (their keys, what they can do), light enough for
 every command-line start; each declaration names its mesher here (``mesher =
-"chipstack.meshing.meshers:VoxelMesher"``), imported when a stack is first meshed, so
+"chipstack.meshing.meshers:VOXEL_MESHER"``), imported when a stack is first meshed, so
 this module imports the meshers and numerical libraries at the top.
 """
 
@@ -57,6 +57,11 @@ __all__ = [
     "ImageMesher",
     "ContactMesher",
     "write_volume_mesh",
+    "DEFAULT_MESHER",
+    "VOXEL_MESHER",
+    "CONFORMAL_MESHER",
+    "IMAGE_MESHER",
+    "CONTACT_MESHER",
 ]
 
 # The warnings keep the loggers they had before the work moved here from the stage and
@@ -455,3 +460,12 @@ def write_contact(
         "info": model.info,
         "files": sorted(files),
     }
+
+
+# The meshers the built-in kinds name (stateless: one each), and the one a kind that
+# names none writes its volume mesh with.
+DEFAULT_MESHER = Mesher()
+VOXEL_MESHER = VoxelMesher()
+CONFORMAL_MESHER = ConformalMesher()
+IMAGE_MESHER = ImageMesher()
+CONTACT_MESHER = ContactMesher()
