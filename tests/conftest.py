@@ -7,6 +7,8 @@ import sys
 from pathlib import Path
 
 import pytest
+from parts import needs as _needs_mark  # noqa: F401  (the mark's home: tests/parts.py)
+from parts import require
 
 SMALL_SCENARIO = """
 name = "small"
@@ -165,3 +167,34 @@ _LONGEST_FIRST = (
 def pytest_collection_modifyitems(session, config, items):
     rank = {name: k for k, name in enumerate(_LONGEST_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
+
+
+def pytest_configure(config):
+    config.addinivalue_line(
+        "markers", "needs(*parts): the optional parts the test needs (tests/parts.py)"
+    )
+
+
+def pytest_runtest_setup(item):
+    for mark in item.iter_markers(name="needs"):
+        for part in mark.args:
+            require(part)
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    """Which optional parts were missing, and how many tests skipped for each: read from
+    the skip reasons, so that it also counts what xdist's workers skipped."""
+    counts: dict[str, tuple[int, str]] = {}
+    for report in terminalreporter.stats.get("skipped", []):
+        longrepr = report.longrepr
+        reason = longrepr[2] if isinstance(longrepr, tuple) else str(longrepr)
+        reason = reason.removeprefix("Skipped: ")
+        if reason.startswith("needs "):
+            part, _, why = reason.removeprefix("needs ").partition(": ")
+            n, _ = counts.get(part, (0, why))
+            counts[part] = (n + 1, why)
+    terminalreporter.section("optional parts")
+    if not counts:
+        terminalreporter.write_line("every optional part was here: nothing skipped for one")
+    for part, (n, why) in sorted(counts.items()):
+        terminalreporter.write_line(f"{part}: {n} tests skipped ({why})")
