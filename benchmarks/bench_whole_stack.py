@@ -119,7 +119,8 @@ def audit_msh(path: Path, exact_volumes: np.ndarray, interface_table: Path | Non
             tags.append(physical)
     tets, tags = np.concatenate(tets), np.concatenate(tags)
     region = np.array([names[t] for t in np.unique(tags)])[np.searchsorted(np.unique(tags), tags)]
-    chip = np.array([int(r[5:]) if r.startswith("chip_") else -1 for r in region])
+    # chip_<id>: the region id, chip index + 1 (docs/run-directory.md)
+    chip = np.array([int(r[5:]) - 1 if r.startswith("chip_") else -1 for r in region])
     quality = sicn(mesh.points, tets)
     p = mesh.points[tets]
     volume = (
@@ -138,7 +139,7 @@ def audit_msh(path: Path, exact_volumes: np.ndarray, interface_table: Path | Non
         with open(interface_table) as f:
             # Rows with tag -1 are contacts the mesh shares no face for (points, lines).
             rows = [r for r in csv.DictReader(f) if int(r["tag"]) > 0]
-            listed = sorted(f"interface_{r['chip_a']}_{r['chip_b']}" for r in rows)
+            listed = sorted(f"interface_{r['region_a']}_{r['region_b']}" for r in rows)
     return dict(
         elements=int(len(tets)),
         pore_elements=int((chip < 0).sum()),

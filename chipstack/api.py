@@ -161,7 +161,7 @@ def run(
     >>> result.positions.shape, len(result.chips)
     ((24, 3), 24)
     >>> sorted(result.mesh().cell_data)[:3]
-    ['batch', 'chip', 'fibre_1']
+    ['batch', 'fibre_1', 'fibre_2']
     """
     resolved = load_scenario(scenario, overrides, seed)
     path = Path(out) if out is not None else Path(f"runs/{resolved.name}-seed{resolved.seed}")
@@ -318,7 +318,7 @@ class Run:
 
     def stack_grid(self, batch: int | None = None) -> pv.PolyData:
         """The chips' surfaces after ``batch`` (default: the last) as a pyvista dataset,
-        with cell arrays ``chip_id`` and ``batch``.
+        with cell arrays ``region`` (chip + 1, as in the mesh files) and ``batch``.
 
         Examples
         --------
@@ -414,7 +414,7 @@ class Run:
 
         Examples
         --------
-        >>> # run.mesh_grid().plot(scalars="chip", show_edges=True)
+        >>> # run.mesh_grid().plot(scalars="region", show_edges=True)
         """
         import pyvista as pv  # here: as in stack_grid
 

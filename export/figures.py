@@ -581,14 +581,14 @@ def _tab20_categorical() -> ListedColormap:
 def render_stack(
     path: str | os.PathLike,
     polydata,
-    scalars: str = "chip_id",
+    scalars: str = "region",
     window_size: tuple[int, int] = (1200, 900),
     show_edges: bool = True,
 ) -> None:
     """A 3-D picture of the stack on the conveyor (Fig. 6), rendered off screen.
 
     polydata: ``pyvista.PolyData`` of the chips (mm, polygons), with cell arrays such as
-    "chip_id" and "batch" (see :func:`export.vtk.stack_polydata`). scalars: the cell array
+    "region" and "batch" (see :func:`export.vtk.stack_polydata`). scalars: the cell array
     that colours the chips; whole numbers get categorical tab20 colours (value mod 20),
     other values a continuous tab20 scale. window_size: (width, height) pixels of the PNG.
     The conveyor is a light grey plane at z = 0 slightly larger than the stack.
@@ -640,8 +640,8 @@ def render_stack(
         i_resolution=1,
         j_resolution=1,
     )
-    if "chip_id" in mesh.cell_data:
-        what = f"Stack of {len(np.unique(mesh.cell_data['chip_id']))} chips"
+    if "region" in mesh.cell_data:
+        what = f"Stack of {len(np.unique(mesh.cell_data['region']))} chips"
     else:
         what = "Stack"
 

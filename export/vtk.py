@@ -20,7 +20,8 @@ def stack_polydata(
     quaternions: np.ndarray,
     batch: np.ndarray,
 ):
-    """The chips as one ``pyvista.PolyData``; cell data ``chip_id`` and ``batch``.
+    """The chips as one ``pyvista.PolyData``; cell data ``region`` (chip k of the packing
+    tables is region k + 1, as in every mesh file) and ``batch``.
 
     positions (n, 3) mm, quaternions (n, 4) x, y, z, w; one polygon per chip face.
     """
@@ -40,7 +41,7 @@ def stack_polydata(
         pyvista.PolyData(np.vstack(points), np.concatenate(faces)) if points else pyvista.PolyData()
     )
     chip_ids = np.asarray(chip_ids, dtype=np.int32)
-    mesh.cell_data["chip_id"] = chip_ids
+    mesh.cell_data["region"] = chip_ids + 1
     mesh.cell_data["batch"] = np.asarray(batch, dtype=np.int32)[chip_ids]
     return mesh
 
@@ -65,7 +66,10 @@ def write_pvd(path: Path, entries: list[tuple[float, str]]) -> None:
 
 
 def write_voxel_image(path: Path, image) -> None:
-    """The voxel image as VTK ImageData (.vti): cell array ``chip`` (1 + chip index, 0 void)."""
+    """The voxel image as VTK ImageData (.vti): cell array ``region``, the region id of
+    every mesh file (chip k of the packing tables is k + 1; a void voxel is the pore
+    space's id, n_chips + 1); field data ``voxel_mm``, ``origin_mm`` and ``shape`` (voxel
+    (i, j, k) spans origin + (i, j, k) * voxel_mm to one voxel further)."""
     import pyvista
 
     grid = pyvista.ImageData(
@@ -73,5 +77,9 @@ def write_voxel_image(path: Path, image) -> None:
         spacing=(image.voxel_mm,) * 3,
         origin=image.origin_mm,
     )
-    grid.cell_data["chip"] = np.ascontiguousarray(image.labels).ravel(order="F")
+    labels = np.ascontiguousarray(image.labels).ravel(order="F")
+    grid.cell_data["region"] = np.where(labels > 0, labels, image.n_chips + 1).astype(np.int32)
+    grid.field_data["voxel_mm"] = [float(image.voxel_mm)]
+    grid.field_data["origin_mm"] = np.asarray(image.origin_mm, dtype=float)
+    grid.field_data["shape"] = np.asarray(image.labels.shape, dtype=np.int64)
     grid.save(str(path))

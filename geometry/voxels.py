@@ -27,12 +27,14 @@ MAX_VOXELS = 400_000_000
 @dataclass(frozen=True)
 class VoxelImage:
     """labels (nx, ny, nz) int32: 1 + chip index, 0 for void; voxel (i, j, k) spans
-    origin + voxel_mm * [(i, j, k), (i + 1, j + 1, k + 1)] (mm)."""
+    origin + voxel_mm * [(i, j, k), (i + 1, j + 1, k + 1)] (mm). n_chips: the stack's chip
+    count (the files give a void voxel the pore space's region id, n_chips + 1)."""
 
     labels: np.ndarray
     origin_mm: tuple[float, float, float]
     voxel_mm: float
     target_size_mm: float
+    n_chips: int
 
     def centres(self, axis: int) -> np.ndarray:
         """(n,) mm, voxel centres along ``axis``."""
@@ -81,7 +83,11 @@ def voxelize(arrangement: Arrangement, voxel_mm: float = 0.5) -> VoxelImage:
         block[inside & (block == 0)] = chip + 1
     labels.setflags(write=False)
     return VoxelImage(
-        labels, tuple(float(v) for v in origin), float(voxel_mm), float(arrangement.target_size_mm)
+        labels,
+        tuple(float(v) for v in origin),
+        float(voxel_mm),
+        float(arrangement.target_size_mm),
+        arrangement.n_chips,
     )
 
 

@@ -11,6 +11,7 @@ from typing import TextIO
 
 import numpy as np
 
+from chipstack.meshing.boundaries import Surface
 from chipstack.meshing.contact_model import (
     ContactModel,
     Platen,
@@ -46,10 +47,15 @@ def _lines(f: TextIO, rows: Iterable[Iterable], per_line: int = 16) -> None:
             f.write(", ".join(str(v) for v in row[start : start + per_line]) + "\n")
 
 
-def write_contact_mesh(path: Path, model: ContactModel, element: str) -> Path:
+def write_contact_mesh(
+    path: Path, model: ContactModel, element: str, surfaces: dict[str, Surface] | None = None
+) -> Path:
     """The model's mesh part (what the mesh stage writes, whatever the press): nodes,
-    chip and platen elements, materials, orientations and sections, the rigid platens and
-    their faces. :func:`write_contact_compaction` writes the rest, from ``[solve]``."""
+    chip and platen elements (chip k's element set ``CHIP_<k + 1>``, the region id of
+    every mesh file), materials, orientations and sections, the rigid platens and their
+    faces, and the chips' platen and support ``surfaces`` (``VolumeMesh.surfaces`` of the
+    chips: TOP, BOTTOM) as element-based surfaces with node sets of the same names.
+    :func:`write_contact_compaction` writes the rest, from ``[solve]``."""
     with open(path, "w") as f:
         f.write("** chipstack contact model: every chip on its own and two rigid platens\n")
         f.write(f"** {model.n_chips} chips, {model.n_elements} chip elements ({element}), ")
@@ -58,6 +64,14 @@ def write_contact_mesh(path: Path, model: ContactModel, element: str) -> Path:
         _elements(f, model, element)
         _materials(f, model)
         _platen_surfaces(f, model)
+        for name, surface in (surfaces or {}).items():
+            f.write(f"*NSET, NSET={name.upper()}\n")
+            _lines(f, [(surface.node_ids + 1).tolist()])
+            f.write(f"*SURFACE, NAME={name.upper()}, TYPE=ELEMENT\n")
+            _lines(
+                f,
+                ([e + 1, f"S{s + 1}"] for e, s in zip(surface.element, surface.face, strict=True)),
+            )
     return Path(path)
 
 
@@ -100,7 +114,7 @@ def _nodes(f: TextIO, model: ContactModel) -> None:
 def _elements(f: TextIO, model: ContactModel, element: str) -> None:
     for chip in range(model.n_chips):
         mine = np.flatnonzero(model.chip == chip)
-        f.write(f"*ELEMENT, TYPE={element}, ELSET=CHIP_{chip:04d}\n")
+        f.write(f"*ELEMENT, TYPE={element}, ELSET=CHIP_{chip + 1:04d}\n")
         _lines(f, ([e + 1, *(model.cells[e] + 1)] for e in mine))
     first = len(model.cells) + 1
     for platen in (model.bottom, model.top):
@@ -108,7 +122,7 @@ def _elements(f: TextIO, model: ContactModel, element: str) -> None:
         _lines(f, ([first + k, *(c + 1)] for k, c in enumerate(platen.cells)))
         first += len(platen.cells)
     f.write("*ELSET, ELSET=CHIPS\n")
-    _lines(f, [[f"CHIP_{chip:04d}" for chip in range(model.n_chips)]], per_line=8)
+    _lines(f, [[f"CHIP_{chip + 1:04d}" for chip in range(model.n_chips)]], per_line=8)
 
 
 def _springs(f: TextIO, model: ContactModel, stiffness: float) -> None:
@@ -137,9 +151,10 @@ def _materials(f: TextIO, model: ContactModel) -> None:
         if abs(a @ b) > 1 - 1e-6:  # one fibre direction: the in-plane normal to it
             normal = np.cross(model.normals[k], a)
             b = normal / np.linalg.norm(normal)
-        f.write(f"*ORIENTATION, NAME=OR_{k:04d}, SYSTEM=RECTANGULAR\n")
+        tag = k + 1  # the region id of the mesh files
+        f.write(f"*ORIENTATION, NAME=OR_{tag:04d}, SYSTEM=RECTANGULAR\n")
         f.write(", ".join(f"{v:.9g}" for v in (*a, *b)) + "\n")
-        f.write(f"*SOLID SECTION, ELSET=CHIP_{k:04d}, MATERIAL=CHIP, ORIENTATION=OR_{k:04d}\n")
+        f.write(f"*SOLID SECTION, ELSET=CHIP_{tag:04d}, MATERIAL=CHIP, ORIENTATION=OR_{tag:04d}\n")
     for platen in (model.bottom, model.top):
         f.write(f"*SOLID SECTION, ELSET=PLATEN_{platen.name}, MATERIAL=PLATEN\n")
         f.write(
@@ -167,7 +182,7 @@ def contact_surfaces(model: ContactModel, solve: SolveSpec) -> list[tuple[str, s
         near_a = faces_near_box(model, a, box(b), reach)
         near_b = faces_near_box(model, b, box(a), reach)
         if len(near_a) and len(near_b):
-            names = (f"S_{a:04d}_{b:04d}", f"S_{b:04d}_{a:04d}")
+            names = (f"S_{a + 1:04d}_{b + 1:04d}", f"S_{b + 1:04d}_{a + 1:04d}")
             surfaces += [(names[0], near_a), (names[1], near_b)]
             pairs.append(names)
     for platen, low, high in (
@@ -177,7 +192,7 @@ def contact_surfaces(model: ContactModel, solve: SolveSpec) -> list[tuple[str, s
         for chip in range(model.n_chips):
             near = faces_within(model, chip, low, high)
             if len(near):
-                name = f"S_{chip:04d}_{platen.name}"
+                name = f"S_{chip + 1:04d}_{platen.name}"
                 surfaces.append((name, near))
                 pairs.append((name, f"S_{platen.name}"))
     return pairs, surfaces

@@ -39,6 +39,7 @@ __all__ = [
     "element_faces",
     "chip_pieces",
     "split_warning",
+    "surface_report",
 ]
 
 # Chips in pieces are the mesh stage's warning (it names the kind).
@@ -285,3 +286,18 @@ def check_volume(mesh, arrangement, pairs, min_quality, tolerance, kind) -> dict
     if (warning := split_warning(report, kind)) is not None:
         _STAGE_LOG.warning("%s", warning)
     return report
+
+
+def surface_report(mesh: VolumeMesh) -> dict[str, dict]:
+    """The platen and support surfaces of the mesh's files (``VolumeMesh.surfaces``), by
+    name: faces, nodes, area_mm2 and projected_area_mm2 (on the xy plane, what a platen
+    presses); the check report's ``surfaces``."""
+    return {
+        name: {
+            "faces": len(surface.element),
+            "nodes": len(surface.node_ids),
+            "area_mm2": round(surface.area_mm2, 4),
+            "projected_area_mm2": round(surface.projected_area_mm2, 4),
+        }
+        for name, surface in mesh.surfaces.items()
+    }

@@ -186,7 +186,7 @@ def chip_of_node(inputs: StageInputs, points: np.ndarray) -> np.ndarray:
     the deck's node order, chips first; the coordinates are checked to be sure."""
     model = meshio.read(inputs.result("mesh").folder / "stack_contact.vtu")
     cells = model.cells[0].data
-    chip = np.asarray(model.cell_data["chip"][0])
+    chip = np.asarray(model.cell_data["region"][0]) - 1  # region id: chip index + 1
     n = int(cells.max()) + 1  # the chips' nodes come first in the deck
     owner = np.full(len(points), -1)
     if len(points) < n or not np.allclose(points[:n], model.points[:n], rtol=1e-4, atol=1e-3):

@@ -14,6 +14,7 @@ gmsh is a global session: it is only ever used inside :class:`GmshSession`.
 from __future__ import annotations
 
 import ctypes
+import dataclasses
 import logging
 import os
 import re
@@ -212,7 +213,7 @@ def conformal_mesh(
         geometry_time_s=round(geometry_s, 3),
         mesh_time_s=round(time.perf_counter() - start, 3),
     )
-    return VolumeMesh(**{**mesh.__dict__, "info": info})
+    return dataclasses.replace(mesh, info=info)
 
 
 def chips_near(arrangement: Arrangement, region_mm) -> np.ndarray:
@@ -625,8 +626,8 @@ def _volume_owners(chip_volumes: dict[int, list], rank) -> dict[int, int]:
 def _volume_groups(
     model, owner: dict[int, int], pores: list[int], n: int, chips: list[int] | None = None
 ) -> None:
-    """Physical volumes: ``chip_<k>`` (tag k + 1) for every chip meshed (all ``n``, or
-    ``chips`` in a crop), ``pore`` (n + 1)."""
+    """Physical volumes: ``chip_<k + 1>`` (tag k + 1, the region id of the mesh files)
+    for every chip meshed (all ``n``, or ``chips`` in a crop), ``pore`` (n + 1)."""
     chips = list(range(n)) if chips is None else chips
     kept = set(owner.values())
     lost = [chip for chip in chips if chip not in kept]
@@ -640,7 +641,7 @@ def _volume_groups(
         )
     for chip in chips:
         volumes = [v for v, k in owner.items() if k == chip]
-        model.setPhysicalName(3, model.addPhysicalGroup(3, volumes, chip + 1), f"chip_{chip}")
+        model.setPhysicalName(3, model.addPhysicalGroup(3, volumes, chip + 1), f"chip_{chip + 1}")
     if pores:
         model.setPhysicalName(3, model.addPhysicalGroup(3, pores, n + 1), "pore")
 
@@ -903,9 +904,7 @@ def _move_sliver_nodes(mesh: VolumeMesh) -> VolumeMesh:
     )
     # The node sets stand: a node on a side of the box moves within that side.
     info = dict(mesh.info, slivers=improved.info)
-    return VolumeMesh(
-        **{**mesh.__dict__, "points": improved.points, "quality": improved.quality, "info": info}
-    )
+    return dataclasses.replace(mesh, points=improved.points, quality=improved.quality, info=info)
 
 
 def _check_quality(mesh: VolumeMesh, min_quality: float) -> None:

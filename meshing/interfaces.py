@@ -62,8 +62,9 @@ class Interfaces:
         return [slice(int(a), int(b)) for a, b in zip(starts[:-1], starts[1:], strict=True)]
 
     def name(self, k: int) -> str:
-        """Interface k's name in the mesh files: ``interface_A_B`` (chip indices)."""
-        a, b = self.pairs[k]
+        """Interface k's name in the mesh files: ``interface_A_B`` (the two chips' region
+        ids, chip index + 1)."""
+        a, b = self.pairs[k] + 1
         return f"interface_{a}_{b}"
 
 
@@ -133,8 +134,9 @@ def _find(mesh: VolumeMesh) -> Interfaces:
 def write_interface_table(
     path: Path, interfaces: Interfaces, contacts: dict[tuple[int, int], str] | None = None
 ) -> Path:
-    """The interfaces as CSV: tag, chip_a, chip_b, faces, area_mm2, normal_x/y/z (from
-    chip_a into chip_b) and contact, the class the stack's contact detection gave the pair
+    """The interfaces as CSV: tag, region_a, region_b (the two chips' region ids, chip
+    index + 1, as in the mesh files), faces, area_mm2, normal_x/y/z (from region_a into
+    region_b) and contact, the class the stack's contact detection gave the pair
     (point, line, surface; ``none`` when it found no contact there). Pairs in contact
     whose mesh shares no face (point and line contacts) follow with tag -1 and no faces.
     """
@@ -144,18 +146,20 @@ def write_interface_table(
     with open(path, "w", newline="") as f:
         out = csv.writer(f)
         out.writerow(
-            ["tag", "chip_a", "chip_b", "faces", "area_mm2", "normal_x", "normal_y", "normal_z"]
+            ["tag", "region_a", "region_b", "faces", "area_mm2"]
+            + ["normal_x", "normal_y", "normal_z"]
             + ["contact"]
         )
         for k, (a, b) in enumerate(interfaces.pairs.tolist()):
             meshed.add((a, b))
             n = interfaces.normal[k]
             out.writerow(
-                [int(interfaces.tags[k]), a, b, int(counts[k]), f"{interfaces.area_mm2[k]:.6g}"]
+                [int(interfaces.tags[k]), a + 1, b + 1, int(counts[k])]
+                + [f"{interfaces.area_mm2[k]:.6g}"]
                 + [f"{v:.6f}" for v in n]
                 + [contacts.get((a, b), "none")]
             )
         for (a, b), kind in sorted(contacts.items()):
             if (a, b) not in meshed:
-                out.writerow([-1, a, b, 0, "0", "", "", "", kind])
+                out.writerow([-1, a + 1, b + 1, 0, "0", "", "", "", kind])
     return Path(path)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -9,7 +10,7 @@ import numpy as np
 
 from chipstack.core.errors import InputError
 from chipstack.geometry.orientation import fibre_directions_world
-from chipstack.meshing.boundaries import PeriodicPairs
+from chipstack.meshing.boundaries import PeriodicPairs, Surface, platen_surfaces
 
 if TYPE_CHECKING:
     from chipstack.core.arrangement import Arrangement
@@ -17,12 +18,19 @@ if TYPE_CHECKING:
 __all__ = [
     "VolumeMesh",
     "PORE",
+    "region_name",
     "check_voxel_below_thinnest",
     "chip_attributes",
     "element_attributes",
 ]
 
 PORE = -1  # chip id of elements in the pore space (void or matrix-rich region)
+
+
+def region_name(region: int, n_chips: int) -> str:
+    """A region's name in the mesh files: ``chip_<id>`` for a chip (id = its packing row
+    + 1), ``pore`` for the pore space (id = n_chips + 1)."""
+    return f"chip_{region}" if region <= n_chips else "pore"
 
 
 @dataclass(frozen=True, eq=False)
@@ -39,7 +47,8 @@ class VolumeMesh:
     conveyor, ``top``: on the top platen plane, ``xmin`` ... ``ymax`` and ``lateral``: on
     the sides of the domain).
     kind: "conformal" or "voxel". info: how it was made (sizes, tolerances, timings).
-    periodic: for a box with periodic sides, the node pairs they tie.
+    periodic: for a box with periodic sides, the node pairs they tie. voxel: a voxel
+    mesh's voxel index of each element (see ``info["lattice"]``).
     """
 
     points: np.ndarray
@@ -56,6 +65,9 @@ class VolumeMesh:
     kind: str
     info: dict = field(default_factory=dict)
     periodic: PeriodicPairs | None = None  # the node pairs periodic sides tie, if asked
+    # A voxel mesh's (M, 3) voxel index (i, j, k) of every hexahedron on the lattice its
+    # info's ``lattice`` states (the geometry stage's voxel image at the same voxel size).
+    voxel: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         for name in ("points", "cells", "chip", "batch", "layer", "fibres", "normals", "quality"):
@@ -64,6 +76,26 @@ class VolumeMesh:
     @property
     def n_elements(self) -> int:
         return len(self.cells)
+
+    @property
+    def region(self) -> np.ndarray:
+        """(M,) each element's region id, the one integer every mesh file stores for it:
+        chip k (row k of the packing tables, 0-based) is k + 1, the pore space
+        ``pore_region``."""
+        return np.where(self.chip >= 0, self.chip + 1, self.n_chips + 1).astype(np.int64)
+
+    @property
+    def pore_region(self) -> int:
+        """The pore space's region id: n_chips + 1 (whether or not the mesh has one)."""
+        return self.n_chips + 1
+
+    @functools.cached_property
+    def surfaces(self) -> dict[str, Surface]:
+        """The platen and support surfaces by name (``top``, ``bottom``; with a pore box or
+        a crop also ``xmin`` ... ``ymax``), computed once (see
+        :func:`meshing.boundaries.platen_surfaces`)."""
+        with_sides = bool(np.any(self.chip == PORE)) or self.info.get("region_mm") is not None
+        return platen_surfaces(self.points, self.cells, self.cell_type, self.node_sets, with_sides)
 
     def element_volumes(self) -> np.ndarray:
         """(M,) mm3, signed volume of every element (positive when correctly oriented)."""

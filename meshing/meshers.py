@@ -9,6 +9,7 @@ this module imports the meshers and numerical libraries at the top.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import shutil
@@ -23,8 +24,9 @@ from chipstack.core.arrangement import stack_history
 from chipstack.core.stages import StageInputs, StageOutput
 from chipstack.export.figure_kinds import MeshPicture, draw_figures
 from chipstack.geometry.contacts import KINDS, find_contacts
+from chipstack.meshing.boundaries import side_node_sets
 from chipstack.meshing.calculix_deck import write_contact_mesh
-from chipstack.meshing.checks import check_volume
+from chipstack.meshing.checks import check_volume, surface_report
 from chipstack.meshing.conformal import MeshingError, chips_near, conformal_mesh
 from chipstack.meshing.contact_model import ContactModel, contact_model, save_contact_model
 from chipstack.meshing.files import write_mesh
@@ -277,7 +279,7 @@ class ConformalMesher(Mesher):
         if fell_back is not None:
             info["resolution"]["touching_lines_failed"] = fell_back
         info["mesh_time_s"] = round(info["mesh_time_s"] + resolution.seconds, 3)
-        mesh = type(mesh)(**{**mesh.__dict__, "info": info})
+        mesh = dataclasses.replace(mesh, info=info)
         return Built(mesh, {}, {"resolution": resolution})
 
     def check(self, kind, built, arrangement, scenario, surface_pairs):
@@ -364,6 +366,7 @@ def write_volume_mesh(
     if inputs.options.figures:
         # meshing.files (imported above) registers the mesh's figure.
         files += draw_figures("mesh", folder, MeshPicture(stem, built.mesh))
+    report = {**report, "surfaces": surface_report(built.mesh)}
     (folder / f"{stem}_checks.json").write_text(json.dumps(report, indent=2) + "\n")
     files.append(f"{stem}_checks.json")
     table = folder / f"{stem}_interfaces.csv"
@@ -419,13 +422,20 @@ def contact_volume_mesh(model: ContactModel, arrangement: Arrangement) -> Volume
     """The chips of a contact model as a :class:`VolumeMesh` (for checks and files)."""
     n = len(model.cells)
     attributes = element_attributes(arrangement, model.chip, 2.0)
+    # The chips' own nodes (the platens' come after them): the conveyor plane is the
+    # bottom platen's face, and a chip resting on it may stand off by up to the gap.
+    used = np.unique(model.cells)
+    sides = side_node_sets(model.points[used])
+    sides["bottom"] = used[model.points[used, 2] <= model.bottom.z_mm + max(model.gap_mm, 1e-6)]
     return VolumeMesh(
         points=model.points,
         cell_type="hexahedron",
         cells=model.cells,  # C3D8 and VTK_HEXAHEDRON share the node order
         chip=model.chip,
         quality=np.ones(n),
-        node_sets={},
+        node_sets={
+            name: used[nodes] if name != "bottom" else nodes for name, nodes in sides.items()
+        },
         n_chips=model.n_chips,
         kind="contact",
         info=dict(model.info),
@@ -440,10 +450,14 @@ def write_contact(
     deck it writes from ``[solve]``), the model's arrays, a VTU of the chips and the
     check report; the manifest entry."""
     spec = inputs.scenario.mesh
-    write_contact_mesh(folder / "stack_contact.inp", model, spec.element)
+    write_contact_mesh(folder / "stack_contact.inp", model, spec.element, chips.surfaces)
     save_contact_model(folder / "stack_contact_model.npz", model)
     files = ["stack_contact.inp", "stack_contact_model.npz"]
-    files += [p.name for p in write_mesh(folder, "stack_contact", chips, ["vtu"])]
+    # The .inp is the deck part above (chips and platens), the other formats the chips;
+    # the .vtu always (the solve stage maps its result's nodes to chips through it).
+    formats = ["vtu", *(name for name in spec.formats if name not in ("inp", "vtu"))]
+    files += [p.name for p in write_mesh(folder, "stack_contact", chips, formats)]
+    report = {**report, "surfaces": surface_report(chips)}
     (folder / "stack_contact_checks.json").write_text(json.dumps(report, indent=2) + "\n")
     files.append("stack_contact_checks.json")
     if not report["valid"]:

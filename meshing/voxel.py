@@ -56,6 +56,8 @@ def voxel_mesh(
     origin = np.asarray(image.origin_mm, dtype=float)
     if region_mm is not None:
         labels, origin = _crop(labels, origin, voxel_mm, region_mm)
+    # Where the (cropped) labels start on the whole image's lattice.
+    offset = np.rint((origin - np.asarray(image.origin_mm)) / voxel_mm).astype(np.int64)
     keep = labels > 0
     if pore_space == "box":
         box = np.zeros_like(keep)
@@ -102,7 +104,13 @@ def voxel_mesh(
         n_chips=arrangement.n_chips,
         kind="voxel",
         periodic=pairs,
+        voxel=np.column_stack([i, j, k]) + offset,
         info={
+            "lattice": {
+                "origin_mm": [float(v) for v in image.origin_mm],
+                "voxel_mm": float(voxel_mm),
+                "shape": [int(v) for v in image.labels.shape],
+            },
             "voxel_mm": voxel_mm,
             "pore_space": pore_space,
             "region_mm": None if region_mm is None else _meshed_region(points),

@@ -36,7 +36,8 @@ def draw(run_dir: Path = ROOT / "runs" / "paper-squares", out: Path = PICTURE) -
     inside = (
         (centres[:, 0] > x0) & (centres[:, 0] < x1) & (centres[:, 1] > y0) & (centres[:, 1] < y1)
     )
-    cut = grid.extract_cells(np.flatnonzero(inside & (grid.cell_data["chip"] >= 0)))
+    chips = grid.cell_data["region"] <= scenario.deposition.chips  # the pore is n + 1
+    cut = grid.extract_cells(np.flatnonzero(inside & chips))
     with pyvista.vtk_verbosity("off"):
         plotter = pyvista.Plotter(off_screen=True, shape=(1, 2), window_size=[1600, 640])
         try:
@@ -56,7 +57,7 @@ def draw(run_dir: Path = ROOT / "runs" / "paper-squares", out: Path = PICTURE) -
             plotter.subplot(0, 1)
             plotter.add_mesh(
                 cut,
-                scalars="chip",
+                scalars="region",
                 cmap="tab20",
                 show_edges=True,
                 edge_color="#303030",

@@ -95,6 +95,18 @@ def run_scenario(text: str, folder: Path, to: str, name: str = "scenario") -> Pa
     return out
 
 
+@pytest.fixture(scope="session")
+def reference_run(tmp_path_factory) -> Path:
+    """The paper's reference stack as ``make run`` makes it (``pipeline run --to mesh
+    --seed 0`` on ``paper-squares``: 270 chips, the 1 mm voxel mesh in every format): its
+    run directory. Ask for it from one module only (``--dist loadfile`` runs a module on
+    one worker; another module would run it again)."""
+    out = tmp_path_factory.mktemp("reference") / "paper-squares"
+    result = run_cli("run", "--to", "mesh", "--out", str(out), "--seed", "0", "--quiet")
+    assert result.returncode == 0, result.stderr
+    return out
+
+
 def _content(path: Path):
     """A file's bytes; for the sparse giants of the bad-input catalogue, its size and mtime
     (reading 10 GB of zeros would take the test a minute)."""

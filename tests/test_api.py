@@ -59,12 +59,12 @@ def test_a_run_reads_back_as_arrays_tables_and_meshes(small_run):
     # The mesh, as meshio and as pyvista, every chip in it.
     mesh = run.mesh()
     assert isinstance(mesh, meshio.Mesh)
-    chips = np.concatenate(mesh.cell_data["chip"])
-    assert set(np.unique(chips)) == set(range(24))
+    chips = np.concatenate(mesh.cell_data["region"])
+    assert set(np.unique(chips)) == set(range(1, 25))  # region id: the chips table's chip + 1
     grid = run.mesh_grid()
     assert isinstance(grid, pv.UnstructuredGrid) and grid.n_cells == len(chips)
     stack = run.stack_grid()
-    assert set(np.unique(stack.cell_data["chip_id"])) == set(range(24))
+    assert set(np.unique(stack.cell_data["region"])) == set(range(1, 25))
     assert stack.bounds[5] == pytest.approx(run.descriptors["stack.height_max_mm"], abs=0.01)
     assert run.stack_grid(batch=1).n_cells < stack.n_cells
     assert any(p.name == "stack_voxel.msh" for p in run.files("mesh"))

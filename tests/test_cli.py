@@ -78,13 +78,13 @@ def test_poses_csv_matches_the_vtk_series(small_run):
     assert files == ["stack_after_batch_01.vtp", "stack_after_batch_02.vtp"]
     mesh = pyvista.read(out / "packing" / files[-1])
     assert mesh.n_cells == 24 * 6
-    chip_id, batch = mesh.cell_data["chip_id"], mesh.cell_data["batch"]
-    assert sorted(set(chip_id.tolist())) == list(range(24))
+    region, batch = mesh.cell_data["region"], mesh.cell_data["batch"]
+    assert sorted(set(region.tolist())) == list(range(1, 25))  # chip k is region k + 1
     assert set(batch.tolist()) == {1, 2}
     # The mean of a chip's cell centres is its centre: the file and the CSV agree.
     cell_centres = mesh.cell_centers().points
     for chip in (0, 23):
-        assert np.allclose(cell_centres[chip_id == chip].mean(axis=0), centres[chip], atol=1e-3)
+        assert np.allclose(cell_centres[region == chip + 1].mean(axis=0), centres[chip], atol=1e-3)
 
 
 def test_contacts_csv_has_pairs_points_normals_distances(small_run):

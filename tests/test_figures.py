@@ -404,8 +404,8 @@ def two_chips():
     pyvista = pytest.importorskip("pyvista")
     lower = pyvista.Box(bounds=(-10.0, 10.0, -10.0, 10.0, 0.0, 2.0))
     upper = pyvista.Box(bounds=(0.0, 20.0, -5.0, 15.0, 2.0, 4.0))
-    lower.cell_data["chip_id"] = np.zeros(lower.n_cells, dtype=np.int32)
-    upper.cell_data["chip_id"] = np.ones(upper.n_cells, dtype=np.int32)
+    lower.cell_data["region"] = np.zeros(lower.n_cells, dtype=np.int32)
+    upper.cell_data["region"] = np.ones(upper.n_cells, dtype=np.int32)
     mesh = lower.merge(upper)
     mesh.cell_data["batch"] = np.ones(mesh.n_cells, dtype=np.int32)
     assert isinstance(mesh, pyvista.PolyData)
@@ -448,7 +448,7 @@ def test_render_stack_png(tmp_path):
     ],
 )
 def test_render_stack_bad_inputs(tmp_path, change, name):
-    kwargs = {"polydata": two_chips(), "scalars": "chip_id", "window_size": (64, 48)} | change
+    kwargs = {"polydata": two_chips(), "scalars": "region", "window_size": (64, 48)} | change
     with pytest.raises(ValueError, match=rf"^{name}(?=[: ])"):
         render_stack(tmp_path / "bad.png", **kwargs)
     assert not (tmp_path / "bad.png").exists()
@@ -474,7 +474,7 @@ def test_render_stack_with_a_broken_opengl_does_not_crash(tmp_path):
         import pyvista
         from chipstack.export.figures import render_stack
         box = pyvista.Box()
-        box.cell_data["chip_id"] = list(range(box.n_cells))
+        box.cell_data["region"] = list(range(box.n_cells))
         try:
             render_stack({str(tmp_path / "s.png")!r}, box, window_size=(64, 48))
             print("rendered")

@@ -87,8 +87,8 @@ def test_tables_agree_with_the_json(described):
 
 def test_voxel_image_opens_in_pyvista_with_every_chip(described):
     image = pyvista.read(described[0] / "geometry/voxels.vti")
-    labels = np.asarray(image.cell_data["chip"])
-    assert set(np.unique(labels)) == set(range(25))  # void and the 24 chips
+    labels = np.asarray(image.cell_data["region"])
+    assert set(np.unique(labels)) == set(range(1, 26))  # the 24 chips and void (the pore, 25)
     assert image.spacing == pytest.approx((1.0, 1.0, 1.0))
     data = json.loads((described[0] / "geometry/descriptors.json").read_text())
     assert data["descriptors"]["voxels"]["scalars"]["profile_max_difference"]["value"] < 0.05

@@ -171,7 +171,7 @@ def test_the_image_kind_from_the_cli_writes_files_that_read_back(tmp_path, small
     checks = json.loads((out / "mesh" / "stack_image_checks.json").read_text())
     assert checks["valid"] and checks["chip_volume_error_max"] <= 0.04
     vtu = meshio.read(out / "mesh" / "stack_image.vtu")
-    assert sorted(np.unique(vtu.cell_data["chip"][0])) == list(range(24))
+    assert sorted(np.unique(vtu.cell_data["region"][0])) == list(range(1, 25))
     msh = meshio.read(out / "mesh" / "stack_image.msh")
     assert len(msh.points) == len(vtu.points)
     manifest = json.loads((out / "manifest.json").read_text())

@@ -462,7 +462,8 @@ def test_every_format_reads_back(tmp_path, kind, conformal_layup):
     }
     vtu = pyvista.read(tmp_path / "stack.vtu")
     assert vtu.n_cells == mesh.n_elements
-    assert np.array_equal(vtu.cell_data["chip"], mesh.chip)
+    # One numbering: region id = chip index + 1 (the pore n + 1), in every file.
+    assert np.array_equal(vtu.cell_data["region"], mesh.chip + 1)
     assert np.allclose(vtu.cell_data["fibre_1"], mesh.fibres[:, 0])
     for name in ("stack.vtu", "stack.msh", "stack.xdmf", "stack.inp"):
         back = meshio.read(tmp_path / name)
@@ -478,7 +479,7 @@ def test_every_format_reads_back(tmp_path, kind, conformal_layup):
             for _, tag in gmsh.model.getPhysicalGroups(2)
             if tag in FACET_TAGS.values()
         }
-    assert names == {f"chip_{k}" for k in range(17)}
+    assert names == {f"chip_{k}" for k in range(1, 18)}
     back = meshio.read(tmp_path / "stack.msh")
     physical = [
         tags
@@ -490,11 +491,14 @@ def test_every_format_reads_back(tmp_path, kind, conformal_layup):
     expected = {side: len(f) for side, f in facets(mesh).items()}
     assert sides == {side: FACET_TAGS[side] for side in expected}
     tagged = meshio.read(tmp_path / "stack_facets.xdmf")
-    values = np.concatenate(tagged.cell_data["facet_tag"])
+    values = np.concatenate(tagged.cell_data["facets"])
+    assert np.array_equal(
+        np.concatenate(meshio.read(tmp_path / "stack.xdmf").cell_data["region"]), mesh.chip + 1
+    )
     assert {s: int((values == FACET_TAGS[s]).sum()) for s in expected} == expected
     assert expected["bottom"] > 0 and expected["top"] > 0
     text = (tmp_path / "stack.inp").read_text()
-    assert len(re.findall(r"\*ELSET, ELSET=CHIP_\d{4}", text)) == 17
+    assert re.findall(r"\*ELSET, ELSET=CHIP_(\d{4})", text) == [f"{k:04d}" for k in range(1, 18)]
     assert len(re.findall(r"\*ORIENTATION, NAME=OR_\d{4}", text)) == 17
     assert "*NSET, NSET=BOTTOM" in text and "*NSET, NSET=TOP" in text
 
@@ -528,15 +532,15 @@ def test_interfaces_are_named_with_their_faces_area_and_normal_in_every_format(t
 
     write_mesh(tmp_path, "stack", mesh, MESH_FORMATS.names())
     text = (tmp_path / "stack.inp").read_text()
-    for (i, j), count in zip(found.pairs.tolist(), faces.tolist(), strict=True):
-        for side in "AB":
+    for (i, j), count in zip((found.pairs + 1).tolist(), faces.tolist(), strict=True):
+        for side in "AB":  # named by region ids, chip index + 1
             block = re.search(
                 rf"\*SURFACE, NAME=IF_{i:04d}_{j:04d}_{side}, TYPE=ELEMENT\n((?:\d+, S\d\n)+)", text
             )
             assert block is not None and block.group(1).count("\n") == count
     back = meshio.read(tmp_path / "stack.msh")
     for k, (i, j) in enumerate(found.pairs.tolist()):
-        tag = back.field_data[f"interface_{i}_{j}"][0]
+        tag = back.field_data[f"interface_{i + 1}_{j + 1}"][0]  # region ids
         assert tag == INTERFACE_TAG_START + k
         n = sum(
             int((tags == tag).sum())
@@ -544,7 +548,7 @@ def test_interfaces_are_named_with_their_faces_area_and_normal_in_every_format(t
             if cells.type == "quad"
         )
         assert n == faces[k]
-    tagged = np.concatenate(meshio.read(tmp_path / "stack_facets.xdmf").cell_data["facet_tag"])
+    tagged = np.concatenate(meshio.read(tmp_path / "stack_facets.xdmf").cell_data["facets"])
     assert [int((tagged == t).sum()) for t in found.tags] == faces.tolist()
     surface = pyvista.read(tmp_path / "stack_interfaces.vtu").compute_cell_sizes()
     areas = [
@@ -555,11 +559,11 @@ def test_interfaces_are_named_with_their_faces_area_and_normal_in_every_format(t
 
     write_interface_table(tmp_path / "t.csv", found, contact_classes(find_contacts(a)))
     rows = list(csv.DictReader(open(tmp_path / "t.csv")))
-    assert [(r["chip_a"], r["chip_b"], r["contact"]) for r in rows] == [
-        ("0", "1", "surface"),
-        ("0", "2", "line"),
+    assert [(r["region_a"], r["region_b"], r["contact"]) for r in rows] == [
         ("1", "2", "surface"),
-    ]  # fmt: skip (two edges touching: a line contact by the paper's classes)
+        ("1", "3", "line"),
+        ("2", "3", "surface"),
+    ]  # fmt: skip (two edges touching: a line contact by the paper's classes; region ids)
     assert [float(r["area_mm2"]) for r in rows] == [200.0, 40.0, 200.0]
 
 
@@ -569,7 +573,7 @@ def test_inp_orientation_follows_a_tilted_unidirectional_chip(tmp_path):
     a = Arrangement((uni,), [0], [[0, 0, 12.0]], [tilt.as_quat()], [1], 60.0)
     write_mesh(tmp_path, "uni", voxel_mesh(a, 1.0), ["inp"])
     lines = (tmp_path / "uni.inp").read_text().splitlines()
-    row = lines[lines.index("*ORIENTATION, NAME=OR_0000, SYSTEM=RECTANGULAR") + 1]
+    row = lines[lines.index("*ORIENTATION, NAME=OR_0001, SYSTEM=RECTANGULAR") + 1]
     values = np.array([float(v) for v in row.split(",")])
     axis_1, in_plane = values[:3], values[3:]
     axis_3 = np.cross(axis_1, in_plane)
@@ -595,6 +599,147 @@ def test_both_meshes_keep_the_voxel_one_when_the_conformal_fails(tmp_path, small
     assert "error" in manifest["mesh"]["conformal"] and "elements" in manifest["mesh"]["voxel"]
     assert (out / "mesh/stack_voxel.inp").is_file()
     assert not list((out / "mesh").glob("stack_conformal*"))
+
+
+# -- platen surfaces, one numbering, files as clients read them --------------------------------
+def crossing_strips() -> Arrangement:
+    """Two 40 x 10 x 2 mm strips crossing at right angles, the second lying on the first:
+    their union covers 400 + 400 - 100 = 700 mm2 of the conveyor, the first 400."""
+    strip = box_shape(ChipSpec(length_mm=40.0, width_mm=10.0, thickness_mm=2.0))
+    turn = Rotation.from_euler("z", 90, degrees=True).as_quat()
+    return Arrangement(
+        (strip,), [0, 0], [[0, 0, 1.0], [0, 0, 3.0]], [[0, 0, 0, 1], turn], [1, 1], 60.0
+    )
+
+
+def test_top_is_the_upper_envelope_of_two_crossing_chips():
+    """The platen's surface of a loose stack: ``top`` is every face a flat platen coming
+    down meets (the upper strip's top and the lower strip's top outside the crossing), so
+    its projected area is the union's, 700 mm2; ``bottom`` is the lower strip's underside
+    alone (400 mm2); a stack without a pore box or crop has no side surfaces. Voxels are
+    exact here; the conformal mesh's tetrahedra decide a face by its centroid, within 1 %."""
+    a = crossing_strips()
+    voxels = voxel_mesh(a, 0.5)
+    surfaces = voxels.surfaces
+    assert set(surfaces) == {"top", "bottom"}
+    assert surfaces["top"].projected_area_mm2 == pytest.approx(700.0, abs=1e-9)
+    assert surfaces["top"].area_mm2 == pytest.approx(700.0, abs=1e-9)  # all faces flat
+    assert surfaces["bottom"].projected_area_mm2 == pytest.approx(400.0, abs=1e-9)
+    centres = voxels.points[surfaces["top"].nodes].mean(axis=1)
+    crossing = (np.abs(centres[:, 0]) < 5) & (np.abs(centres[:, 1]) < 5)
+    assert np.allclose(centres[crossing, 2], 4.0)  # the lower strip's top is covered there
+    assert set(np.unique(centres[~crossing, 2])) == {2.0, 4.0}
+    tets = conformal_mesh(a, size_mm=1.0)
+    assert tets.surfaces["top"].projected_area_mm2 == pytest.approx(700.0, rel=0.01)
+    assert tets.surfaces["bottom"].projected_area_mm2 == pytest.approx(400.0, rel=1e-6)
+    # With a pore box, the box's top and bottom (its footprint: 40 x 40 mm) and four sides.
+    box = voxel_mesh(a, 0.5, "box").surfaces
+    assert set(box) == set(FACET_TAGS)
+    assert box["top"].projected_area_mm2 == pytest.approx(1600.0)
+    assert box["bottom"].projected_area_mm2 == pytest.approx(1600.0)
+    assert box["xmin"].area_mm2 == pytest.approx(40.0 * 4.0) and box["xmin"].projected_area_mm2 == 0
+
+
+def test_every_file_names_the_surfaces_and_regions_alike(tmp_path):
+    """One numbering and one set of surface names in every format: the .vtu, .xdmf and
+    .msh give each element the same region id (chip + 1; the pore n + 1), the .inp's
+    element sets and the facets file list the same elements and faces, and its TOP
+    surface is the faces of ``top`` (element and face label) with a node set of theirs."""
+    a = crossing_strips()
+    mesh = voxel_mesh(a, 1.0, "box")
+    write_mesh(tmp_path, "stack", mesh, MESH_FORMATS.names())
+    region = np.where(mesh.chip >= 0, mesh.chip + 1, 3)
+    assert np.array_equal(mesh.region, region) and mesh.pore_region == 3
+    for name in ("stack.vtu", "stack.xdmf"):
+        back = meshio.read(tmp_path / name)
+        assert np.array_equal(np.concatenate(back.cell_data["region"]), region), name
+    msh = meshio.read(tmp_path / "stack.msh")
+    by_tag = {
+        int(t[0]): len(t)
+        for cells, t in zip(msh.cells, msh.cell_data["gmsh:physical"], strict=True)
+        if cells.type == "hexahedron"
+    }
+    assert by_tag == dict(zip(*np.unique(region, return_counts=True), strict=True))
+    assert {k: int(v[0]) for k, v in msh.field_data.items() if v[1] == 3} == {
+        "chip_1": 1,
+        "chip_2": 2,
+        "pore": 3,
+    }
+    surfaces = {k: int(v[0]) for k, v in msh.field_data.items() if v[1] == 2}
+    assert {k: surfaces[k] for k in FACET_TAGS} == FACET_TAGS  # and interface_1_2
+    text = (tmp_path / "stack.inp").read_text()
+    top = mesh.surfaces["top"]
+    block = re.search(r"\*SURFACE, NAME=TOP, TYPE=ELEMENT\n((?:\d+, S\d\n)+)", text).group(1)
+    rows = np.array(re.findall(r"(\d+), S(\d)", block), dtype=int)
+    assert np.array_equal(rows, np.column_stack([top.element + 1, top.face + 1]))
+    nodes = re.search(r"\*NSET, NSET=TOP\n([\d,\s]+)", text).group(1)
+    assert np.array_equal(np.array(re.findall(r"\d+", nodes), dtype=int), top.node_ids + 1)
+    for name in ("CHIP_0001", "CHIP_0002", "PORE"):
+        assert f"*ELSET, ELSET={name}\n" in text
+    tagged = meshio.read(tmp_path / "stack_facets.xdmf")
+    values = np.concatenate(tagged.cell_data["facets"])
+    assert int((values == FACET_TAGS["top"]).sum()) == len(top.element)
+
+
+def test_xdmf_is_uncompressed_with_named_grids(tmp_path):
+    """DOLFINx's PyPI wheel has no deflate filter: every HDF5 dataset is stored plainly;
+    the grids are named for what they hold (``mesh``, ``facets``), which DOLFINx reads by
+    name."""
+    import xml.etree.ElementTree as ET
+
+    import h5py
+
+    write_mesh(tmp_path, "stack", voxel_mesh(crossing_strips(), 1.0), ["xdmf"])
+    for stem, grid in (("stack", "mesh"), ("stack_facets", "facets")):
+        root = ET.parse(tmp_path / f"{stem}.xdmf").getroot()
+        assert [g.get("Name") for g in root.iter("Grid")] == [grid]
+        with h5py.File(tmp_path / f"{stem}.h5") as h5:
+            filters = {name: h5[name].compression for name in h5}
+        assert filters and set(filters.values()) == {None}, filters
+    names = [a.get("Name") for a in ET.parse(tmp_path / "stack_facets.xdmf").iter("Attribute")]
+    assert names == ["facets"]
+
+
+def test_a_periodic_deck_is_one_node_block_that_meshio_reads_whole(tmp_path):
+    """meshio keeps only the last ``*NODE`` block of a deck: the periodic box's reference
+    nodes go in the one block, so every node (the two references included) is read, and
+    the *EQUATION ties still name them."""
+    a = arrange([((0, 0, 1.0), 0.0), ((8, 5, 3.0), 30.0)])
+    mesh = voxel_mesh(a, 1.0, "box", region_mm=(-10, 10, -10, 10), periodic=True)
+    write_mesh(tmp_path, "rve", mesh, ["inp"])
+    text = (tmp_path / "rve.inp").read_text()
+    assert text.count("*NODE") == 1
+    back = meshio.read(tmp_path / "rve.inp")
+    n = len(mesh.points)
+    assert len(back.points) == n + 2
+    assert np.allclose(back.points[:n], mesh.points)
+    assert f"*NSET, NSET=REF_X\n{n + 1}\n*NSET, NSET=REF_Y\n{n + 2}\n" in text
+    assert sum(len(c.data) for c in back.cells) == mesh.n_elements
+
+
+def test_the_voxel_image_and_the_voxel_mesh_share_one_lattice(tmp_path):
+    """The geometry's voxel image and a voxel mesh at the same voxel size: the hexahedron
+    with ``voxel`` (i, j, k) is voxel (i, j, k) of the image (its centre inside the voxel,
+    its region the image's), for the whole stack and for a crop."""
+    from chipstack.export.vtk import write_voxel_image
+    from chipstack.geometry.voxels import voxelize
+
+    a = layup()
+    write_voxel_image(tmp_path / "voxels.vti", voxelize(a, 1.0))
+    image = pyvista.read(tmp_path / "voxels.vti")
+    shape = np.array(image.dimensions) - 1
+    labels = np.asarray(image.cell_data["region"]).reshape(shape, order="F")
+    assert np.array_equal(np.asarray(image.field_data["shape"]), shape)
+    for mesh in (voxel_mesh(a, 1.0, "box"), voxel_mesh(a, 1.0, "box", region_mm=(-12, 9, -3, 14))):
+        ijk = mesh.voxel
+        assert mesh.info["lattice"]["shape"] == shape.tolist()
+        assert np.array_equal(
+            labels[ijk[:, 0], ijk[:, 1], ijk[:, 2]], np.where(mesh.chip >= 0, mesh.chip + 1, 18)
+        )
+        centres = mesh.points[mesh.cells].mean(axis=1)
+        low = np.asarray(image.origin) + ijk * 1.0
+        assert np.all((centres > low) & (centres < low + 1.0))
+    assert labels.max() == 18 and labels.min() == 1  # void voxels carry the pore's id
 
 
 # -- a real downstream solver ----------------------------------------------------------------
@@ -727,7 +872,7 @@ def test_run_to_mesh_writes_checked_files(tmp_path, small_scenario):
     assert manifest["stages_completed"] == ["packing", "geometry", "mesh"]
     assert manifest["mesh"]["voxel"]["chip_volume_error_max"] < 0.02
     grid = pyvista.read(out / "mesh/stack_voxel.vtu")
-    assert set(np.unique(grid.cell_data["chip"])) == set(range(24))
+    assert set(np.unique(grid.cell_data["region"])) == set(range(1, 25))
 
 
 WHOLE_STACK = """
@@ -789,7 +934,7 @@ def test_a_whole_stack_with_its_pore_space_reads_back_solver_grade(tmp_path, who
     blocks = [k for k, block in enumerate(back.cells) if block.type == "tetra"]
     tets = np.concatenate([back.cells[k].data for k in blocks])
     physical = np.concatenate([back.cell_data["gmsh:physical"][k] for k in blocks])
-    mine = np.flatnonzero(physical == back.field_data["chip_0"][0])
+    mine = np.flatnonzero(physical == back.field_data["chip_1"][0])  # chip 0: region 1
     back.points = _flattened(back.points, tets, mine)
     broken = tmp_path / "broken.msh"
     meshio.write(broken, back, file_format="gmsh22", binary=False)
