@@ -1013,6 +1013,17 @@ def test_a_physics_stack_meshes_conformally_after_contact_resolution(tmp_path, s
     assert shared["sharing_faces"] == shared["surface_contacts"] and not shared["missing"]
     back = meshio.read(out / "mesh/stack_conformal.vtu")
     assert len(back.points) == entry["nodes"]
+    # The platen's surface of the loose stack: its upper envelope projects onto the
+    # footprint (the columns of the geometry's voxel image any chip fills) within 5 %.
+    image = pyvista.read(out / "geometry/voxels.vti")
+    region = np.asarray(image.cell_data["region"]).reshape(
+        np.array(image.dimensions) - 1, order="F"
+    )
+    footprint = (region <= 24).any(axis=2).sum() * image.spacing[0] * image.spacing[1]
+    assert checks["surfaces"]["top"]["projected_area_mm2"] == pytest.approx(footprint, rel=0.05)
+    assert set(checks["surfaces"]) == {"top", "bottom"}
+    msh = meshio.read(out / "mesh/stack_conformal.msh")
+    assert {"top", "bottom"} <= set(msh.field_data)
 
 
 def test_line_contacts_kept_touching_fall_back_to_the_gap_when_the_mesh_fails(

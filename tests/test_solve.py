@@ -154,6 +154,15 @@ def test_solve_end_to_end_writes_results_paraview_reads(tmp_path):
     assert -solved.point_data["U"][top, 2].mean() == pytest.approx(press, rel=0.02)
     deck = meshio.read(out / "mesh" / "stack_contact.vtu")
     assert len(deck.cells[0].data) == 200
+    # The chip's platen surfaces, named as on every mesh: the whole 20 x 20 mm chip
+    # under the platen and on the conveyor, in the check report, the .msh and the deck.
+    surfaces = json.loads((out / "mesh" / "stack_contact_checks.json").read_text())["surfaces"]
+    assert surfaces["top"]["projected_area_mm2"] == pytest.approx(AREA, rel=1e-6)
+    assert surfaces["bottom"]["projected_area_mm2"] == pytest.approx(AREA, rel=1e-6)
+    msh = meshio.read(out / "mesh" / "stack_contact.msh")
+    assert {"top": 2, "bottom": 1} == {k: int(v[0]) for k, v in msh.field_data.items() if v[1] == 2}
+    part = (out / "mesh" / "stack_contact.inp").read_text()
+    assert "*SURFACE, NAME=TOP, TYPE=ELEMENT\n" in part and "ELSET=CHIP_0001\n" in part
     pressure = np.asarray(meshio.read(out / "solve" / "compaction.vtu").point_data["CONTACT"])[:, 3]
     assert pressure.max() == pytest.approx(forces[-1] / AREA, rel=0.05)
 
