@@ -1,5 +1,5 @@
-"""Command line: ``pipeline run``, ``sweep``, ``describe``, ``compare``, ``validate``,
-``diagnose`` and ``synth``.
+"""Command line: ``pipeline run``, ``scenarios``, ``sweep``, ``describe``, ``compare``,
+``validate``, ``diagnose`` and ``synth``.
 
 The parser and ``main``; each command's handler is a module of
 :mod:`chipstack.pipeline.commands`. These are the only places that print or exit. Every
@@ -31,9 +31,10 @@ class _Parser(argparse.ArgumentParser):
         raise SystemExit(EXIT_BAD_INPUT)
 
 
-def _bounded(low: float, high: float, kind: type = int):
+def _bounded(low: float, high: float, kind: type = int, high_text: str | None = None):
     """An argparse type: a number of ``kind`` within [low, high] (bounds stated in the
-    flag's help; a value outside is one line and exit 2)."""
+    flag's help; a value outside is one line and exit 2). ``high_text``: the upper bound
+    as the reference (docs/cli.md) states it when it depends on the machine."""
 
     def parse(text: str):
         try:
@@ -48,10 +49,12 @@ def _bounded(low: float, high: float, kind: type = int):
         return value
 
     parse.__name__ = kind.__name__  # argparse names the type in its messages
+    # The range, for the reference generated from this parser (pipeline.cli_docs).
+    parse.low, parse.high, parse.high_text = low, high, high_text
     return parse
 
 
-WORKERS = _bounded(1, MAX_WORKERS)
+WORKERS = _bounded(1, MAX_WORKERS, high_text="4 per core")
 SEED = _bounded(0, MAX_SEED)
 
 # Each command's handler, named by module and imported when that command runs: the
@@ -59,6 +62,7 @@ SEED = _bounded(0, MAX_SEED)
 # must not wait for.
 HANDLERS = {
     "run": "chipstack.pipeline.commands.run:main",
+    "scenarios": "chipstack.pipeline.commands.scenarios:main",
     "sweep": "chipstack.pipeline.commands.sweep:main",
     "describe": "chipstack.pipeline.commands.describe:main",
     "compare": "chipstack.pipeline.commands.compare:main",
@@ -77,6 +81,7 @@ def _parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     for add in (
         _add_run,
+        _add_scenarios,
         _add_sweep,
         _add_describe,
         _add_compare,
@@ -100,6 +105,15 @@ def _add_run(commands) -> None:
         "--to",
         default=None,
         help=f"last stage: {', '.join(stage_names())} (default: {stage_names()[0]})",
+    )
+    run.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="change one scenario key (repeat for several), the value read as TOML, else as "
+        'text: deposition.chips=24, mesh.kind=conformal, \'mesh.formats=["vtu","msh"]\'; '
+        "keys of a kind it switches from are dropped (docs/scenarios.md)",
     )
     run.add_argument("--out", default=None, help="run directory (default: runs/<name>-seed<N>)")
     run.add_argument("--seed", type=SEED, default=None, help=SEED_HELP)
@@ -131,6 +145,12 @@ def _add_run(commands) -> None:
         "--formats",
         default=None,
         help="comma-separated mesh files to write with --to mesh (see docs/meshing.md)",
+    )
+
+
+def _add_scenarios(commands) -> None:
+    commands.add_parser(
+        "scenarios", help="list the built-in scenarios: name, kind and what each is"
     )
 
 
