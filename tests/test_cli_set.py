@@ -96,6 +96,18 @@ def test_settings_of_every_type_reach_the_run_and_its_manifest(small, tmp_path):
     assert again.with_seed(manifest["seed"]) == resolved
 
 
+def test_an_ensemble_records_the_settings_in_every_manifest(small, tmp_path):
+    out = tmp_path / "ensemble"
+    result = _run(small, out, *TINY, "--repeats", "2", "--workers", "1")
+    assert result.returncode == 0, result.stderr
+    expected = {"deposition.chips": 4, "deposition.batch_size": 2}
+    assert json.loads((out / "manifest.json").read_text())["set"] == expected
+    for repeat in ("repeat_0", "repeat_1"):
+        manifest = json.loads((out / repeat / "manifest.json").read_text())
+        assert manifest["set"] == expected
+        assert [b["chips"] for b in manifest["packing"]["batches"]] == [2, 4]
+
+
 def test_a_run_without_settings_records_none(small, tmp_path):
     out = tmp_path / "plain"
     result = _run(small, out, "--seed", "1")
