@@ -186,7 +186,13 @@ def _table(parser: argparse.ArgumentParser) -> list[str]:
 
 
 def render() -> str:
-    """The text of ``docs/cli.md``, from the parser and the notes above."""
+    """The command-line reference, from the parser and the notes above.
+
+    Returns
+    -------
+    str
+        The text ``docs/cli.md`` must hold.
+    """
     parser = _parser()
     commands = _commands(parser)
     unknown = set(NOTES) - {name for name, _, _ in commands}
@@ -220,7 +226,18 @@ def render() -> str:
 
 
 def write_page(page: Path = PAGE) -> bool:
-    """Write ``page`` from the parser; True when it changed."""
+    """Write the reference from the parser.
+
+    Parameters
+    ----------
+    page : Path
+        Where (default ``docs/cli.md``).
+
+    Returns
+    -------
+    bool
+        True when the page changed, False when it was current.
+    """
     text = render()
     if page.is_file() and page.read_text(encoding="utf-8") == text:
         return False

@@ -47,7 +47,7 @@ def _builtin_text(name: str) -> str:
     return (resources.files("chipstack.pipeline") / "scenarios" / f"{name}.toml").read_text()
 
 
-def leading_summary(text: str) -> str:
+def _leading_summary(text: str) -> str:
     """The first paragraph of a TOML file's leading comment, on one line (the comment
     lines before the first key, up to the first empty ``#`` line)."""
     lines = []
@@ -62,13 +62,17 @@ def leading_summary(text: str) -> str:
 
 
 def builtin_summaries() -> list[tuple[str, str, str]]:
-    """(name, kind, description) of every built-in scenario, sorted by name.
+    """Every built-in scenario, what ``pipeline scenarios`` lists.
 
-    The description is the first paragraph of the file's leading comment (each built-in
-    opens with a one-line paragraph saying what it is; a test holds them to it).
+    Returns
+    -------
+    list of (str, str, str)
+        (name, kind, description), sorted by name. The description is the first
+        paragraph of the file's leading comment: each built-in opens with a one-line
+        paragraph saying what it is (a test holds them to it).
     """
     return [
-        (name, load_scenario(name).kind, leading_summary(_builtin_text(name)))
+        (name, load_scenario(name).kind, _leading_summary(_builtin_text(name)))
         for name in builtin_names()
     ]
 
@@ -78,12 +82,25 @@ _DOTTED = re.compile(r"[A-Za-z0-9_-]+(\.[A-Za-z0-9_-]+)*")
 
 
 def parse_setting(text: str) -> tuple[str, Any]:
-    """``KEY=VALUE`` (``pipeline run --set``) as the dotted key and its value.
+    """One ``pipeline run --set`` argument as its dotted key and value.
 
-    The value is read as a TOML value (``24``, ``1.5``, ``true``, ``["vtu", "msh"]``,
-    ``"conformal"``); text that is not one is taken as a bare string (``conformal``), so
-    that a name needs no quotes. Raises ``InputError`` naming the setting when there is no
-    ``=`` or the key is not dotted names.
+    Parameters
+    ----------
+    text : str
+        ``KEY=VALUE``. The value is read as a TOML value (``24``, ``1.5``, ``true``,
+        ``["vtu", "msh"]``, ``"conformal"``); text that is not one is taken as a bare
+        string (``conformal``), so that a name needs no quotes.
+
+    Returns
+    -------
+    (str, value)
+        The key (``"mesh.kind"``) and the value, unchecked: the schema checks it when the
+        scenario is built (:func:`load_scenario`).
+
+    Raises
+    ------
+    InputError
+        No ``=``, or a key that is not dotted names; the message names the setting.
     """
     key_, sep, raw = str(text).partition("=")
     key_ = key_.strip()
@@ -105,10 +122,24 @@ def parse_setting(text: str) -> tuple[str, Any]:
 def load_scenario(source: str | Path | None, settings: Mapping[str, Any] | None = None) -> Scenario:
     """A scenario from a TOML file, a built-in name, or (None) the paper's reference stack.
 
-    ``settings``: dotted keys to change (``pipeline run --set``), applied to the file's
-    data before the scenario is built (:func:`core.schema.set_keys`), so each is typed
-    and checked as if written in the file. The file is checked first: its own errors
-    name the file, a setting's errors name ``--set`` and the key.
+    Parameters
+    ----------
+    source : str, Path or None
+        A scenario file, a built-in name (:func:`builtin_names`) or None (``paper-squares``).
+    settings : mapping of str to value, optional
+        Dotted keys to change (``pipeline run --set``: :func:`parse_setting`), applied to
+        the file's data before the scenario is built (:func:`core.schema.set_keys`), so
+        each is typed and checked as if written in the file.
+
+    Returns
+    -------
+    Scenario
+
+    Raises
+    ------
+    InputError
+        One line naming the problem. The file is checked first, so that its own errors
+        name the file and a setting's name ``--set`` and the key.
     """
     if source is None:
         source = BUILTIN
