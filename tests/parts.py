@@ -83,7 +83,7 @@ def _dolfinx() -> str | None:
 def _paraview() -> str | None:
     missing = [tool for tool in ("pvpython", "xvfb-run") if shutil.which(tool) is None]
     if missing:
-        return f"{' and '.join(missing)} not on the PATH (Debian: apt-get install paraview xvfb)"
+        return f"{' and '.join(missing)} not on the PATH (Debian: apt-get install paraview python3-paraview xvfb xauth)"
     return None
 
 
