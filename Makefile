@@ -55,13 +55,13 @@ FIND_PYTHON312 = (for p in python3.12 python3.13 python3.14 python3 \
 
 # DOLFINx in its own virtual environment (the tests' DOLFINx client, tests/parts.py): the
 # PyPI wheel dolfinx-solver-real (PETSc, MPI and HDF5 inside) and gmsh, on the first
-# Python >= 3.12 (FIND_PYTHON312); 20 s with a warm pip cache, 450 MB.
+# Python >= 3.12 (FIND_PYTHON312); 20 to 40 s with a warm pip cache, 450 MB.
 dolfinx: $(DOLFINX_STAMP)
 $(DOLFINX_STAMP): $(DOLFINX_REQS)
 	@py=$$( $(FIND_PYTHON312) ) || { \
 		echo "make dolfinx: no Python >= 3.12 found (python3.12, python3.13, python3.14, python3, pyenv's versions); the DOLFINx wheel needs one"; \
 		exit 2; }; \
-	echo "make dolfinx: building $(DOLFINX) from $$py ($$("$$py" -V)): pip install dolfinx-solver-real, gmsh (20 s with a warm pip cache, 450 MB)"; \
+	echo "make dolfinx: building $(DOLFINX) from $$py ($$("$$py" -V)): pip install dolfinx-solver-real, gmsh (20 to 40 s with a warm pip cache, 450 MB)"; \
 	rm -rf $(DOLFINX) && "$$py" -m venv $(DOLFINX) && \
 	$(DOLFINX)/bin/pip install --quiet -r $(DOLFINX_REQS) && \
 	$(DOLFINX)/bin/python -c 'import dolfinx_solver, dolfinx, gmsh' && touch $@
