@@ -13,7 +13,9 @@ declarations, so they cannot drift apart.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import logging
 import math
 import os
 import re
@@ -23,6 +25,8 @@ from typing import Any, ClassVar
 
 from chipstack.core.errors import InputError, brief, printable
 from chipstack.core.stages import load_stages
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "ChipSpec",
@@ -36,6 +40,7 @@ __all__ = [
     "scenario_to_dict",
     "changed_data",
     "kind_data",
+    "set_keys",
     "key_table",
     "key",
     "printable",
@@ -917,3 +922,76 @@ def kind_data(data: Mapping[str, Any]) -> dict[str, Any]:
         own = _own_keys(cls) - {cls.selector}
         out[table] = {k: v for k, v in out[table].items() if k in own or k in keys}
     return out
+
+
+def set_keys(data: Mapping[str, Any], settings: Mapping[str, Any]) -> dict[str, Any]:
+    """A parsed scenario file's data with the dotted keys of ``settings`` set, ready for
+    :func:`scenario_from_dict` (which types and checks them as it does the file's).
+
+    ``{"deposition.chips": 24, "mesh.kind": "conformal"}``: a missing table is created.
+    When a setting changes a kind (``kind``, ``chip.shape``, ``mesh.kind``, or a kind that
+    follows from them), the keys the file gave for the old kind that the new one does not
+    take are dropped, read from the kinds' own declarations (:func:`kind_data`), and
+    logged; a key that ``settings`` itself names is never dropped, so one that no chosen
+    kind takes is refused when the scenario is built.
+
+    Parameters
+    ----------
+    data : mapping
+        The parsed file: it must build into a scenario (every key valid for its kinds).
+    settings : mapping of str to value
+        Dotted keys (``"mesh.voxel_mm"``) and their TOML values.
+
+    Returns
+    -------
+    dict
+        A new nested dict; ``data`` is not changed.
+
+    Raises
+    ------
+    InputError
+        A key whose path runs through a value that is not a table (``seed.x``), naming it.
+    """
+    changed = copy.deepcopy(dict(data))
+    for dotted, value in settings.items():
+        parts = str(dotted).split(".")
+        node = changed
+        for depth, part in enumerate(parts[:-1]):
+            child = node.setdefault(part, {})
+            if not isinstance(child, dict):
+                held = "[[...]] tables" if isinstance(child, list) else brief(child)
+                raise InputError(
+                    f"{printable(dotted)}: {'.'.join(parts[: depth + 1])} is not a table "
+                    f"(it holds {held})"
+                )
+            node = child
+        node[parts[-1]] = copy.deepcopy(value)
+
+    def named(path: str) -> bool:  # a key the settings give, or a table holding one
+        return any(k == path or k.startswith((f"{path}.", f"{path}[")) for k in settings)
+
+    # Every key of the file is valid for its kinds (it built), so what kind_data drops
+    # from the changed data is exactly what a changed kind no longer takes.
+    dropped: list[str] = []
+
+    def keep(given: Any, kept: Any, prefix: str) -> Any:
+        if isinstance(given, dict) and isinstance(kept, Mapping):
+            out = {}
+            for k, v in given.items():
+                path = f"{prefix}.{k}" if prefix else str(k)
+                if k in kept:
+                    out[k] = keep(v, kept[k], path)
+                elif named(path):
+                    out[k] = v
+                else:
+                    dropped.append(path)
+            return out
+        if isinstance(given, list) and isinstance(kept, list) and len(given) == len(kept):
+            pairs = enumerate(zip(given, kept, strict=True))
+            return [keep(g, c, f"{prefix}[{i}]") for i, (g, c) in pairs]
+        return given
+
+    result = keep(changed, kind_data(changed), "")
+    if dropped:
+        log.info("dropped %s: the kinds now chosen do not take them", ", ".join(dropped))
+    return result

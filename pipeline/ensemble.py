@@ -7,7 +7,7 @@ import hashlib
 import json
 import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -39,6 +39,7 @@ def run_ensemble(
     descriptors: Sequence[str] | None = None,
     workers: int | None = None,
     scheduler: str | None = None,
+    settings: Mapping[str, Any] | None = None,
 ) -> tuple[Path, dict[str, Any]]:
     """``repeats`` independent runs (seeds derived from the scenario's) and their statistics.
 
@@ -47,7 +48,8 @@ def run_ensemble(
     ensemble started again with the same arguments resumes where it stopped; the last
     stage's statistics over the repeats (the geometry stage: ``out/ensemble.json``, mean
     and 95 % confidence interval of every descriptor) follow. A run that raises is
-    reported with its seed; the others complete.
+    reported with its seed; the others complete. ``settings``: the keys set on the command
+    line, already applied to ``scenario``, recorded in every manifest.
     """
     stages = stages_to(to, scenario)
     to = stages[-1].name
@@ -74,7 +76,7 @@ def run_ensemble(
         done = folder.finished(names)
         failures, n_workers = _run_repeats(
             folder, scenario, names, seeds, done, to, descriptors, command, progress,
-            workers, scheduler,
+            workers, scheduler, settings,
         )  # fmt: skip
         good = [k for k in range(repeats) if k not in failures]
         if not good:
@@ -86,7 +88,7 @@ def run_ensemble(
         last = stages[-1]
         summary = _repeat_statistics(last, folder, names, seeds, good, failures)
         manifest = {
-            **_ensemble_manifest(scenario, command, seeds, names, good, done, failures),
+            **_ensemble_manifest(scenario, command, seeds, names, good, done, failures, settings),
             "workers": n_workers,
             "scheduler": scheduler or "local",
             "stages_completed": [s.name for s in stages],
@@ -126,8 +128,9 @@ def _repeat_warnings(folder, names, seeds, good) -> list[str]:
     return warnings
 
 
-def _ensemble_manifest(scenario, command, seeds, names, good, done, failures) -> dict:
-    """The ensemble manifest's provenance and run lists."""
+def _ensemble_manifest(scenario, command, seeds, names, good, done, failures, settings) -> dict:
+    """The ensemble manifest's provenance (``set``: the keys set on the command line) and
+    run lists."""
     return {
         "tool": "chipstack",
         "kind": "ensemble",
@@ -135,6 +138,7 @@ def _ensemble_manifest(scenario, command, seeds, names, good, done, failures) ->
         "versions": code_versions(),
         "scenario": scenario.name,
         "seed": scenario.seed,
+        "set": dict(settings or {}),
         "repeats": len(names),
         "seeds": seeds,
         "seed_rule": SEED_RULE,
@@ -158,6 +162,7 @@ def _run_repeats(
     progress,
     workers: int | None,
     scheduler: str | None,
+    settings: Mapping[str, Any] | None = None,
 ) -> tuple[dict[int, str], int]:
     """Run the repeats not yet written on the executor, writing each as it arrives.
 
@@ -168,7 +173,7 @@ def _run_repeats(
 
     def on_result(k: int, result: RepeatResult) -> None:
         with folder.run(names[k]) as path:
-            write_run(path, "", result, to, command, False)
+            write_run(path, "", result, to, command, False, settings)
         if progress:
             progress(1, repeats)
 

@@ -8,7 +8,7 @@ import json
 import logging
 import platform
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -101,6 +101,7 @@ def run_pipeline(
     command: list[str] | None = None,
     descriptors: Sequence[str] | None = None,
     figures: bool = True,
+    settings: Mapping[str, Any] | None = None,
 ) -> tuple[Path, Any, dict[str, Any]]:
     """Run the stages up to ``to`` into the run directory ``out``.
 
@@ -110,7 +111,11 @@ def run_pipeline(
     reads its upstream results back from their folders, so a fresh, a resumed and a
     cached run compute from the same numbers.
 
-    ``progress(stage, done, total, detail)`` is called as stages advance.
+    ``progress(stage, done, total, detail)`` is called as stages advance. ``settings``:
+    the keys changed on the command line (``--set``), already applied to ``scenario``,
+    recorded in the manifest so the run can be repeated (the stage cache keys follow
+    from the scenario itself).
+
     Returns (run directory, the first stage's result (None for drops), manifest).
     """
     wanted = stages_to(to, scenario)
@@ -147,7 +152,7 @@ def run_pipeline(
                 stage.name not in keys or not run.reusable(stage.name, keys[stage.name])
             ):
                 run.invalidate(stage.name)
-        manifest = _staged_manifest(run, scenario, command, resolved, times, reused)
+        manifest = _staged_manifest(run, scenario, command, resolved, times, reused, settings)
         manifest["started_utc"] = started
         first = result(wanted[0].name)
         run.complete(manifest)
@@ -166,8 +171,9 @@ def _run_stage(run: StagedRun, stage: Stage, key: str, inputs: StageInputs) -> N
         record.summary, record.warnings = output.summary, output.warnings
 
 
-def _provenance(scenario: Scenario, command, resolved: str) -> dict[str, Any]:
-    """The manifest fields every run has: tool, command, versions, scenario, seed."""
+def _provenance(scenario: Scenario, command, resolved: str, settings=None) -> dict[str, Any]:
+    """The manifest fields every run has: tool, command, versions, scenario, seed and the
+    keys set on the command line (``set``: dotted key to value, as ``--set`` gave them)."""
     return {
         "tool": "chipstack",
         "kind": "run",
@@ -177,6 +183,7 @@ def _provenance(scenario: Scenario, command, resolved: str) -> dict[str, Any]:
         "scenario": scenario.name,
         "scenario_sha256": hashlib.sha256(resolved.encode()).hexdigest(),
         "seed": scenario.seed,
+        "set": dict(settings or {}),
     }
 
 
@@ -190,10 +197,10 @@ def _stage_entries(summaries: dict[str, dict[str, Any]]) -> dict[str, Any]:
 
 
 def _staged_manifest(
-    run: StagedRun, scenario: Scenario, command, resolved: str, times, reused
+    run: StagedRun, scenario: Scenario, command, resolved: str, times, reused, settings
 ) -> dict[str, Any]:
     """The run's manifest: provenance, and each stage's summary, input hash and timing."""
-    manifest = _provenance(scenario, command, resolved)
+    manifest = _provenance(scenario, command, resolved, settings)
     completed = run.completed
     manifest["stages_completed"] = completed
     manifest["stages_reused"] = reused
@@ -253,9 +260,11 @@ def write_run(
     to: str,
     command: list[str] | None,
     figures: bool,
+    settings: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Write one computed run's files under ``prefix`` (``path(name)`` gives where) and its
-    manifest; stages up to ``to`` that the worker did not run are computed here."""
+    manifest; stages up to ``to`` that the worker did not run are computed here
+    (``settings``: as for :func:`run_pipeline`)."""
     scenario = result.scenario
     times = dict(result.times)
     wall = time.perf_counter()
@@ -282,7 +291,7 @@ def write_run(
         summaries[stage.name] = output.summary
         warnings += output.warnings
     times["writing"] = round(time.perf_counter() - wall, 3)
-    manifest = _provenance(scenario, command, resolved)
+    manifest = _provenance(scenario, command, resolved, settings)
     manifest.update(
         stages_completed=list(summaries),
         started_utc=result.started_utc,

@@ -585,6 +585,44 @@ def test_the_docs_check_reports_a_stale_table(tmp_path):
     assert stale_blocks(tmp_path) == []
 
 
+def test_the_command_line_reference_is_generated_from_the_parser():
+    """docs/cli.md is the rendering of the parser of ``pipeline`` (refresh it with
+    ``make docs``): every command and option, with the stages ``--to`` takes and the
+    ranges the types enforce."""
+    from chipstack.core.stages import stage_names
+    from chipstack.pipeline.cli import _parser
+    from chipstack.pipeline.cli_docs import PAGE, _commands, render
+
+    text = render()
+    assert PAGE.read_text() == text, "docs/cli.md is stale: run `make docs`"
+    commands = _commands(_parser())
+    assert {name for name, _, _ in commands} >= {"run", "scenarios", "sweep", "describe"}
+    for name, _, sub in commands:
+        assert f"\n## pipeline {name}\n" in text, name
+        for action in sub._actions:
+            for flag in action.option_strings:
+                if flag not in ("-h", "--help"):
+                    assert f"`{flag}" in text, f"{name} {flag}"
+    assert "solve" in stage_names()
+    assert (
+        f"| `--to STAGE` | - | last stage: {', '.join(stage_names())} (default: packing) |" in text
+    )
+    # The machine's bound (4 per core) as a rule, not this machine's count.
+    assert "| `--workers N` | 1 to 4 per core | local Dask workers, 1 to 4 per core" in text
+    assert "| `--repeats N` | 2 to 1000 |" in text
+
+
+def test_the_command_line_reference_check_reports_a_stale_page(tmp_path):
+    from chipstack.pipeline.cli_docs import write_page
+
+    page = tmp_path / "cli.md"
+    assert write_page(page) is True
+    assert write_page(page) is False  # current: nothing to write
+    page.write_text(page.read_text().replace("--set KEY=VALUE", "--set KEY"))
+    assert write_page(page) is True
+    assert "--set KEY=VALUE" in page.read_text()
+
+
 @pytest.mark.slow
 def test_reference_run_is_byte_identical_to_the_recorded_one(tmp_path):
     """The reference stack (seed 0) through packing, geometry and a 1 mm voxel mesh in

@@ -11,6 +11,7 @@ import shutil
 import meshio
 import numpy as np
 import pytest
+import pyvista
 from conftest import assert_refused, run_cli, tree
 from scipy.spatial.transform import Rotation
 from test_resolve import arrange
@@ -174,6 +175,15 @@ def test_the_image_kind_from_the_cli_writes_files_that_read_back(tmp_path, small
     assert sorted(np.unique(vtu.cell_data["region"][0])) == list(range(1, 25))
     msh = meshio.read(out / "mesh" / "stack_image.msh")
     assert len(msh.points) == len(vtu.points)
+    # The platen's surfaces of a chips-only mesh: top (the upper envelope) projects onto
+    # the footprint of the geometry's voxel image within 5 %, as the other kinds do.
+    assert {k for k, v in msh.field_data.items() if v[1] == 2} >= {"top", "bottom"}
+    image = pyvista.read(out / "geometry/voxels.vti")
+    region = np.asarray(image.cell_data["region"]).reshape(
+        np.array(image.dimensions) - 1, order="F"
+    )
+    footprint = (region <= 24).any(axis=2).sum() * image.spacing[0] * image.spacing[1]
+    assert checks["surfaces"]["top"]["projected_area_mm2"] == pytest.approx(footprint, rel=0.05)
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["mesh"]["image"]["info"]["seed"] == 3
 

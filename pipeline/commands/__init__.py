@@ -1,5 +1,6 @@
-"""The commands of ``pipeline``, one module each (``run``, ``sweep``, ``describe``,
-``compare``, ``validate``, ``diagnose``, ``synth``), and what several of them share.
+"""The commands of ``pipeline``, one module each (``run``, ``scenarios``, ``sweep``,
+``describe``, ``compare``, ``validate``, ``diagnose``, ``synth``), and what several of
+them share.
 
 Each module's ``main(args)`` takes the parsed command line. :mod:`chipstack.pipeline.cli`
 builds the parser and imports a command's module only when that command runs, so that

@@ -17,13 +17,15 @@ from chipstack.meshing.stage import check_formats
 from chipstack.pipeline.commands import descriptor_names, resumable_interrupt
 from chipstack.pipeline.ensemble import run_ensemble
 from chipstack.pipeline.run import run_pipeline
-from chipstack.pipeline.scenario_files import load_scenario
+from chipstack.pipeline.scenario_files import load_scenario, parse_setting
 
 __all__ = ["main"]
 
 
 def main(args: argparse.Namespace) -> None:
-    scenario = load_scenario(args.scenario)
+    # A key set twice takes its last value, as a later line of a file would.
+    settings = dict(parse_setting(text) for text in args.set)
+    scenario = load_scenario(args.scenario, settings)
     if args.seed is not None:
         scenario = scenario.with_seed(args.seed)
     out = args.out or f"runs/{scenario.name}-seed{scenario.seed}"
@@ -39,7 +41,7 @@ def main(args: argparse.Namespace) -> None:
             scenario, mesh=dataclasses.replace(scenario.mesh, formats=formats)
         )
     if args.repeats is not None:
-        _ensemble(args, scenario, out, descriptors)
+        _ensemble(args, scenario, out, descriptors, settings)
         return
     if args.workers is not None or args.scheduler is not None:
         raise ChipstackError("--workers, --scheduler: only with --repeats (a single run is local)")
@@ -53,6 +55,7 @@ def main(args: argparse.Namespace) -> None:
             progress=bars.update,
             command=sys.argv,
             descriptors=descriptors,
+            settings=settings,
         )
     finally:
         bars.close()
@@ -109,7 +112,7 @@ def _print_run(path, manifest: dict) -> None:
             print(line)
 
 
-def _ensemble(args: argparse.Namespace, scenario, out: str, descriptors) -> None:
+def _ensemble(args: argparse.Namespace, scenario, out: str, descriptors, settings) -> None:
     bars: list[tqdm] = []
 
     def progress(finished: int, total: int) -> None:
@@ -132,6 +135,7 @@ def _ensemble(args: argparse.Namespace, scenario, out: str, descriptors) -> None
             descriptors=descriptors,
             workers=args.workers,
             scheduler=args.scheduler,
+            settings=settings,
         )
     except KeyboardInterrupt:
         for bar in bars:
