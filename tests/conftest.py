@@ -163,6 +163,7 @@ _LONGEST_FIRST = (
     "test_sweep.py",  # 99
     "test_diagnosis_csv.py",  # 97
     "test_geometry_cli.py",  # 82
+    "test_clients.py",  # about 70 (37 alone, 2026-12-02)
     "test_execution.py",  # 70
     "test_contracts.py",  # 60
     "test_api.py",  # 52

@@ -83,7 +83,8 @@ def _dolfinx() -> str | None:
 def _paraview() -> str | None:
     missing = [tool for tool in ("pvpython", "xvfb-run") if shutil.which(tool) is None]
     if missing:
-        return f"{' and '.join(missing)} not on the PATH (Debian: apt-get install paraview xvfb)"
+        debian = "apt-get install paraview python3-paraview xvfb xauth"
+        return f"{' and '.join(missing)} not on the PATH (Debian: {debian})"
     return None
 
 
