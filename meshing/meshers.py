@@ -370,7 +370,14 @@ def write_volume_mesh(
     (folder / f"{stem}_checks.json").write_text(json.dumps(report, indent=2) + "\n")
     files.append(f"{stem}_checks.json")
     table = folder / f"{stem}_interfaces.csv"
-    write_interface_table(table, find_interfaces(built.mesh), built.extra.get("contact_classes"))
+    # A crop holds some chips only: the contacts of chips it left out are not its own.
+    present = set(np.unique(built.mesh.chip).tolist())
+    contacts = {
+        pair: kind
+        for pair, kind in (built.extra.get("contact_classes") or {}).items()
+        if pair[0] in present and pair[1] in present
+    }
+    write_interface_table(table, find_interfaces(built.mesh), contacts)
     files.append(table.name)
     mesh = built.mesh
     return {
