@@ -260,9 +260,9 @@ def test_conformal_failure_names_the_chips_and_suggests_voxels():
 
 def test_bad_mesh_parameters_are_refused():
     a = layup()
-    with pytest.raises(Exception, match="pore_space"):
+    with pytest.raises(InputError, match=r"^pore_space: must be 'none' or 'box', got 'all'$"):
         voxel_mesh(a, pore_space="all")
-    with pytest.raises(Exception, match="size_mm"):
+    with pytest.raises(InputError, match=r"^size_mm: must be positive, got 0\.0$"):
         conformal_mesh(a, size_mm=0.0)
 
 
