@@ -7,15 +7,14 @@ back, and bad belt, zone and panel values refused."""
 from __future__ import annotations
 
 import json
-import os
 import re
-import shutil
 import statistics
 
 import meshio
 import numpy as np
 import pytest
 from conftest import run_cli
+from parts import needs
 
 from chipstack.core.errors import InputError
 from chipstack.core.schema import scenario_from_dict, scenario_to_dict
@@ -248,10 +247,7 @@ def test_mat_summary_refuses_nothing_on_a_still_belt():
     assert summary["areal_weight"]["cells"] == 6  # one 30 mm cell along, six across
 
 
-needs_ccx = pytest.mark.skipif(
-    shutil.which("ccx") is None and not os.environ.get("CHIPSTACK_REQUIRE_CCX"),
-    reason="CalculiX (ccx) is not installed; .ci/run installs it and CI runs these tests",
-)
+needs_ccx = needs("ccx")
 
 
 @needs_ccx
