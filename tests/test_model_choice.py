@@ -140,7 +140,6 @@ def test_a_table_stored_with_longer_pools_serves_shorter_ones_exactly():
     assert longer.count("restitution") == 0  # too short: simulated again
 
 
-@pytest.mark.slow
 def _drops(x, rows: list[dict]) -> dict[str, DropData]:
     """Synthesised rows as the diagnosis reads them, per condition."""
     return {
@@ -153,6 +152,7 @@ def _drops(x, rows: list[dict]) -> dict[str, DropData]:
     }
 
 
+@pytest.mark.slow
 def test_the_model_choice_names_a_withheld_effect_and_is_reused(tmp_path):
     """Two conditions x 20 drops, no effect against restitution and friction: the
     design's own cross-validation tells them apart well above chance (1 in 3; a friction
