@@ -147,7 +147,7 @@ def test_strength_fit_finds_the_minimum_between_grid_points():
     curves = np.column_stack([(x - 0.33) ** 2, (x - 0.05) ** 2, -x, np.abs(x - 0.6)])
     fitted = vertex(grid, curves, 1e-4)
     assert fitted[0] == pytest.approx(0.33)
-    assert 0.0 <= fitted[1] <= 0.2 and fitted[1] == pytest.approx(0.05)
+    assert 0.0 <= fitted[1] <= 0.2 and fitted[1] == pytest.approx(0.05)  # signed: a vertex
     assert fitted[2] == pytest.approx(0.8)  # still falling at the end: the end
     assert 0.4 <= fitted[3] <= 0.8
 
