@@ -305,15 +305,44 @@ def test_the_check_flags_each_broken_form():
     assert sorted(found, key=lambda p: int(p.split(":")[1])) == expected
 
 
-@pytest.mark.parametrize(
-    "fixed",
-    [
-        "def test_a():\n    assert summary['cv'] == pytest.approx(cv)\n",
-        "def test_a():\n    assert summary['gap'] >= 0  # signed: an overlap is negative\n",
-        "def test_a():\n    with pytest.raises(InputError, match='^x: '):\n        run()\n",
-        "def test_a():\n    assert summary['valid'] is True\n",
-        "def test_a():\n    assert p == pytest.approx(reaching / 20) and p >= alpha\n",
-    ],
-)
+FIXED = [
+    "def test_a():\n    assert summary['cv'] == pytest.approx(cv)\n",
+    "def test_a():\n    assert summary['gap'] >= 0  # signed: an overlap is negative\n",
+    "def test_a():\n    with pytest.raises(InputError, match='^x: '):\n        run()\n",
+    "def test_a():\n    assert summary['valid'] is True\n",
+    "def test_a():\n    assert p == pytest.approx(reaching / 20) and p >= alpha\n",
+]
+
+
+@pytest.mark.parametrize("fixed", FIXED)
 def test_the_check_passes_the_fixed_forms(fixed):
     assert problems(fixed, "fixed.py", set()) == []
+
+
+def test_the_docs_counts_are_the_collections():
+    """Every count of tests in docs/ is pytest's (tests/collected.py; ``make docs``)."""
+    from collected import stale
+
+    assert stale() == [], "counts of tests in docs/ are stale: run `make docs`"
+
+
+def test_the_counts_check_reports_a_stale_count_and_refreshes_it(tmp_path):
+    from collections import Counter
+
+    from collected import refresh, stale
+
+    counts = Counter({("test_a.py", "test_flag"): 29, ("test_a.py", "test_one"): 1})
+    page = tmp_path / "page.md"
+    page.write_text(
+        "the catalogue (<!-- count:test_a.py::test_flag -->3<!-- /count --> flags of "
+        "<!-- count:test_a.py -->1,030<!-- /count --> tests)\n"
+    )
+    assert stale(tmp_path, counts) == [
+        "page.md: test_a.py::test_flag says 3, 29 collected",
+        "page.md: test_a.py says 1,030, 30 collected",
+    ]
+    assert refresh(tmp_path, counts) == ["page.md"] and stale(tmp_path, counts) == []
+    assert "-->29<!--" in page.read_text() and "-->30<!--" in page.read_text()
+    page.write_text("<!-- count:test_a.py::test_no_such_test -->1<!-- /count -->\n")
+    with pytest.raises(KeyError, match="test_a.py collects no test_no_such_test"):
+        stale(tmp_path, counts)
