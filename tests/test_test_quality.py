@@ -8,10 +8,14 @@ every module under ``tests/`` finds
   that asserts by this same rule (``run_scenario``, which asserts the run succeeded;
   followed through helpers calling helpers). A product function such as ``check_mesh``
   is not an assertion: only what the test tree defines counts;
-* assertions that cannot fail: ``x >= 0`` (or ``0 <= x``, a p-value "in [0, 1]"), as a
-  quantity such as a count, a length, a p-value or a spread is never negative;
-  ``f(...) is not None`` on a reader's result, which returns a value or raises;
-  ``.get(key, default)`` inside an assert, where a missing key passes as the default;
+* assertions that cannot fail, where the assert's truth rests on them (the expression,
+  its and/or/not operands, what all() or any() takes; not a mask inside an index):
+  ``x >= 0`` or ``0 <= x``, as a quantity such as a count, a length or a spread is never
+  negative (a difference, ``a - b`` or ``np.diff(x)``, is signed and exempt);
+  ``0 <= x <= 1`` or ``0 < x <= 1``, which every p-value or share passes;
+  ``f(...) is not None`` where ``f`` reads or loads (``read``, ``load``, ``open``...),
+  as a reader returns a value or raises; ``.get(key, default)`` anywhere in an assert,
+  where a missing key passes as the default;
 * ``pytest.raises(Exception)`` or ``pytest.raises(BaseException)``: the error's own type
   must be named (and its message matched);
 * an ``except`` clause whose body only passes or continues: cases dropped in silence;
@@ -19,7 +23,8 @@ every module under ``tests/`` finds
 
 A signed quantity compared with 0 is a real assertion: name it in the assert's line
 with the comment ``# signed`` (two in the tree: a fitted vertex and a separation).
-Each rule has its broken case.
+Each rule has its broken case. The module also checks that the counts of tests written
+in docs/ are those pytest collects (``tests/collected.py``).
 """
 
 from __future__ import annotations
