@@ -104,14 +104,16 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_meshing.py
 
 # What the code generates in docs/: the reference tables, docs/measured.md from the
-# figures recorded under benchmarks/results/, docs/cli.md from the command line's parser
-# (a test checks all three are current), and the README's picture of the reference stack
-# and its mesh (docs/stack-and-mesh.png, from runs/paper-squares: run as `make run` runs
-# it if missing, else reused).
+# figures recorded under benchmarks/results/, docs/cli.md from the command line's parser,
+# the counts of tests from pytest's collection (tests/collected.py; a test checks each is
+# current), and the README's picture of the reference stack and its mesh
+# (docs/stack-and-mesh.png, from runs/paper-squares: run as `make run` runs it if missing,
+# else reused).
 docs: $(STAMP)
 	$(BIN)/python -m chipstack.pipeline.reference
 	$(BIN)/python -m chipstack.pipeline.measured
 	$(BIN)/python -m chipstack.pipeline.cli_docs
+	$(BIN)/python tests/collected.py
 	$(BIN)/python -m chipstack.pipeline.picture
 
 clean:

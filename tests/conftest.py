@@ -7,8 +7,8 @@ import sys
 from pathlib import Path
 
 import pytest
+from parts import REQUIRE_VARIABLE, require
 from parts import needs as _needs_mark  # noqa: F401  (the mark's home: tests/parts.py)
-from parts import require
 
 SMALL_SCENARIO = """
 name = "small"
@@ -196,19 +196,28 @@ def pytest_runtest_setup(item):
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
-    """Which optional parts were missing, and how many tests skipped for each: read from
-    the skip reasons, so that it also counts what xdist's workers skipped."""
-    counts: dict[str, tuple[int, str]] = {}
-    for report in terminalreporter.stats.get("skipped", []):
-        longrepr = report.longrepr
-        reason = longrepr[2] if isinstance(longrepr, tuple) else str(longrepr)
-        reason = reason.removeprefix("Skipped: ")
-        if reason.startswith("needs "):
-            part, _, why = reason.removeprefix("needs ").partition(": ")
-            n, _ = counts.get(part, (0, why))
-            counts[part] = (n + 1, why)
+    """Which optional parts were missing, and how many tests skipped (or, with the parts
+    required, failed) for each: read from the reports, so that it also counts what
+    xdist's workers did. Nothing when only collecting."""
+    if config.option.collectonly:
+        return
+    counts: dict[tuple[str, str], tuple[int, str]] = {}
+    for outcome in ("skipped", "failed", "error"):  # a part required at set-up: an error
+        for report in terminalreporter.stats.get(outcome, []):
+            longrepr = report.longrepr
+            reason = longrepr[2] if isinstance(longrepr, tuple) else str(longrepr)
+            reason = reason.removeprefix("Skipped: ")
+            if outcome == "skipped" and reason.startswith("needs "):
+                part, _, why = reason.removeprefix("needs ").partition(": ")
+            elif outcome != "skipped" and f" is required ({REQUIRE_VARIABLE}=1): " in reason:
+                part, _, why = reason.partition(f" is required ({REQUIRE_VARIABLE}=1): ")
+                outcome = "failed"
+            else:
+                continue
+            n, _ = counts.get((part, outcome), (0, why))
+            counts[part, outcome] = (n + 1, why)
     terminalreporter.section("optional parts")
     if not counts:
         terminalreporter.write_line("every optional part was here: nothing skipped for one")
-    for part, (n, why) in sorted(counts.items()):
-        terminalreporter.write_line(f"{part}: {n} tests skipped ({why})")
+    for (part, outcome), (n, why) in sorted(counts.items()):
+        terminalreporter.write_line(f"{part}: {n} tests {outcome} ({why})")

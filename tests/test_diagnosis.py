@@ -147,7 +147,7 @@ def test_strength_fit_finds_the_minimum_between_grid_points():
     curves = np.column_stack([(x - 0.33) ** 2, (x - 0.05) ** 2, -x, np.abs(x - 0.6)])
     fitted = vertex(grid, curves, 1e-4)
     assert fitted[0] == pytest.approx(0.33)
-    assert 0.0 <= fitted[1] <= 0.2 and fitted[1] == pytest.approx(0.05)
+    assert 0.0 <= fitted[1] <= 0.2 and fitted[1] == pytest.approx(0.05)  # signed: a vertex
     assert fitted[2] == pytest.approx(0.8)  # still falling at the end: the end
     assert 0.4 <= fitted[3] <= 0.8
 
@@ -753,7 +753,10 @@ def test_diagnose_finds_a_withheld_effect_and_no_gap_without_one(tmp_path):
     assert "restitution" in report["which"]["indistinguishable"]
     top = {e["effect"]: e for e in report["which"]["ranking"]}["restitution"]
     assert top["held_out_reduction"] > 0.5
-    assert 0.4 <= top["strength"] <= 0.8
+    # The strength made is 0.7; the fit is biased low (docs/diagnosis.md). Measured with
+    # synth seeds 11 to 14 (diagnosis seed 2, 2026-12-02): 0.612, 0.622, 0.648, 0.632, a
+    # mean of 0.629 and an sd of 0.015: held to the mean within 3 sd (was 0.4 to 0.8).
+    assert top["strength"] == pytest.approx(0.629, abs=3 * 0.015)
     # The reported strength is fitted on the coarse grid (4 points, a step of 0.267)
     # refined near the whole data's minimum: strengths off the coarse grid within a step
     # of the fit (the neutral strength, off it too, is at most one of them).
@@ -936,7 +939,11 @@ def test_release_tilt_fitted_jointly_finds_the_tilt_that_made_the_data(tmp_path)
         entries[name] = report["which"]["ranking"][0]
     known, joint = entries["known"], entries["fitted"]
     assert known["release_tilt_offset_deg"] == 0.0
-    assert joint["release_tilt_offset_deg"] == pytest.approx(2.5, abs=1.25)
+    # The offset is the fit's, snapped to 0.1 deg: +2.5 in 4 of 4 seeds (11 to 14), so held
+    # to that step (was +-1.25, half the offsets' grid step). Measured again 2026-12-02 with
+    # seeds 11 and 12, and with the data made 1.5 deg above the spec instead: +2.5 there
+    # too, so the offset is resolved to its grid step (2.5 deg), no finer.
+    assert joint["release_tilt_offset_deg"] == pytest.approx(2.5, abs=0.1)
     low, high = joint["release_tilt_offset_ci95"]
     assert low <= 2.5 <= high
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import itertools
 import json
 import re
 import shutil
@@ -218,7 +219,22 @@ def test_ensemble_and_comparison(tmp_path, small_scenario):
     assert "stack.height_max_mm" in result.stdout
     comparison = json.loads((cmp / "compare.json").read_text())
     entry = comparison["descriptors"]["stack"]["scalars"]["height_max_mm"]
-    assert 0 <= entry["p_permutation"] <= 1 and "differs" in entry
+    # 3 repeats against 3: the permutation test enumerates all C(6, 3) = 20 splits, so its
+    # p-value is the share of splits whose |difference of means| reaches the observed one,
+    # recomputed here from the two ensembles' values; the smallest it can be is 2 / 20
+    # (the observed split and its mirror), so no descriptor of these ensembles can differ.
+    values_a = height["values"]
+    values_b = json.loads((b / "ensemble.json").read_text())["descriptors"]["stack"]["scalars"][
+        "height_max_mm"
+    ]["values"]
+    pooled = np.array(values_a + values_b)
+    observed = abs(np.mean(values_b) - np.mean(values_a))
+    splits = [np.array(s) for s in itertools.combinations(range(6), 3)]
+    reaching = sum(
+        abs(np.delete(pooled, s).mean() - pooled[s].mean()) >= observed - 1e-9 for s in splits
+    )
+    assert entry["p_permutation"] == pytest.approx(reaching / 20, abs=1e-12), (values_a, values_b)
+    assert entry["p_permutation"] >= 2 / 20 and entry["differs"] is False
     assert (cmp / "figures/layer_filling.png").is_file()
     # seeds depend on the ensemble seed and the index only: a 2-repeat ensemble is a prefix
     c = tmp_path / "c"

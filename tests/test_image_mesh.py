@@ -5,26 +5,22 @@ from __future__ import annotations
 
 import json
 import logging
-import os
-import shutil
 
 import meshio
 import numpy as np
 import pytest
 import pyvista
 from conftest import assert_refused, run_cli, tree
+from parts import needs
 from scipy.spatial.transform import Rotation
 from test_resolve import arrange
 
 from chipstack.core.errors import InputError
 from chipstack.meshing import check_mesh
-from chipstack.meshing.image import cgal_available, image_mesh, image_voxel_mm, tetra_sicn
+from chipstack.meshing.image import image_mesh, image_voxel_mm, tetra_sicn
 from chipstack.meshing.mesh import PORE
 
-needs_cgal = pytest.mark.skipif(
-    not cgal_available() and not os.environ.get("CHIPSTACK_REQUIRE_CGAL"),
-    reason="pygalmesh (CGAL) is not installed; .ci/run installs it and CI runs these tests",
-)
+needs_cgal = needs("cgal")
 
 # Two squares, the upper one turned 20 deg and lying on the lower (a surface contact), and
 # a third alone on the conveyor 60 mm away.
@@ -218,10 +214,7 @@ def test_a_crop_with_the_pore_space_is_a_full_box_and_its_chips_are_cut_exactly(
         image_mesh(a, 0.25, 1.5, "box", region_mm=(100.0, 110.0, 0.0, 10.0))
 
 
-@pytest.mark.skipif(
-    shutil.which("ccx") is None and not os.environ.get("CHIPSTACK_REQUIRE_CCX"),
-    reason="CalculiX (ccx) is not installed; .ci/run installs it and CI runs this test",
-)
+@needs("ccx", "cgal")
 def test_calculix_presses_cropped_image_and_conformal_volumes_as_stiff_as_the_voxel_one(
     tmp_path, small_scenario
 ):
@@ -229,10 +222,9 @@ def test_calculix_presses_cropped_image_and_conformal_volumes_as_stiff_as_the_vo
     pore space filled, meshed three ways: the same effective modulus (platen force over
     area and strain, each over the crop as meshed) within 5 % (the issue's target; the
     reference stack's middle 50 x 50 mm: image 1.7 %, conformal 2.6 % against 0.5 mm
-    voxels). The image mesh needs CGAL (CI installs it)."""
-    kinds = ["voxel", "conformal"] + (
-        ["image"] if cgal_available() or os.environ.get("CHIPSTACK_REQUIRE_CGAL") else []
-    )
+    voxels). The image mesh needs CGAL: without it the test skips, naming the part (CI
+    requires it), rather than comparing two kinds of three."""
+    kinds = ["voxel", "conformal", "image"]
     moduli = {}
     for kind in kinds:
         scenario = tmp_path / f"{kind}.toml"

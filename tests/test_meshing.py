@@ -5,13 +5,13 @@ from __future__ import annotations
 import json
 import os
 import re
-import shutil
 import subprocess
 
 import meshio
 import numpy as np
 import pytest
 import pyvista
+from parts import needs
 from scipy.spatial.transform import Rotation
 
 from chipstack.core.arrangement import Arrangement
@@ -260,9 +260,9 @@ def test_conformal_failure_names_the_chips_and_suggests_voxels():
 
 def test_bad_mesh_parameters_are_refused():
     a = layup()
-    with pytest.raises(Exception, match="pore_space"):
+    with pytest.raises(InputError, match=r"^pore_space: must be 'none' or 'box', got 'all'$"):
         voxel_mesh(a, pore_space="all")
-    with pytest.raises(Exception, match="size_mm"):
+    with pytest.raises(InputError, match=r"^size_mm: must be positive, got 0\.0$"):
         conformal_mesh(a, size_mm=0.0)
 
 
@@ -777,10 +777,7 @@ def _run_ccx_total_force(folder) -> float:
     return -float(totals[-1][2])
 
 
-@pytest.mark.skipif(
-    shutil.which("ccx") is None and not os.environ.get("CHIPSTACK_REQUIRE_CCX"),
-    reason="CalculiX (ccx) is not installed; .ci/run installs it and CI runs this test",
-)
+@needs("ccx")
 def test_calculix_compresses_both_meshes_to_the_same_force(tmp_path):
     a = layup()
     conformal = conformal_mesh(a, size_mm=1.5, pore_space="box")
@@ -788,8 +785,10 @@ def test_calculix_compresses_both_meshes_to_the_same_force(tmp_path):
     forces = {m.kind: _compress(tmp_path, m, m.kind) for m in (conformal, voxel)}
     for force in forces.values():
         assert np.isfinite(force) and force > 0
-    ratio = forces["conformal"] / forces["voxel"]
-    assert 0.8 <= ratio <= 1.2, forces
+    # Measured: conformal 173,149 N against voxel 171,304 N, 1.1 % apart (the two routes'
+    # discretisations of the same layup); held to 5 %, as the whole stack's and the
+    # image crop's moduli are (below, and tests/test_image_mesh.py).
+    assert forces["conformal"] == pytest.approx(forces["voxel"], rel=0.05), forces
 
 
 def _periodic_layer_force(tmp_path, name: str, periodic: bool, jumps_fixed: bool) -> float:
@@ -818,10 +817,7 @@ def _periodic_layer_force(tmp_path, name: str, periodic: bool, jumps_fixed: bool
     return _run_ccx_total_force(folder)
 
 
-@pytest.mark.skipif(
-    shutil.which("ccx") is None and not os.environ.get("CHIPSTACK_REQUIRE_CCX"),
-    reason="CalculiX (ccx) is not installed; .ci/run installs it and CI runs this test",
-)
+@needs("ccx")
 def test_periodic_sides_give_the_elastic_answers(tmp_path):
     """Periodic sides with no jump confine the slab laterally: the force is C33 x strain x
     area (uniaxial strain); with the jumps free, or with free sides and no ties, it is
@@ -903,6 +899,7 @@ def whole_stack_run(tmp_path_factory):
     return run_scenario(WHOLE_STACK, tmp_path_factory.mktemp("whole"), "solve")
 
 
+@needs("ccx")  # its run goes --to solve
 def test_a_whole_stack_with_its_pore_space_reads_back_solver_grade(tmp_path, whole_stack_run):
     """The whole-stack model as a user makes it (``pipeline run``, the exact route with the
     pore space) read back from its .msh by meshio and audited by code that shares nothing
@@ -942,6 +939,7 @@ def test_a_whole_stack_with_its_pore_space_reads_back_solver_grade(tmp_path, who
     assert not audit["valid"] and audit["below_min"] >= 1, audit
 
 
+@needs("ccx")
 def test_calculix_presses_the_whole_stack_as_stiff_as_its_voxel_volume(tmp_path, whole_stack_run):
     """The whole stack's exact-route model, pore space bonded and softer than the chips,
     pressed between whole-face platens by the solve stage, against the same stack's 1 mm

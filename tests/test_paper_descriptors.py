@@ -17,8 +17,13 @@ from conftest import run_cli
 
 pytestmark = pytest.mark.slow
 
-PAPER_CONTACTS = {"point": 1.0, "line": 0.5, "surface": 0.5}  # per chip, Fig. 7
-TOLERANCE = 0.25  # relative, as the issue states
+PAPER_CONTACTS = {"point": 1.0, "line": 0.5, "surface": 0.5}  # per chip, Fig. 7 ("about")
+# The same ensemble (paper-squares, 10 repeats, seed 0) as recorded in docs/geometry.md,
+# with its 95 % intervals: the recorded spread, which a change to the contacts must stay in.
+RECORDED = {"point": (1.11, 1.17), "line": (0.49, 0.55), "surface": (0.40, 0.44)}
+# Against the paper's values, read off its figure: the largest recorded gap (surface, 0.42
+# for 0.5, 16 %) and its interval's half-width (4 %); was 25 %.
+TOLERANCE = 0.20
 
 
 @pytest.fixture(scope="module")
@@ -62,6 +67,8 @@ def test_contact_types_per_chip_match_the_paper(ensembles, kind):
     scalars = ensembles["paper-squares"]["descriptors"]["contacts"]["scalars"]
     ours = scalars[f"{kind}_per_chip"]["mean"]
     paper = PAPER_CONTACTS[kind]
+    low, high = RECORDED[kind]
+    assert low <= ours <= high, f"{kind}: {ours:.3f}, recorded {low} to {high}"
     assert abs(ours - paper) <= TOLERANCE * paper, f"{kind}: {ours:.3f} vs paper {paper}"
     # the other convention is reported too (and is larger: chip-chip contacts count twice)
     assert scalars[f"{kind}_per_chip_both_sides"]["mean"] > ours

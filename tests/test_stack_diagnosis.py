@@ -194,12 +194,19 @@ def test_the_share_of_noise_settings_have_in_common_is_measured():
 
 
 def test_strength_intervals_cover_the_truth():
-    """40 datasets, friction drawn between grid points, simulations without common random
-    numbers: the 95 % strength intervals hold the truth in at least 80 % (measured 56 of
-    60)."""
+    """200 datasets, friction drawn between grid points, simulations without common random
+    numbers: the 95 % strength intervals hold the truth at a rate the diagnosis's target
+    allows, 90 to 98 % (docs/measured.md): the count is not in the binomial 5 % tail below
+    200 draws at 90 %, nor in that above 200 draws at 98 % (it passes 173 to 199 of 200),
+    so intervals too narrow or too wide (every one covering) fail. Measured 181 of 200
+    (90.5 %), every dataset fitted; the 40 datasets of before gave 39 of 40, which could
+    not tell 80 % from 95 %."""
+    from scipy.stats import binom
+
     x = experiment()
     covered = fitted = 0
-    for i in range(40):
+    n = 200
+    for i in range(n):
         rng = np.random.default_rng(100 + i)
         truth = float(rng.uniform(0.6, 0.95))
         report = diagnose_stacks(
@@ -210,4 +217,6 @@ def test_strength_intervals_cover_the_truth():
         lo, hi = {e["effect"]: e for e in report["which"]["ranking"]}["friction"]["strength_ci95"]
         fitted += 1
         covered += lo <= truth <= hi
-    assert fitted >= 35 and covered / fitted >= 0.8, (covered, fitted)
+    assert fitted >= 0.95 * n, fitted  # measured: 200 of 200
+    assert binom.cdf(covered, fitted, 0.90) >= 0.05, (covered, fitted)
+    assert binom.sf(covered - 1, fitted, 0.98) >= 0.05, (covered, fitted)

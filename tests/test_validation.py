@@ -103,8 +103,11 @@ def test_drop_run_writes_its_files_and_refuses_later_stages(tmp_path):
 @pytest.mark.slow
 def test_small_container_fills_and_counts(tmp_path):
     """Rods of aspect ratio 10 in a container of radius L and height L (a quarter of the
-    paper's, to keep the test short): it fills, and the volume fraction is that of a
-    loose random rod packing near a wall (Freeman et al.: about 0.37 at 4 L)."""
+    paper's, to keep the test short): it fills, and the volume fraction is that of the
+    seeds' loose random rod packing near a wall. Measured (seeds 0 to 4, 2026-12-02): 0.318,
+    0.323, 0.280, 0.348, 0.328, a mean of 0.319 and an sd of 0.025 (one rod is 0.0025 of
+    the container), below Freeman et al.'s 0.37 at 4 L, as the wall at one rod length
+    leaves more room unfilled; held to the mean within 3 sd."""
     scenario = tmp_path / "c.toml"
     scenario.write_text(
         """
@@ -131,7 +134,7 @@ wake_speed_mm_s = 100.0
     assert result.returncode == 0, result.stderr
     fill = json.loads((out / "manifest.json").read_text())["container"]
     assert fill["full"]
-    assert 0.2 < fill["volume_fraction"] < 0.5
+    assert fill["volume_fraction"] == pytest.approx(0.319, abs=3 * 0.025)
 
 
 def test_validate_end_to_end_on_reduced_cases(tmp_path):
