@@ -250,12 +250,15 @@ def platen_surfaces(
     cell_type: str,
     node_sets: dict[str, np.ndarray],
     with_sides: bool,
+    fills_box: bool = False,
 ) -> dict[str, Surface]:
     """The surfaces a press and its support use, by name (``SIDES``' names and order):
     ``top``, the faces a flat platen coming down from above meets (the upper envelope;
-    the top of the box when the mesh fills one); ``bottom``, the boundary faces on the
-    conveyor plane (``node_sets["bottom"]``); with ``with_sides`` (a box or a crop) the
-    boundary faces on each side plane. A surface with no face is left out."""
+    with ``fills_box``, a mesh with its pore space, only those of them facing up within
+    60 degrees, the box's top, which a tetrahedral mesh rounds at its edges); ``bottom``,
+    the boundary faces on the conveyor plane (``node_sets["bottom"]``); with
+    ``with_sides`` (a box or a crop) the boundary faces on each side plane, which are
+    never part of ``top``. A surface with no face is left out."""
     element, face, nodes = outer_faces(cells, cell_type)
     vectors = face_vectors(points, nodes)
     on_plane = {}
@@ -263,12 +266,17 @@ def platen_surfaces(
         mark = np.zeros(len(points), dtype=bool)
         mark[node_sets.get(name, np.zeros(0, dtype=np.int64))] = True
         on_plane[name] = mark[nodes].all(axis=1)
-    chosen = {
-        "bottom": on_plane["bottom"] & (vectors[:, 2] < 0),
-        "top": upper_envelope(points, nodes),
-    }
+    top = upper_envelope(points, nodes)
+    if fills_box:
+        cosine = vectors[:, 2] / np.maximum(np.linalg.norm(vectors, axis=1), 1e-300)
+        top &= cosine > 0.5
+    chosen = {"bottom": on_plane["bottom"] & (vectors[:, 2] < 0), "top": top}
     if with_sides:
-        chosen.update({name: on_plane[name] for name in ("xmin", "xmax", "ymin", "ymax")})
+        sides = {name: on_plane[name] for name in ("xmin", "xmax", "ymin", "ymax")}
+        chosen.update(sides)
+        # A tetrahedral mesh's side is not quite plane: a side face tilted a little
+        # upward, with nothing over it, would otherwise be pressed as part of the top.
+        chosen["top"] = top & ~np.any(list(sides.values()), axis=0)
     surfaces = {}
     for name in SIDES:
         pick = chosen.get(name)

@@ -94,8 +94,11 @@ class VolumeMesh:
         """The platen and support surfaces by name (``top``, ``bottom``; with a pore box or
         a crop also ``xmin`` ... ``ymax``), computed once (see
         :func:`meshing.boundaries.platen_surfaces`)."""
-        with_sides = bool(np.any(self.chip == PORE)) or self.info.get("region_mm") is not None
-        return platen_surfaces(self.points, self.cells, self.cell_type, self.node_sets, with_sides)
+        fills_box = bool(np.any(self.chip == PORE))
+        with_sides = fills_box or self.info.get("region_mm") is not None
+        return platen_surfaces(
+            self.points, self.cells, self.cell_type, self.node_sets, with_sides, fills_box
+        )
 
     def element_volumes(self) -> np.ndarray:
         """(M,) mm3, signed volume of every element (positive when correctly oriented)."""
