@@ -15,7 +15,7 @@ from chipstack.export.figure_kinds import FIGURES, DropScatter, FigureKind
 from chipstack.export.vtk import stack_polydata
 
 # The registry's logger, as before the built-in figures moved here.
-log = logging.getLogger("chipstack.export.figure_kinds")
+log = logging.getLogger(__name__)
 
 
 def _stack_view(folder: Path, arrangement) -> list[str]:

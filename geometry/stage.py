@@ -13,7 +13,6 @@ from pathlib import Path
 from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
-from chipstack.core.lazy import lazy_package
 from chipstack.core.schema import Scenario
 from chipstack.core.stages import Stage, StageInputs, StageOptions, StageOutput
 from chipstack.geometry.sections import GeometrySpec
@@ -74,8 +73,3 @@ class GeometryStage(Stage):
 
 
 STAGE = GeometryStage()
-
-
-# The description writer this module offered before the stage's work moved out, found
-# there when first read.
-lazy_package(__name__, {"write_geometry": "chipstack.geometry.stage_work"})

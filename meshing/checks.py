@@ -43,7 +43,7 @@ __all__ = [
 ]
 
 # Chips in pieces are the mesh stage's warning (it names the kind).
-_STAGE_LOG = logging.getLogger("chipstack.meshing.stage")
+log = logging.getLogger(__name__)
 
 
 def element_faces(mesh: VolumeMesh) -> tuple[np.ndarray, np.ndarray]:
@@ -284,7 +284,7 @@ def check_volume(mesh, arrangement, pairs, min_quality, tolerance, kind) -> dict
     )
     assert_valid(report)
     if (warning := split_warning(report, kind)) is not None:
-        _STAGE_LOG.warning("%s", warning)
+        log.warning("%s", warning)
     return report
 
 

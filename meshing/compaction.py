@@ -44,7 +44,7 @@ __all__ = [
 ]
 
 # The logger of the solve models, whose summary this is (a user's filters name it).
-log = logging.getLogger("chipstack.meshing.solve_models")
+log = logging.getLogger(__name__)
 
 JOB = "compaction"  # the deck's job name: compaction.inp, .dat, .frd, .vtu
 

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from chipstack.core.errors import InputError, printable
-from chipstack.core.lazy import lazy_package, named
+from chipstack.core.lazy import named
 from chipstack.core.registry import Registry
 from chipstack.core.schema import KindChoice, Parameters
 from chipstack.meshing.sections import ConformalKeys, ContactKeys, ImageKeys, VoxelKeys
@@ -296,18 +296,4 @@ def _parameters(kinds: list[MeshKind]) -> type[Parameters]:
 # How [mesh] chooses its kinds (a combined name several): the mesh stage declares it.
 MESH_CHOICE = KindChoice(
     "mesh kind", lambda: [*MESH_KINDS.in_order(), *COMBINED], mesh_kinds, _parameters
-)
-
-
-# Where the names this module held before its meshers moved out are now (found when
-# first read, so that plugins importing them from here keep working).
-lazy_package(
-    __name__,
-    {
-        "check_volume": "chipstack.meshing.checks",
-        "write_volume_mesh": "chipstack.meshing.meshers",
-        "check_contact_model": "chipstack.meshing.meshers",
-        "contact_volume_mesh": "chipstack.meshing.meshers",
-        "write_contact": "chipstack.meshing.meshers",
-    },
 )

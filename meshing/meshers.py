@@ -68,8 +68,7 @@ __all__ = [
 
 # The warnings keep the loggers they had before the work moved here from the stage and
 # the kinds' declarations (a user's logging filters name them).
-log = logging.getLogger("chipstack.meshing.stage")
-kinds_log = logging.getLogger("chipstack.meshing.kinds")
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -267,7 +266,7 @@ class ConformalMesher(Mesher):
                 fell_back = str(exc)
                 resolution, mesh = resolve_and_mesh(False)
                 # Said once it worked: when it fails too, its error is the one line.
-                kinds_log.warning(
+                log.warning(
                     "conformal mesh with line contacts touching failed (%s); they were "
                     "cleared by the gap instead",
                     exc,

@@ -14,7 +14,7 @@ from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any
 
 from chipstack.core.errors import InputError
-from chipstack.core.lazy import lazy_package, named
+from chipstack.core.lazy import named
 from chipstack.core.registry import Registry
 from chipstack.core.schema import KindChoice, Parameters
 from chipstack.meshing.sections import ContactPressKeys
@@ -164,14 +164,3 @@ class VolumePress(SolveModel):
 
 for _model in (ContactPress(), VolumePress()):
     SOLVE_MODELS.register(_model.name, _model)
-
-
-# Names this module held before its work moved out, found where they are now when first
-# read (code importing them from here keeps working).
-lazy_package(
-    __name__,
-    {
-        "contact_summary": "chipstack.meshing.compaction",
-        "chip_of_node": "chipstack.meshing.compaction",
-    },
-)

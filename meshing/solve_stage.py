@@ -8,7 +8,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from chipstack.core.lazy import lazy_package, named
+from chipstack.core.lazy import named
 from chipstack.core.schema import Scenario
 from chipstack.core.stages import Stage, StageInputs, StageOutput
 from chipstack.meshing.sections import SolveSpec
@@ -65,10 +65,3 @@ class SolveStage(Stage):
 
 
 STAGE = SolveStage()
-
-
-# Names this module held before its work moved out, found where they are now when first
-# read (code importing them from here keeps working).
-lazy_package(
-    __name__, {"Compaction": "chipstack.meshing.compaction", "JOB": "chipstack.meshing.compaction"}
-)

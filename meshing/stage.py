@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from chipstack.core.errors import InputError, printable
-from chipstack.core.lazy import lazy_package, named
+from chipstack.core.lazy import named
 from chipstack.core.schema import Scenario
 from chipstack.core.stages import Stage, StageInputs, StageOptions, StageOutput
 from chipstack.meshing.formats import MESH_FORMATS
@@ -107,11 +107,3 @@ def check_formats(formats: tuple[str, ...], key: str) -> None:
             raise InputError(
                 f"{key}: unknown mesh format {printable(name)!r}; valid formats: {valid}"
             )
-
-
-# Names this module held before its work moved out, found where they are now when first
-# read (code importing them from here keeps working).
-lazy_package(
-    __name__,
-    {"MeshedStack": "chipstack.meshing.meshers", "contact_classes": "chipstack.meshing.meshers"},
-)

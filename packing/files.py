@@ -13,7 +13,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from chipstack.core.lazy import lazy_package
 from chipstack.core.registry import Registry
 
 if TYPE_CHECKING:
@@ -47,21 +46,3 @@ def write_stack_files(folder: Path, stack: Stack) -> list[str]:
     for name in STACK_WRITERS.in_order():
         written += STACK_WRITERS.get(name).write(folder, stack)
     return written
-
-
-# Names this module held before its work moved out, found where they are now when first
-# read (code importing them from here keeps working).
-lazy_package(
-    __name__,
-    {
-        name: "chipstack.packing.writers"
-        for name in (
-            "container_summary",
-            "mat_summary",
-            "packing_summary",
-            "top_mm",
-            "write_drop_files",
-            "write_mat_files",
-        )
-    },
-)

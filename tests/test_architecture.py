@@ -836,3 +836,43 @@ def test_a_scenario_meshed_both_ways_pickles_into_a_fresh_process(tmp_path):
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert out.returncode == 0 and out.stdout.strip() == "1.5", out.stderr
+
+
+def _shims(sources: dict[str, str]) -> list[str]:
+    """``path: what`` for every forwarder (a ``lazy_package`` call outside a package's
+    ``__init__.py``: a module keeping moved names importable) and every logger named by
+    a string rather than ``__name__`` (an old module's name) in ``sources`` (path ->
+    code)."""
+    found = []
+    for path, code in sources.items():
+        for node in ast.walk(ast.parse(code)):
+            if not isinstance(node, ast.Call):
+                continue
+            name = getattr(node.func, "attr", getattr(node.func, "id", ""))
+            if name == "lazy_package" and not path.endswith("__init__.py"):
+                found.append(f"{path}: a lazy_package forwarder")
+            if name == "getLogger" and node.args and isinstance(node.args[0], ast.Constant):
+                if str(node.args[0].value).startswith("chipstack"):
+                    found.append(f"{path}: logger {node.args[0].value!r}")
+    return found
+
+
+def test_no_module_forwards_moved_names_or_logs_under_an_old_name():
+    """Issue 72: a name lives in one module and is imported from there; a module logs
+    under its own name. Its broken case: a forwarder and an old logger name are found."""
+    sources = {
+        str(p.relative_to(ROOT)): p.read_text()
+        for package in PACKAGES
+        for p in (ROOT / package).rglob("*.py")
+    }
+    assert _shims(sources) == []
+    broken = {
+        "meshing/stage.py": 'lazy_package(__name__, {"f": "chipstack.meshing.meshers"})',
+        "meshing/__init__.py": 'lazy_package(__name__, {"f": "chipstack.meshing.meshers"})',
+        "meshing/meshers.py": 'log = logging.getLogger("chipstack.meshing.stage")',
+        "meshing/checks.py": "log = logging.getLogger(__name__)",
+    }
+    assert _shims(broken) == [
+        "meshing/stage.py: a lazy_package forwarder",
+        "meshing/meshers.py: logger 'chipstack.meshing.stage'",
+    ]
