@@ -92,11 +92,12 @@ solve: $(STAMP)
 # Lint, format check and every test, the image route's included (so `make test` builds
 # pygalmesh: `make image`). Tests run on every core (-n auto); a module's tests stay on
 # one worker (--dist loadfile) so that its shared, expensive fixtures (10-repeat
-# ensembles) are computed once; the longest modules go first (tests/conftest.py).
+# ensembles) are computed once; the longest modules go first (tests/conftest.py); the
+# 30 slowest tests are listed at the end (issue 73: the record of where the time goes).
 test: $(STAMP) $(IMAGE) dolfinx-if-python
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	$(BIN)/pytest -q -n auto --dist loadfile --no-loadscope-reorder
+	$(BIN)/pytest -q -n auto --dist loadfile --no-loadscope-reorder --durations=30
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_packing.py
