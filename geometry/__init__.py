@@ -10,7 +10,8 @@ from chipstack.core.lazy import lazy_package
 
 if TYPE_CHECKING:
     from chipstack.core.arrangement import Arrangement, arrangements_from_stack
-    from chipstack.geometry.describe import DESCRIPTORS, Description, describe
+    from chipstack.geometry.describe import Description, describe
+    from chipstack.geometry.descriptor_kinds import DESCRIPTORS
 
 __all__ = ["Arrangement", "DESCRIPTORS", "Description", "arrangements_from_stack", "describe"]
 
@@ -21,7 +22,7 @@ lazy_package(
     {
         "Arrangement": "chipstack.core.arrangement",
         "arrangements_from_stack": "chipstack.core.arrangement",
-        "DESCRIPTORS": "chipstack.geometry.describe",
+        "DESCRIPTORS": "chipstack.geometry.descriptor_kinds",
         "Description": "chipstack.geometry.describe",
         "describe": "chipstack.geometry.describe",
     },

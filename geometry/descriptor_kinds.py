@@ -1,7 +1,8 @@
 """The descriptors, registered by name: what ``--descriptors`` and a stack's description
-may name. They are implemented (and registered) by :mod:`geometry.describe`, with numpy,
-scipy and manifold3d, imported when one is first asked for: listing the names loads no
-numerical library."""
+may name. Each built-in is one module of :mod:`geometry.descriptors` that ends with its
+``DESCRIPTOR`` (numpy, scipy and manifold3d at its top), named here by
+``"module:DESCRIPTOR"`` and imported when it is first asked for: listing the names loads
+no numerical library. A new built-in is one new module and one line below."""
 
 from __future__ import annotations
 
@@ -10,13 +11,14 @@ from typing import TYPE_CHECKING
 from chipstack.core.registry import Registry
 
 if TYPE_CHECKING:
-    from chipstack.geometry.describe import Descriptor
+    from chipstack.geometry.descriptors.base import Descriptor
 
 __all__ = ["DESCRIPTORS"]
 
 DESCRIPTORS: Registry[Descriptor] = Registry("descriptor", "chipstack.descriptors")
-DESCRIPTORS.declare(
-    "chipstack.geometry.describe",
+# In this order: the order of descriptors.json's sections (Descriptor.order sets that of
+# the columns and the reports).
+for _name in (
     "contacts",
     "thickness",
     "layers",
@@ -24,4 +26,6 @@ DESCRIPTORS.declare(
     "orientation",
     "stack",
     "voxels",
-)
+    "coverage",
+):
+    DESCRIPTORS.register_named(_name, f"chipstack.geometry.descriptors.{_name}:DESCRIPTOR")

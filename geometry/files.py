@@ -9,7 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from chipstack.geometry.describe import DESCRIPTORS, Description, in_output_order
+from chipstack.geometry.describe import Description, in_output_order
+from chipstack.geometry.descriptor_kinds import DESCRIPTORS
 
 __all__ = ["write_description"]
 

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from chipstack.export.figure_kinds import draw_figures
-from chipstack.geometry.describe import DESCRIPTORS
+from chipstack.geometry.descriptor_kinds import DESCRIPTORS
 
 __all__ = ["single_run_figures", "ensemble_figures", "comparison_figures"]
 

@@ -16,13 +16,8 @@ from typing import Any
 from chipstack.core.arrangement import stack_history
 from chipstack.core.schema import Scenario
 from chipstack.core.stages import StageInputs, StageOutput
-from chipstack.geometry.describe import (
-    DESCRIPTORS,
-    Description,
-    check_names,
-    describe,
-    in_output_order,
-)
+from chipstack.geometry.describe import Description, check_names, describe, in_output_order
+from chipstack.geometry.descriptor_kinds import DESCRIPTORS
 from chipstack.geometry.files import write_description
 from chipstack.geometry.run_figures import ensemble_figures, single_run_figures
 

@@ -876,3 +876,38 @@ def test_no_module_forwards_moved_names_or_logs_under_an_old_name():
         "meshing/stage.py: a lazy_package forwarder",
         "meshing/meshers.py: logger 'chipstack.meshing.stage'",
     ]
+
+
+def _descriptors_per_module(sources: dict[str, str]) -> dict[str, int]:
+    """How many ``Descriptor(...)`` records each module of ``sources`` (path -> code)
+    builds."""
+    counts = {}
+    for path, code in sources.items():
+        calls = [
+            node
+            for node in ast.walk(ast.parse(code))
+            if isinstance(node, ast.Call) and getattr(node.func, "id", "") == "Descriptor"
+        ]
+        counts[path] = len(calls)
+    return counts
+
+
+def test_each_built_in_descriptor_is_one_module_named_by_the_registry():
+    """Issue 72: a built-in descriptor is one module of geometry/descriptors/ ending with
+    its DESCRIPTOR, named by one "module:DESCRIPTOR" line of the registry; adding one is
+    one file and one name. Its broken case: a module with two descriptors is found."""
+    import importlib
+    from importlib import metadata
+
+    from chipstack.geometry.descriptor_kinds import DESCRIPTORS
+
+    files = (ROOT / "geometry/descriptors").glob("*.py")
+    sources = {p.stem: p.read_text() for p in files if p.stem not in ("__init__", "base")}
+    plugins = {e.name for e in metadata.entry_points(group="chipstack.descriptors")}
+    assert set(DESCRIPTORS.in_order()) - plugins == set(sources)
+    for name in sources:
+        module = importlib.import_module(f"chipstack.geometry.descriptors.{name}")
+        assert DESCRIPTORS.get(name) is module.DESCRIPTOR and module.DESCRIPTOR.name == name
+    assert set(_descriptors_per_module(sources).values()) == {1}
+    two = "A = Descriptor('a', 'x', compute=f)\nB = Descriptor('b', 'y', compute=g)\n"
+    assert _descriptors_per_module({"two": two}) == {"two": 2}

@@ -14,7 +14,16 @@ import pytest
 import pyvista
 from conftest import SMALL_SCENARIO, run_cli
 
-DESCRIPTOR_NAMES = {"contacts", "thickness", "layers", "overlaps", "orientation", "stack", "voxels"}
+DESCRIPTOR_NAMES = {
+    "contacts",
+    "thickness",
+    "layers",
+    "overlaps",
+    "orientation",
+    "stack",
+    "voxels",
+    "coverage",
+}
 
 
 @pytest.fixture(scope="module")
@@ -39,6 +48,7 @@ def test_geometry_run_writes_every_descriptor_file(described):
         "layers.csv",
         "neh_map.csv",
         "overlaps.csv",
+        "coverage.csv",
         "voxels.vti",
         "figures/contact_types.png",
         "figures/neh_map.png",
@@ -204,6 +214,8 @@ def test_ensemble_and_comparison(tmp_path, small_scenario):
         "stack.height_max_mm",
         "stack.volume_fraction",
         "layers.highest_layer",
+        "coverage.single_cover_fraction",
+        "coverage.mean_cover",
     ]
     summary = json.loads((a / "ensemble.json").read_text())
     manifest = json.loads((a / "manifest.json").read_text())

@@ -15,7 +15,7 @@ import numpy as np
 from chipstack.core.errors import InputError
 from chipstack.core.schema import Parameters, Section, between, key, length
 from chipstack.export.figure_kinds import FigureKind
-from chipstack.geometry.describe import Descriptor
+from chipstack.geometry.descriptors.base import Descriptor
 from chipstack.meshing.checks import check_volume
 from chipstack.meshing.kinds import Built, MeshKind
 from chipstack.packing.effects import Effect
