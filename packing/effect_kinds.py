@@ -1,7 +1,8 @@
 """The unmodelled effects, registered by name: what a diagnosis, ``--effect`` and a
-scenario's effects may name. Each is declared by the object that implements it (in
-:mod:`packing.effects`, with numpy and scipy), imported when first asked for: listing
-and checking the names loads no numerical library."""
+scenario's effects may name. Each built-in is one module of :mod:`packing.effects`
+(numpy and scipy at its top) that ends with its object, named here by ``"module:OBJECT"``
+and imported when first asked for: listing and checking the names loads no numerical
+library. A new built-in is one new module and one name below."""
 
 from __future__ import annotations
 
@@ -10,20 +11,21 @@ from typing import TYPE_CHECKING
 from chipstack.core.registry import Registry
 
 if TYPE_CHECKING:
-    from chipstack.packing.effects import Effect
+    from chipstack.packing.effects.base import Effect
 
 __all__ = ["EFFECTS"]
 
 EFFECTS: Registry[Effect] = Registry("effect", "chipstack.effects")
-for _name, _object in (
-    ("air_drag", "AIR_DRAG"),
-    ("release_perturbation", "RELEASE_PERTURBATION"),
-    ("edge_rounding", "EDGE_ROUNDING"),
-    ("warp", "WARP"),
-    ("friction", "FRICTION"),
-    ("restitution", "RESTITUTION"),
-    ("compliant_floor", "COMPLIANT_FLOOR"),
-    ("vibration", "VIBRATION"),
-    ("cohesion", "COHESION"),
+# In this order (the order of the docs' table and of the diagnosis's candidates).
+for _name in (
+    "air_drag",
+    "release_perturbation",
+    "edge_rounding",
+    "warp",
+    "friction",
+    "restitution",
+    "compliant_floor",
+    "vibration",
+    "cohesion",
 ):
-    EFFECTS.register_named(_name, f"chipstack.packing.effects:{_object}")
+    EFFECTS.register_named(_name, f"chipstack.packing.effects.{_name}:{_name.upper()}")

@@ -911,3 +911,40 @@ def test_each_built_in_descriptor_is_one_module_named_by_the_registry():
     assert set(_descriptors_per_module(sources).values()) == {1}
     two = "A = Descriptor('a', 'x', compute=f)\nB = Descriptor('b', 'y', compute=g)\n"
     assert _descriptors_per_module({"two": two}) == {"two": 2}
+
+
+def _classes_per_module(sources: dict[str, str], base: str) -> dict[str, int]:
+    """How many classes deriving from ``base`` (directly) each module of ``sources``
+    (path -> code) defines."""
+    counts = {}
+    for path, code in sources.items():
+        counts[path] = sum(
+            isinstance(node, ast.ClassDef) and any(getattr(b, "id", "") == base for b in node.bases)
+            for node in ast.walk(ast.parse(code))
+        )
+    return counts
+
+
+def test_each_built_in_effect_is_one_module_named_by_the_registry():
+    """Issue 72: a built-in effect is one module of packing/effects/ ending with its
+    object (the module's name in capitals), registered by one "module:OBJECT" name; the
+    hook runners live in the package's __init__, the shared parts in base and shaping.
+    Its broken case: a module with two effects is found."""
+    import importlib
+    from importlib import metadata
+
+    from chipstack.packing.effect_kinds import EFFECTS
+
+    shared = ("__init__", "base", "shaping")
+    files = (ROOT / "packing/effects").glob("*.py")
+    sources = {p.stem: p.read_text() for p in files if p.stem not in shared}
+    plugins = {e.name for e in metadata.entry_points(group="chipstack.effects")}
+    assert set(EFFECTS.in_order()) - plugins == set(sources)
+    for name in sources:
+        module = importlib.import_module(f"chipstack.packing.effects.{name}")
+        assert EFFECTS.get(name) is getattr(module, name.upper()) and EFFECTS.get(name).name == name
+    effects = _classes_per_module(sources, "Effect")
+    coefficients = _classes_per_module(sources, "ContactCoefficient")
+    assert {n: effects[n] + coefficients[n] for n in sources} == dict.fromkeys(sources, 1)
+    two = "class A(Effect):\n    pass\n\n\nclass B(Effect):\n    pass\n"
+    assert _classes_per_module({"two": two}, "Effect") == {"two": 2}

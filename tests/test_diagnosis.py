@@ -30,7 +30,8 @@ from chipstack.diagnosis.statistics import (
     permutation_masks,
     resample_weights,
 )
-from chipstack.packing.effects import AIR_DENSITY_G_MM3, EFFECTS, FlightState, check_effects
+from chipstack.packing.effects import EFFECTS, FlightState, check_effects
+from chipstack.packing.effects.base import AIR_DENSITY_G_MM3
 from chipstack.packing.shapes import make_shape
 
 NAMES = observable_names(True, True)
@@ -507,7 +508,7 @@ def test_air_drag_face_normals_and_moments_agree_with_scipy():
     of a drop) against scipy's Rotation and numpy's cross on random states."""
     from scipy.spatial.transform import Rotation
 
-    from chipstack.packing.effects import _cross, _face_normals
+    from chipstack.packing.effects.air_drag import _cross, _face_normals
 
     rng = np.random.default_rng(4)
     quaternions = Rotation.random(50, random_state=5).as_quat()
