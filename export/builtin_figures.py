@@ -1,7 +1,7 @@
-"""The built-in figures of :mod:`export.figure_kinds`, with what draws them (matplotlib and
-pyvista, through :mod:`export.figures`). The registry declares their names and imports
-this module when a figure is first asked for, so that listing the figures loads no
-numerical library."""
+"""The built-in figures of :mod:`export.figure_kinds`, with what draws them (matplotlib
+and pyvista, through :mod:`export.render` and :mod:`export.process_figures`). The
+registry declares their names and imports this module when a figure is first asked
+for, so that listing the figures loads no numerical library."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from chipstack.export import figures
+from chipstack.export import process_figures, render
 from chipstack.export.figure_kinds import FIGURES, DropScatter, FigureKind
 from chipstack.export.vtk import stack_polydata
 
@@ -22,7 +22,7 @@ def _stack_view(folder: Path, arrangement) -> list[str]:
     a = arrangement
     mesh = stack_polydata(a.shapes, a.shape_index, a.positions, a.quaternions, a.batch)
     try:
-        figures.render_stack(folder / "stack.png", mesh)
+        render.render_stack(folder / "stack.png", mesh)
     except RuntimeError as exc:  # no OpenGL on this machine: the other outputs still count
         log.warning("3-D view not rendered: %s", exc)
         return []
@@ -30,19 +30,21 @@ def _stack_view(folder: Path, arrangement) -> list[str]:
 
 
 def _drop_scatter(folder: Path, drops: DropScatter) -> list[str]:
-    figures.plot_drops(folder / "fig15_drops.png", drops.xy, drops.statistics, drops.yaw_deg)
+    process_figures.plot_drops(
+        folder / "fig15_drops.png", drops.xy, drops.statistics, drops.yaw_deg
+    )
     return ["fig15_drops.png"]
 
 
 def _mat_profiles(folder: Path, record: Mapping[str, Any]) -> list[str]:
     if not (record["areal_weight"] and record["thickness"]):
         return []  # no steady part of the mat to draw
-    figures.plot_mat(folder / "mat.png", record)
+    process_figures.plot_mat(folder / "mat.png", record)
     return ["mat.png"]
 
 
 def _force_travel(folder: Path, compaction) -> list[str]:
-    figures.plot_force_displacement(
+    process_figures.plot_force_displacement(
         folder / "force_displacement.png", compaction.press_mm, compaction.force_n
     )
     return ["force_displacement.png"]

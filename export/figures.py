@@ -1,6 +1,8 @@
-"""PNG figures of the paper's descriptors (section 3) and a 3-D picture of a stack.
+"""PNG figures of the paper's descriptors (section 3), and the checks and canvas every
+chart of the package is drawn with (the 3-D picture of a stack is :mod:`export.render`,
+the process's figures :mod:`export.process_figures`).
 
-Figure 6: :func:`render_stack`; Figure 7: :func:`plot_contact_types`; Figure 9:
+Figure 7: :func:`plot_contact_types`; Figure 9:
 :func:`plot_neh_map`; Figure 10: :func:`plot_layer_filling`; Figure 12:
 :func:`plot_layer_comparison`; porosity through the thickness: :func:`plot_profile`.
 
@@ -13,12 +15,8 @@ matplotlib backend is touched. Bad arguments raise :class:`core.errors.InputErro
 
 from __future__ import annotations
 
-import functools
 import math
 import os
-import signal
-import subprocess
-import sys
 from collections.abc import Mapping, Sequence
 from numbers import Real
 from pathlib import Path
@@ -28,9 +26,8 @@ from matplotlib import colormaps
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import BoundaryNorm, ListedColormap
 from matplotlib.figure import Figure
-from matplotlib.patches import Circle, Patch, Rectangle
+from matplotlib.patches import Patch, Rectangle
 from matplotlib.ticker import MaxNLocator
-from PIL import Image  # matplotlib's own dependency: imported with it
 
 from chipstack.core.errors import InputError
 
@@ -39,18 +36,14 @@ __all__ = [
     "plot_contact_types",
     "plot_layer_comparison",
     "plot_layer_filling",
-    "plot_mat",
     "plot_neh_map",
     "plot_profile",
-    "plot_sweep",
-    "render_stack",
 ]
 
 DPI = 150
 CONTACT_KINDS = ("point", "line", "surface")
 _CONTACT_COLOURS = {"point": "tab:blue", "line": "tab:red", "surface": "tab:green"}
 _NEH_LEVELS = 9  # 0, 1, ..., 7 and 8+
-_RENDER_PROBE_TIMEOUT_S = 120
 
 
 # --------------------------------------------------------------------------- checks
@@ -526,338 +519,3 @@ def plot_profile(
     if label is not None:
         ax.legend(loc="best")
     _save(figure, path)
-
-
-# --------------------------------------------------------------------------- Figure 6
-
-_PROBE = """
-import vtkmodules.vtkRenderingOpenGL2
-from vtkmodules.vtkRenderingCore import vtkRenderWindow, vtkRenderer
-window = vtkRenderWindow()
-window.SetOffScreenRendering(1)
-window.SetSize(8, 8)
-window.AddRenderer(vtkRenderer())
-window.Render()
-window.Finalize()
-"""
-
-
-@functools.cache
-def _rendering_problem() -> str | None:
-    """Why VTK cannot render off screen here, or None; tried once per process.
-
-    Without any OpenGL, VTK crashes the process on the first render (a segmentation fault,
-    no Python exception), so the attempt runs in a child interpreter.
-    """
-    try:
-        result = subprocess.run(
-            [sys.executable, "-c", _PROBE],
-            capture_output=True,
-            timeout=_RENDER_PROBE_TIMEOUT_S,
-            check=False,
-        )
-    except (OSError, subprocess.TimeoutExpired) as error:
-        return f"the off-screen render test could not run ({type(error).__name__})"
-    if result.returncode < 0:
-        return f"a test render in a child process was killed by {_signal_name(-result.returncode)}"
-    if result.returncode != 0:
-        return f"a test render in a child process failed (exit code {result.returncode})"
-    return None
-
-
-def _signal_name(number: int) -> str:
-    try:
-        return signal.Signals(number).name
-    except ValueError:
-        return f"signal {number}"
-
-
-def _tab20_categorical() -> ListedColormap:
-    """tab20 with its 10 strong colours first, so neighbouring values differ in hue."""
-    colours = colormaps["tab20"].colors
-    return ListedColormap([colours[i] for i in [*range(0, 20, 2), *range(1, 20, 2)]], "tab20")
-
-
-def render_stack(
-    path: str | os.PathLike,
-    polydata,
-    scalars: str = "region",
-    window_size: tuple[int, int] = (1200, 900),
-    show_edges: bool = True,
-) -> None:
-    """A 3-D picture of the stack on the conveyor (Fig. 6), rendered off screen.
-
-    polydata: ``pyvista.PolyData`` of the chips (mm, polygons), with cell arrays such as
-    "region" and "batch" (see :func:`export.vtk.stack_polydata`). scalars: the cell array
-    that colours the chips; whole numbers get categorical tab20 colours (value mod 20),
-    other values a continuous tab20 scale. window_size: (width, height) pixels of the PNG.
-    The conveyor is a light grey plane at z = 0 slightly larger than the stack.
-
-    Raises RuntimeError when this machine cannot render with OpenGL at all.
-    """
-    import pyvista  # heavy: imported when a picture is asked for
-
-    path = _path(path)
-    if not isinstance(polydata, pyvista.PolyData):
-        raise InputError(f"polydata: must be a pyvista.PolyData, got {type(polydata).__name__}")
-    if polydata.n_cells == 0:
-        raise InputError("polydata: has no cells")
-    scalars = _text(scalars, "scalars")
-    if scalars not in polydata.cell_data:
-        known = ", ".join(polydata.cell_data.keys()) or "none"
-        raise InputError(f"scalars: {scalars!r} is not a cell array of polydata (has: {known})")
-    values = np.asarray(polydata.cell_data[scalars])
-    if values.ndim != 1 or not np.issubdtype(values.dtype, np.number):
-        raise InputError(f"scalars: cell array {scalars!r} must hold one number per cell")
-    if not np.isfinite(values).all():
-        raise InputError(f"scalars: cell array {scalars!r} must be finite")
-    if (
-        isinstance(window_size, str)
-        or not isinstance(window_size, Sequence)
-        or len(window_size) != 2
-        or not all(isinstance(v, int | np.integer) and 16 <= v <= 16384 for v in window_size)
-    ):
-        raise InputError(f"window_size: must be (width, height) in pixels, got {window_size!r}")
-    problem = _rendering_problem()
-    if problem is not None:
-        raise RuntimeError(f"render_stack: cannot render off screen: {problem}")
-
-    mesh = polydata.copy(deep=True)  # the plotter sets active scalars on what it is given
-    if np.array_equal(values, np.round(values)):
-        mesh.cell_data["colour_index"] = np.mod(values, 20).astype(np.int32)
-        colour_by = "colour_index"
-        style = {"cmap": _tab20_categorical(), "clim": (-0.5, 19.5), "n_colors": 20}
-    else:
-        colour_by = scalars
-        style = {"cmap": "tab20"}
-    (x0, x1, y0, y1, _, z1) = mesh.bounds
-    margin = 0.12 * max(x1 - x0, y1 - y0, 1.0)
-    conveyor = pyvista.Plane(
-        center=((x0 + x1) / 2, (y0 + y1) / 2, 0.0),
-        direction=(0.0, 0.0, 1.0),
-        i_size=x1 - x0 + 2 * margin,
-        j_size=y1 - y0 + 2 * margin,
-        i_resolution=1,
-        j_resolution=1,
-    )
-    if "region" in mesh.cell_data:
-        what = f"Stack of {len(np.unique(mesh.cell_data['region']))} chips"
-    else:
-        what = "Stack"
-
-    # VTK logs "bad X server connection" before falling back to an off-screen context: noise
-    # on a terminal that should show only the run's own lines.
-    with pyvista.vtk_verbosity("off"):
-        image = _render(
-            pyvista, mesh, conveyor, colour_by, style, what, scalars, window_size, show_edges
-        )
-    Image.fromarray(np.asarray(image)).save(path, format="PNG")
-
-
-def _render(pyvista, mesh, conveyor, colour_by, style, what, scalars, window_size, show_edges):
-    (x0, x1, y0, y1, _, z1) = mesh.bounds
-    plotter = pyvista.Plotter(off_screen=True, window_size=list(map(int, window_size)))
-    try:
-        plotter.set_background("white")
-        plotter.add_mesh(conveyor, color="#e4e4e4", show_edges=False)
-        plotter.add_mesh(
-            mesh,
-            scalars=colour_by,
-            preference="cell",
-            show_edges=show_edges,
-            edge_color="#303030",
-            line_width=1,
-            show_scalar_bar=False,
-            **style,
-        )
-        plotter.add_text(
-            f"{what} on the conveyor, coloured by {scalars}",
-            position="upper_edge",
-            font_size=12,
-            color="black",
-        )
-        plotter.add_text(
-            f"chips: {x1 - x0:.0f} x {y1 - y0:.0f} mm in plan, {z1:.1f} mm high",
-            position="lower_left",
-            font_size=10,
-            color="black",
-        )
-        plotter.camera_position = "iso"
-        plotter.reset_camera(bounds=mesh.bounds)  # frame the chips, the conveyor runs on
-        plotter.camera.zoom(1.3)
-        return plotter.screenshot(return_img=True)
-    finally:
-        plotter.close()
-
-
-def plot_drops(path: object, xy: np.ndarray, statistics: Mapping, yaw_deg: float = 0.0) -> Path:
-    """Fig. 15: final positions of dropped chips (mm) with the disc holding 95 % of them
-    and the chip's corner directions at release (dashed), the 4-fold axis (solid)."""
-    path = _path(path)
-    xy = np.asarray(xy, dtype=float).reshape(-1, 2)
-    if not np.isfinite(xy).all():
-        raise InputError("xy: positions hold NaN or infinite values")
-    figure, ax = _new_figure((5.2, 5.2))
-    radius = float(statistics["disc95_mm"])
-    ax.add_patch(
-        Circle(
-            (0, 0),
-            radius,
-            fill=False,
-            color="tab:red",
-            lw=1.5,
-            label=f"95 % disc, r = {radius:.1f} mm",
-        )
-    )
-    ax.scatter(xy[:, 0], xy[:, 1], s=14, color="tab:red", alpha=0.8, label="final positions")
-    reach = max(radius, float(np.abs(xy).max(initial=1.0))) * 1.1
-    for k in range(4):
-        angle = math.radians(yaw_deg + 45 + 90 * k)
-        ax.plot(
-            [0, reach * math.cos(angle)],
-            [0, reach * math.sin(angle)],
-            ls="--",
-            color="0.5",
-            lw=0.8,
-            label="corner directions" if k == 0 else None,
-        )
-        axis = math.radians(float(statistics["axis_deg"]) + 90 * k)
-        ax.plot(
-            [0, reach * math.cos(axis)],
-            [0, reach * math.sin(axis)],
-            color="tab:blue",
-            lw=0.8,
-            label="4-fold axis of the scatter" if k == 0 else None,
-        )
-    ax.set_xlim(-reach, reach)
-    ax.set_ylim(-reach, reach)
-    ax.set_aspect("equal")
-    ax.set_xlabel("x (mm)")
-    ax.set_ylabel("y (mm)")
-    ax.set_title(
-        f"{statistics['drops']} drops: anisotropy {statistics['anisotropy']:.2f} "
-        f"(p = {statistics['anisotropy_p']:.2g})",
-        fontsize=9,
-    )
-    ax.legend(loc="upper right", fontsize=7)
-    _save(figure, path)
-    return path
-
-
-def plot_force_displacement(path: str | os.PathLike, press_mm, force_n) -> None:
-    """The platen force against the press of a compaction, from (0, 0)."""
-    path = _path(path)
-    press, force = _vector(press_mm, "press_mm"), _vector(force_n, "force_n")
-    if len(press) != len(force) or not len(press):
-        raise InputError("press_mm, force_n: need the same, non-zero number of values")
-    figure, ax = _new_figure((6.0, 4.5))
-    ax.plot(np.concatenate([[0.0], press]), np.concatenate([[0.0], force]), "o-", linewidth=2)
-    ax.set_xlabel("press of the top platen (mm)")
-    ax.set_ylabel("platen force (N)")
-    ax.set_title("Compaction of the stack")
-    ax.grid(alpha=0.3)
-    _save(figure, path)
-
-
-def plot_mat(path: object, record: Mapping) -> Path:
-    """A poured mat (``mat.json``'s record): areal-weight map over the belt (g/m^2), the
-    thickness profiles along and across the belt (mm), and the chips' in-plane angles
-    from the belt's direction of travel."""
-    path = _path(path)
-    weight, thickness = record["areal_weight"], record["thickness"]
-    orientation = record["orientation"]
-    figure = Figure(figsize=(11.0, 6.4), dpi=DPI, layout="constrained")
-    FigureCanvasAgg(figure)
-    grid = figure.add_gridspec(2, 3)
-    ax = figure.add_subplot(grid[0, :])
-    x_edges, y_edges = np.asarray(weight["x_edges_mm"]), np.asarray(weight["y_edges_mm"])
-    mesh = ax.pcolormesh(
-        x_edges, y_edges, np.asarray(weight["map_g_m2"]).T, cmap="viridis", shading="flat"
-    )
-    figure.colorbar(mesh, ax=ax, label="areal weight (g/m$^2$)")
-    ax.set_aspect("equal")
-    ax.set_xlabel("x along the belt (mm)")
-    ax.set_ylabel("y across (mm)")
-    ax.set_title(
-        f"areal weight over {weight['cell_mm']:g} mm cells: mean {weight['mean_g_m2']:.0f} "
-        f"g/m$^2$, CV {weight['cv']:.3f}"
-    )
-    ax = figure.add_subplot(grid[1, 0])
-    ax.plot(thickness["along_x_mm"], thickness["along_mm"], color="tab:blue")
-    ax.set_xlabel("x along the belt (mm)")
-    ax.set_ylabel("mean top height (mm)")
-    ax.set_title(f"along the belt, CV {thickness['cv_along']:.3f}")
-    ax = figure.add_subplot(grid[1, 1])
-    ax.plot(thickness["across_y_mm"], thickness["across_mm"], color="tab:red")
-    ax.set_xlabel("y across the belt (mm)")
-    ax.set_ylabel("mean top height (mm)")
-    ax.set_title(f"across the belt, CV {thickness['cv_across']:.3f}")
-    ax = figure.add_subplot(grid[1, 2])
-    edges = np.asarray(orientation["angle_edges_deg"])
-    ax.bar(
-        edges[:-1],
-        orientation["angle_fraction"],
-        width=np.diff(edges),
-        align="edge",
-        color="tab:green",
-        edgecolor="white",
-    )
-    ax.set_xlabel("chip x axis from the belt direction (deg)")
-    ax.set_ylabel("fraction of chips")
-    ax.set_title(f"<cos 2θ> = {orientation['order_cos2']:.3f}")
-    _save(figure, path)
-    return path
-
-
-def plot_sweep(path: object, record: Mapping, key: str, columns: int = 5) -> Path:
-    """Every scalar of a sweep (``sweep.json``'s record) against the swept ``key``: the
-    mean over the repeats and its 95 % interval at each point, one line for each
-    combination of the other swept keys."""
-    path = _path(path)
-    points = record["points"]
-    others = [k for k in record["keys"] if k != key]
-    names = sorted({n for p in points for n, s in p["scalars"].items() if s["mean"] is not None})
-    if not names:
-        raise InputError("record: the sweep has no scalar to draw")
-    rows = math.ceil(len(names) / columns)
-    figure = Figure(figsize=(3.2 * columns, 2.4 * rows), dpi=DPI, layout="constrained")
-    FigureCanvasAgg(figure)
-    values = [p["values"][key] for p in points]
-    numeric = all(isinstance(v, int | float) and not isinstance(v, bool) for v in values)
-    order = sorted(set(values), key=lambda v: v if numeric else str(v))
-    groups: dict[tuple, list[Mapping]] = {}
-    for p in points:
-        groups.setdefault(tuple(p["values"][k] for k in others), []).append(p)
-    for index, name in enumerate(names):
-        ax = figure.add_subplot(rows, columns, index + 1)
-        for label, members in groups.items():
-            members = sorted(members, key=lambda p: order.index(p["values"][key]))
-            x = [p["values"][key] if numeric else order.index(p["values"][key]) for p in members]
-            stats = [p["scalars"].get(name, {}) for p in members]
-            mean = np.array([np.nan if s.get("mean") is None else s["mean"] for s in stats])
-            low = np.array([np.nan if s.get("ci_low") is None else s["ci_low"] for s in stats])
-            high = np.array([np.nan if s.get("ci_high") is None else s["ci_high"] for s in stats])
-            text = ", ".join(f"{k}={v}" for k, v in zip(others, label, strict=True))
-            ax.errorbar(
-                x,
-                mean,
-                yerr=[np.nan_to_num(mean - low), np.nan_to_num(high - mean)],
-                marker="o",
-                ms=3,
-                capsize=2,
-                label=text or None,
-            )
-        unit = next((p["scalars"][name].get("unit") for p in points if name in p["scalars"]), "")
-        ax.set_title(name + (f" ({unit})" if unit else ""), fontsize=7)
-        ax.tick_params(labelsize=6)
-        if not numeric:
-            ax.set_xticks(range(len(order)), [str(v) for v in order])
-        if others and index == 0:
-            ax.legend(fontsize=5)
-    figure.suptitle(
-        f"{record['scenario']}: every scalar against {key} (mean and 95 % interval over "
-        f"{record['repeats']} repeats)",
-        fontsize=9,
-    )
-    _save(figure, path)
-    return path

@@ -364,7 +364,7 @@ def _mesh_view(folder: Path, picture) -> list[str]:
     """The mesh's outer surface coloured by chip (pores hidden), rendered off screen."""
     import pyvista
 
-    from chipstack.export import figures
+    from chipstack.export import render
 
     mesh = picture.mesh
     path = folder / f"{picture.stem}.png"
@@ -373,7 +373,7 @@ def _mesh_view(folder: Path, picture) -> list[str]:
     surface = grid.extract_surface(algorithm="dataset_surface")
     try:
         # Element edges show the mesh; on a million elements they only darken the picture.
-        figures.render_stack(path, surface, show_edges=surface.n_cells < 100_000)
+        render.render_stack(path, surface, show_edges=surface.n_cells < 100_000)
     except RuntimeError as exc:
         log.warning("mesh picture not rendered: %s", exc)
         return []

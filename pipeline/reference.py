@@ -20,7 +20,7 @@ from chipstack.core.stages import load_stages
 from chipstack.diagnosis.spec import EXPERIMENT_KINDS
 from chipstack.diagnosis.stacks import QUANTITY_MEASURES
 from chipstack.export.figure_kinds import FIGURES, SUBJECT_FOLDERS
-from chipstack.geometry.describe import DESCRIPTORS
+from chipstack.geometry.descriptor_kinds import DESCRIPTORS
 from chipstack.meshing.formats import MESH_FORMATS
 from chipstack.meshing.kinds import MESH_KINDS
 from chipstack.meshing.solve_models import SOLVE_MODELS

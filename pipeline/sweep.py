@@ -199,7 +199,7 @@ def run_sweep(
     if not any(p["scalars"] for p in rows):
         log.warning("the sweep's runs give no scalar to draw; no figures")
         return out, record
-    from chipstack.export.figures import plot_sweep  # matplotlib only when drawing
+    from chipstack.export.process_figures import plot_sweep  # matplotlib only when drawing
 
     (out / "figures").mkdir(exist_ok=True)
     for key in record["keys"]:

@@ -29,7 +29,8 @@ from chipstack.core.arrangement import arrangements_from_stack
 from chipstack.core.errors import InputError
 from chipstack.core.overlap import vertex_heights_mm
 from chipstack.core.schema import MAX_DROPS, MAX_REPEATS, printable
-from chipstack.export.figures import plot_drops, render_stack
+from chipstack.export.process_figures import plot_drops
+from chipstack.export.render import render_stack
 from chipstack.export.vtk import stack_polydata
 from chipstack.geometry.contacts import find_contacts
 from chipstack.packing import deposit

@@ -16,7 +16,7 @@ from matplotlib.figure import Figure
 from matplotlib.image import imread
 from parts import needs
 
-import chipstack.export.figures as figures
+import chipstack.export.render as render
 from chipstack.export.figures import (
     neh_colormap,
     plot_contact_types,
@@ -24,8 +24,8 @@ from chipstack.export.figures import (
     plot_layer_filling,
     plot_neh_map,
     plot_profile,
-    render_stack,
 )
+from chipstack.export.render import render_stack
 
 ROOT = Path(__file__).resolve().parents[1]
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -460,7 +460,7 @@ def test_render_stack_empty_polydata(tmp_path):
 
 
 def test_render_stack_without_opengl_raises(tmp_path, monkeypatch):
-    monkeypatch.setattr(figures, "_rendering_problem", lambda: "no OpenGL (test)")
+    monkeypatch.setattr(render, "_rendering_problem", lambda: "no OpenGL (test)")
     with pytest.raises(RuntimeError, match="cannot render"):
         render_stack(tmp_path / "stack.png", two_chips(), window_size=(64, 48))
     assert not (tmp_path / "stack.png").exists()
@@ -471,7 +471,7 @@ def test_render_stack_with_a_broken_opengl_does_not_crash(tmp_path):
     script = textwrap.dedent(
         f"""
         import pyvista
-        from chipstack.export.figures import render_stack
+        from chipstack.export.render import render_stack
         box = pyvista.Box()
         box.cell_data["region"] = list(range(box.n_cells))
         try:

@@ -162,7 +162,8 @@ def _print_ensemble(path, manifest: dict, repeats: int) -> None:
         d = summary["descriptors"]
         # Here, not at the top: the descriptors' module brings numpy, scipy and manifold3d,
         # which every run (and its one-line errors) would otherwise wait for at its start.
-        from chipstack.geometry.describe import DESCRIPTORS, in_output_order
+        from chipstack.geometry.describe import in_output_order
+        from chipstack.geometry.descriptor_kinds import DESCRIPTORS
 
         shown = in_output_order(d)
         for section in shown:
