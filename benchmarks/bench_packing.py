@@ -149,7 +149,7 @@ RESULTS = Path(__file__).parent / "results" / "conveyor"
 def panel_line(chips: int):
     """The line of a 440 x 540 mm panel: the paper's chips at the paper stack's areal
     density (0.012 chips/mm^2), a belt 540 mm wide at 20 mm/s, so 136 chips/s."""
-    from chipstack.core.schema import scenario_from_dict
+    from chipstack.core.scenario_data import scenario_from_dict
 
     return scenario_from_dict(
         {

@@ -16,7 +16,8 @@ from typing import TYPE_CHECKING, Any
 
 from chipstack.core.errors import InputError, brief, printable
 from chipstack.core.files import read_json
-from chipstack.core.schema import MAX_SEED, Scenario
+from chipstack.core.keys import MAX_SEED
+from chipstack.core.schema import Scenario
 from chipstack.packing.stage import STAGE as _PACKING
 from chipstack.pipeline.run import run_pipeline
 from chipstack.pipeline.scenario_files import builtin_names, load_resolved, with_overrides

@@ -5,7 +5,8 @@ import logging
 
 from chipstack.core.errors import ChipstackError, InputError, SimulationError, printable
 from chipstack.core.registry import Registry
-from chipstack.core.schema import Scenario, scenario_from_dict, scenario_to_dict
+from chipstack.core.scenario_data import scenario_from_dict, scenario_to_dict
+from chipstack.core.schema import Scenario
 from chipstack.core.stages import Stage, StageInputs, StageOptions, StageOutput, load_stages
 
 __all__ = [

@@ -38,7 +38,7 @@ from typing import Protocol
 import numpy as np
 from scipy.stats import qmc
 
-from chipstack.core.schema import scenario_to_dict
+from chipstack.core.scenario_data import scenario_to_dict
 from chipstack.diagnosis.model import Experiment
 from chipstack.packing.drop import DropProtocol, simulate_drops
 from chipstack.packing.effects import EFFECTS

@@ -19,14 +19,9 @@ import numpy as np
 
 from chipstack.core.errors import InputError
 from chipstack.core.files import number, read_text
-from chipstack.core.schema import (
-    MAX_LENGTH_MM,
-    ChipSpec,
-    Scenario,
-    printable,
-    scenario_from_dict,
-    scenario_to_dict,
-)
+from chipstack.core.keys import MAX_LENGTH_MM
+from chipstack.core.scenario_data import scenario_from_dict, scenario_to_dict
+from chipstack.core.schema import ChipSpec, Scenario, printable
 from chipstack.diagnosis.experiment_kinds import EXPERIMENT_KINDS
 
 # The data model is re-exported: the diagnosis's readers and callers take it from here.

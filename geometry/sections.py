@@ -5,7 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
-from chipstack.core.schema import Section, between, key
+from chipstack.core.keys import between, key
+from chipstack.core.schema import Section
 
 __all__ = ["GeometrySpec", "SECTIONS"]
 

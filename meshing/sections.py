@@ -7,7 +7,8 @@ from dataclasses import dataclass, field
 from typing import ClassVar
 
 from chipstack.core.errors import InputError
-from chipstack.core.schema import KindKeys, Parameters, Section, between, key, one_of, region
+from chipstack.core.keys import between, key, one_of, region
+from chipstack.core.schema import KindKeys, Parameters, Section
 
 __all__ = [
     "ConformalKeys",

@@ -5,7 +5,8 @@ from typing import TYPE_CHECKING
 
 from chipstack.core.errors import ChipstackError, InputError, SimulationError
 from chipstack.core.lazy import lazy_package
-from chipstack.core.schema import Scenario, scenario_from_dict, scenario_to_dict
+from chipstack.core.scenario_data import scenario_from_dict, scenario_to_dict
+from chipstack.core.schema import Scenario
 from chipstack.packing.presets import PRESETS, PhysicsPreset
 
 if TYPE_CHECKING:

@@ -15,9 +15,8 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from chipstack.core.errors import InputError, brief
-from chipstack.core.schema import (
+from chipstack.core.keys import (
     MAX_LENGTH_MM,
-    Section,
     between,
     duration,
     key,
@@ -27,6 +26,7 @@ from chipstack.core.schema import (
     positive,
     value_range,
 )
+from chipstack.core.schema import Section
 
 __all__ = [
     "DepositionSpec",

@@ -11,18 +11,10 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from chipstack.core.errors import InputError
+from chipstack.core.keys import LENGTH_UNITS_MM, between, key, length, one_of
 from chipstack.core.lazy import named
 from chipstack.core.registry import Registry
-from chipstack.core.schema import (
-    LENGTH_UNITS_MM,
-    ChipSpec,
-    KindChoice,
-    Parameters,
-    between,
-    key,
-    length,
-    one_of,
-)
+from chipstack.core.schema import ChipSpec, KindChoice, Parameters
 
 if TYPE_CHECKING:
     import numpy as np

@@ -27,7 +27,8 @@ import numpy as np
 from chipstack.core.chipshape import WOVEN_DEG, ChipShape, frozen_array, spec_fibre_directions
 from chipstack.core.errors import InputError, brief, printable
 from chipstack.core.files import check_geometry_file
-from chipstack.core.schema import LENGTH_UNITS_MM, ChipSpec
+from chipstack.core.keys import LENGTH_UNITS_MM
+from chipstack.core.schema import ChipSpec
 from chipstack.packing.polygons import convex_partition, counter_clockwise
 
 __all__ = ["shape_from_file", "file_extent", "FILE_SUFFIXES", "MAX_DECOMPOSITION_ERROR"]

@@ -28,7 +28,8 @@ from chipstack.core.chipshape import (
     spec_fibre_directions,
 )
 from chipstack.core.errors import InputError, printable
-from chipstack.core.schema import MAX_LENGTH_MM, ChipSpec
+from chipstack.core.keys import MAX_LENGTH_MM
+from chipstack.core.schema import ChipSpec
 from chipstack.packing.polygons import (
     check_simple,
     convex_partition,

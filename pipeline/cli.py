@@ -15,8 +15,8 @@ import sys
 from collections.abc import Callable
 
 from chipstack.core.errors import ChipstackError, printable
+from chipstack.core.keys import MAX_DROPS, MAX_REPEATS, MAX_SEED, MAX_WORKERS
 from chipstack.core.lazy import named
-from chipstack.core.schema import MAX_DROPS, MAX_REPEATS, MAX_SEED, MAX_WORKERS
 from chipstack.core.stages import stage_names
 
 __all__ = ["main"]

@@ -11,7 +11,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 from chipstack.core.errors import InputError
-from chipstack.core.schema import MAX_DROPS, printable
+from chipstack.core.keys import MAX_DROPS
+from chipstack.core.schema import printable
 from chipstack.diagnosis.spec import EXPERIMENT_KINDS, Experiment, load_experiment
 from chipstack.packing.effects import EFFECTS, check_effects
 from chipstack.pipeline.execution import Executor

@@ -13,8 +13,9 @@ from pathlib import Path
 from typing import Any
 
 from chipstack.core.errors import InputError, SimulationError
+from chipstack.core.keys import MAX_REPEATS
 from chipstack.core.provenance import code_versions
-from chipstack.core.schema import MAX_REPEATS, Scenario
+from chipstack.core.schema import Scenario
 from chipstack.core.stages import StageOptions
 from chipstack.pipeline.execution import Executor
 from chipstack.pipeline.run import RepeatResult, compute_run, derive_seed, stages_to, write_run

@@ -16,7 +16,8 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from chipstack.core.errors import InputError
-from chipstack.core.schema import MAX_WORKERS, printable
+from chipstack.core.keys import MAX_WORKERS
+from chipstack.core.schema import printable
 
 __all__ = ["Executor", "CONNECT_TIMEOUT_S"]
 

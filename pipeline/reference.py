@@ -14,8 +14,9 @@ from collections.abc import Callable
 from pathlib import Path
 
 import chipstack.meshing.files  # noqa: F401  (registers the mesh's figure)
+from chipstack.core.key_tables import key_table_markdown
 from chipstack.core.registry import Registry
-from chipstack.core.schema import key_table_markdown, sections
+from chipstack.core.schema import sections
 from chipstack.core.stages import load_stages
 from chipstack.diagnosis.spec import EXPERIMENT_KINDS
 from chipstack.diagnosis.stacks import QUANTITY_MEASURES

@@ -16,7 +16,8 @@ from typing import Any
 
 from chipstack.core.errors import InputError, printable
 from chipstack.core.provenance import code_versions
-from chipstack.core.schema import Scenario, scenario_to_dict
+from chipstack.core.scenario_data import scenario_to_dict
+from chipstack.core.schema import Scenario
 from chipstack.core.stages import (
     Stage,
     StageInputs,

@@ -12,15 +12,9 @@ from typing import Any
 
 from chipstack.core.errors import InputError
 from chipstack.core.files import read_text
-from chipstack.core.schema import (
-    Scenario,
-    changed_data,
-    kind_data,
-    printable,
-    scenario_from_dict,
-    scenario_to_dict,
-    set_keys,
-)
+from chipstack.core.scenario_data import scenario_from_dict, scenario_to_dict
+from chipstack.core.scenario_edits import changed_data, kind_data, set_keys
+from chipstack.core.schema import Scenario, printable
 
 __all__ = [
     "BUILTIN",
@@ -128,7 +122,7 @@ def load_scenario(source: str | Path | None, settings: Mapping[str, Any] | None 
         A scenario file, a built-in name (:func:`builtin_names`) or None (``paper-squares``).
     settings : mapping of str to value, optional
         Dotted keys to change (``pipeline run --set``: :func:`parse_setting`), applied to
-        the file's data before the scenario is built (:func:`core.schema.set_keys`), so
+        the file's data before the scenario is built (:func:`core.scenario_edits.set_keys`), so
         each is typed and checked as if written in the file.
 
     Returns
@@ -164,7 +158,7 @@ def load_scenario(source: str | Path | None, settings: Mapping[str, Any] | None 
 def load_resolved(path: str | Path) -> Scenario:
     """The resolved scenario of a run directory (its ``scenario.toml``): read as
     :func:`load_scenario` reads a file, but without the keys and tables of other kinds
-    that the files of earlier versions held (:func:`core.schema.kind_data`)."""
+    that the files of earlier versions held (:func:`core.scenario_edits.kind_data`)."""
     shown = printable(path)
     text = read_text(Path(path), "scenario file", MAX_SCENARIO_BYTES)
     return _parse(text, shown, str(Path(path).resolve().parent), prepare=kind_data)

@@ -11,7 +11,8 @@ import numpy as np
 from chipstack.core.arrangement import Arrangement
 from chipstack.core.errors import InputError
 from chipstack.core.files import read_json, read_text
-from chipstack.core.schema import MAX_LENGTH_MM, Scenario, printable
+from chipstack.core.keys import MAX_LENGTH_MM
+from chipstack.core.schema import Scenario, printable
 from chipstack.export.tables import POSE_COLUMNS
 from chipstack.packing.shapes import make_shape, shape_from_record, varies_per_chip
 from chipstack.pipeline.scenario_files import load_resolved

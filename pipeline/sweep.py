@@ -23,7 +23,9 @@ from pathlib import Path
 from typing import Any
 
 from chipstack.core.errors import InputError, brief, printable
-from chipstack.core.schema import Scenario, changed_data, scenario_from_dict
+from chipstack.core.scenario_data import scenario_from_dict
+from chipstack.core.scenario_edits import changed_data
+from chipstack.core.schema import Scenario
 from chipstack.pipeline.ensemble import run_ensemble
 from chipstack.pipeline.run import stages_to
 from chipstack.pipeline.rundir import write_atomically

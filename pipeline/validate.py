@@ -27,8 +27,9 @@ import numpy as np
 
 from chipstack.core.arrangement import arrangements_from_stack
 from chipstack.core.errors import InputError
+from chipstack.core.keys import MAX_DROPS, MAX_REPEATS
 from chipstack.core.overlap import vertex_heights_mm
-from chipstack.core.schema import MAX_DROPS, MAX_REPEATS, printable
+from chipstack.core.schema import printable
 from chipstack.export.process_figures import plot_drops
 from chipstack.export.render import render_stack
 from chipstack.export.vtk import stack_polydata

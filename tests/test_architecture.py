@@ -361,7 +361,8 @@ def test_command_line_start_imports_no_heavy_library():
 
 def test_every_scenario_table_is_in_some_stage_key():
     """A key no stage declares would not invalidate the stage cache when changed."""
-    from chipstack.core.schema import Scenario, scenario_to_dict
+    from chipstack.core.scenario_data import scenario_to_dict
+    from chipstack.core.schema import Scenario
 
     declared = {section for stage in load_stages() for section in stage.sections}
     for kind in dict.fromkeys(k for stage in load_stages() for k in stage.kinds):
@@ -401,7 +402,8 @@ def test_tables_are_assembled_in_pipeline_order_and_a_clash_is_refused():
     from dataclasses import dataclass
     from typing import ClassVar
 
-    from chipstack.core.schema import Section, assemble, key
+    from chipstack.core.keys import key
+    from chipstack.core.schema import Section, assemble
 
     @dataclass(frozen=True)
     class Upstream(Section):
@@ -443,7 +445,8 @@ def test_a_scenario_reads_replaces_and_pickles_its_tables():
     import dataclasses
     import pickle
 
-    from chipstack.core.schema import Scenario, scenario_from_dict
+    from chipstack.core.scenario_data import scenario_from_dict
+    from chipstack.core.schema import Scenario
     from chipstack.meshing.sections import MeshSpec
 
     scenario = scenario_from_dict({"mesh": {"kind": "conformal"}, "seed": 4})
@@ -563,7 +566,7 @@ def test_docs_hold_the_tables_the_code_generates():
     """Scenario keys, stages, shapes, descriptors, formats, effects and presets in docs/
     are the code's own, and docs/measured.md is the rendering of the figures recorded
     under benchmarks/results/ (refresh both with ``make docs``)."""
-    from chipstack.core.schema import key_table_markdown
+    from chipstack.core.key_tables import key_table_markdown
     from chipstack.pipeline.measured import PAGE, render
     from chipstack.pipeline.reference import GENERATED, stale_blocks
 
@@ -809,7 +812,7 @@ def test_a_resolved_scenario_of_an_earlier_version_loads_from_its_run_directory(
 def test_a_shape_that_declares_no_keys_reads_the_keys_every_shape_had():
     """A plugin's shape written before shapes declared their keys (no ``parameters``)
     reads the keys all shapes then shared (length, width, thickness, sides, ...)."""
-    from chipstack.core.schema import scenario_from_dict
+    from chipstack.core.scenario_data import scenario_from_dict
     from chipstack.packing.shape_kinds import SHAPES, LegacyShapeKeys, ShapeKind
 
     built = SHAPES.get("box")
@@ -827,7 +830,7 @@ def test_a_shape_that_declares_no_keys_reads_the_keys_every_shape_had():
 def test_a_scenario_meshed_both_ways_pickles_into_a_fresh_process(tmp_path):
     import pickle
 
-    from chipstack.core.schema import scenario_from_dict
+    from chipstack.core.scenario_data import scenario_from_dict
 
     path = tmp_path / "both.pkl"
     path.write_bytes(pickle.dumps(scenario_from_dict({"mesh": {"kind": "both"}})))

@@ -120,7 +120,7 @@ def test_switching_the_mesh_kind_drops_the_old_kinds_keys(caplog):
     instead: the voxel keys go, the keys both kinds take are kept."""
     base = load_scenario("paper-volume")
     assert (base.mesh.kind, base.mesh.voxel_mm, base.mesh.periodic) == ("voxel", 1.0, True)
-    with caplog.at_level(logging.INFO, logger="chipstack.core.schema"):
+    with caplog.at_level(logging.INFO, logger="chipstack.core.scenario_edits"):
         conformal = load_scenario("paper-volume", {"mesh.kind": "conformal", "mesh.size_mm": 2.0})
     mesh = conformal.mesh
     assert (mesh.kind, mesh.size_mm) == ("conformal", 2.0)

@@ -271,7 +271,7 @@ def test_every_registry_whose_kinds_a_table_chooses_is_in_the_kit():
 def _scenario_giving(table: str, name: str) -> dict:
     """Scenario tables whose kind of ``table`` follows as ``name`` (the solve model from
     the mesh): each mesh kind, alone and with its pore space, the first that gives it."""
-    from chipstack.core.schema import scenario_from_dict
+    from chipstack.core.scenario_data import scenario_from_dict
 
     for kind in REGISTRIES["mesh kind"].in_order():
         pores = [{}] + (
@@ -320,7 +320,8 @@ def test_every_kind_with_keys_refuses_each_bad_value_and_round_trips(tmp_path, t
     import tomllib
 
     from chipstack.core.errors import InputError
-    from chipstack.core.schema import parameter_fields, scenario_from_dict
+    from chipstack.core.scenario_data import scenario_from_dict
+    from chipstack.core.schema import parameter_fields
     from chipstack.pipeline.scenario_files import dumps_toml
 
     choice = _kind_tables()[table]
@@ -376,7 +377,8 @@ def test_every_scenario_kind_round_trips_and_refuses_bad_values_of_its_own_table
     import tomllib
 
     from chipstack.core.errors import InputError
-    from chipstack.core.schema import scenario_from_dict, sections
+    from chipstack.core.scenario_data import scenario_from_dict
+    from chipstack.core.schema import sections
     from chipstack.pipeline.scenario_files import builtin_names, dumps_toml, load_scenario
 
     # A built-in scenario of the kind if there is one (a conveyor needs a long enough
@@ -414,7 +416,7 @@ def test_every_shape_packs_a_small_stack_and_its_chips_read_back(tmp_path, name)
 
     from conftest import run_scenario
 
-    from chipstack.core.schema import scenario_from_dict
+    from chipstack.core.scenario_data import scenario_from_dict
     from chipstack.packing.shapes import make_shape, shape_from_record
     from chipstack.pipeline.scenario_files import dumps_toml
 

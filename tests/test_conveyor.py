@@ -17,7 +17,7 @@ from conftest import run_cli
 from parts import needs
 
 from chipstack.core.errors import InputError
-from chipstack.core.schema import scenario_from_dict, scenario_to_dict
+from chipstack.core.scenario_data import scenario_from_dict, scenario_to_dict
 from chipstack.packing import deposit
 from chipstack.packing.conveyor import ON_BELT, SPILLED, pour_mat
 from chipstack.packing.writers import mat_summary

@@ -1072,7 +1072,7 @@ def test_an_unknown_mesh_kind_lists_the_registered_ones(tmp_path, small_scenario
 def test_a_registered_mesh_kind_is_built_checked_and_written_by_the_stage(tmp_path):
     """A new kind is one subclass and one registration: the stage builds, checks and
     writes it without knowing its name."""
-    from chipstack.core.schema import scenario_from_dict
+    from chipstack.core.scenario_data import scenario_from_dict
     from chipstack.core.stages import StageInputs, StageOptions
     from chipstack.meshing.kinds import MESH_KINDS, VoxelKind
     from chipstack.meshing.stage import STAGE

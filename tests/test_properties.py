@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from chipstack.core.errors import InputError
-from chipstack.core.schema import scenario_from_dict
+from chipstack.core.scenario_data import scenario_from_dict
 from chipstack.pipeline.scenario_files import _parse, dumps_toml
 
 KEYS = {

@@ -13,7 +13,8 @@ from typing import ClassVar
 import numpy as np
 
 from chipstack.core.errors import InputError
-from chipstack.core.schema import Parameters, Section, between, key, length
+from chipstack.core.keys import between, key, length
+from chipstack.core.schema import Parameters, Section
 from chipstack.export.figure_kinds import FigureKind
 from chipstack.geometry.descriptors.base import Descriptor
 from chipstack.meshing.checks import check_volume
