@@ -11,8 +11,8 @@ from chipstack.core.errors import InputError
 from chipstack.diagnosis.model import Experiment
 from chipstack.diagnosis.observables import DROP_OBSERVABLES
 from chipstack.diagnosis.statistics import combined_p, holm
-from chipstack.packing.deposition import draw_shapes
 from chipstack.packing.effects import EFFECTS, shaped
+from chipstack.packing.release import draw_shapes
 
 __all__ = ["applicable_effects", "effect_verdict", "how_far", "off_text", "percent"]
 

@@ -40,16 +40,10 @@ from chipstack.core.chipshape import ChipShape
 from chipstack.core.errors import InputError
 from chipstack.core.schema import Scenario
 from chipstack.core.stack import Stack
-from chipstack.packing.deposition import (
-    CHECK_INTERVAL_S,
-    _batch_result,
-    _RestTracker,
-    draw_shapes,
-    release_poses,
-    shape_table,
-    wake_near_movers,
-)
+from chipstack.packing.deposition import _batch_result
 from chipstack.packing.presets import PRESETS
+from chipstack.packing.release import draw_shapes, release_poses, shape_table
+from chipstack.packing.settling import CHECK_INTERVAL_S, RestTracker, wake_near_movers
 from chipstack.packing.world import GRAVITY_MM_S2, ChipWorld
 
 __all__ = ["MatRecord", "ConveyorResult", "pour_mat", "steady_range_mm", "ON_BELT", "SPILLED"]
@@ -219,7 +213,7 @@ class _Line:
         hold_checks = max(1, int(np.ceil(s.hold_time_s / self.check_interval_s)))
         mat_length = c.belt_speed_mm_s * self.n_pours * self.interval
         reach = max(c.belt_width_mm, max(scenario.deposition.release_height_mm))
-        self.tracker = _RestTracker(
+        self.tracker = RestTracker(
             world, s.speed_mm_s * s.hold_time_s, hold_checks, mat_length + 20 * reach, s.freeze
         )
         self.shapes_of: list[ChipShape] = []

@@ -20,14 +20,10 @@ from scipy.spatial.transform import Rotation
 from chipstack.core.chipshape import ChipShape
 from chipstack.core.errors import SimulationError
 from chipstack.core.schema import Scenario
-from chipstack.packing.deposition import (
-    CHECK_INTERVAL_S,
-    _RestTracker,
-    draw_shapes,
-    settle,
-)
 from chipstack.packing.effects import apply_effect_loads, release_spin, setup_effects, shaped
 from chipstack.packing.presets import PRESETS
+from chipstack.packing.release import draw_shapes
+from chipstack.packing.settling import CHECK_INTERVAL_S, RestTracker, settle
 from chipstack.packing.world import ChipWorld
 
 __all__ = [
@@ -226,7 +222,7 @@ def simulate_drops(
         for k in range(n):
             if spin[k].any():
                 world.set_velocity(chips[k], np.zeros(3), spin[k])
-        tracker = _RestTracker(world, s.speed_mm_s * s.hold_time_s, hold_checks)
+        tracker = RestTracker(world, s.speed_mm_s * s.hold_time_s, hold_checks)
         tracker.add(chips)
         start = world.time_s
         in_flight = list(chips) if per_step else []

@@ -103,7 +103,7 @@ def test_chips_deep_under_the_surface_are_buried_and_the_rest_are_not():
     is more than 40 mm under the column's top (65 mm: tops below 25 mm, centres 0 to 10 mm)
     are buried; the lone rod, with nothing over it, is not; a depth deeper than the column
     buries nothing."""
-    from chipstack.packing.deposition import buried_under
+    from chipstack.packing.settling import buried_under
 
     column = np.array([[0.0, 0.0, 5.0 * k] for k in range(12)])
     lone = np.array([[100.0, 0.0, 0.0]])

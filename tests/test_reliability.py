@@ -131,11 +131,11 @@ def test_energy_growing_without_bound_is_an_error_naming_the_chips():
     import pytest
 
     from chipstack.core.errors import SimulationError
-    from chipstack.packing.deposition import _RestTracker
+    from chipstack.packing.settling import RestTracker
 
     world, chip = _world_with_chip(50.0)
     try:
-        tracker = _RestTracker(world, 0.25, 10)
+        tracker = RestTracker(world, 0.25, 10)
         tracker.add([chip])  # brings m g 50 mm
         tracker.update(20.0)
         # A solver blow-up, as a kick no physics gave: 100 m/s upwards.
@@ -149,7 +149,7 @@ def test_energy_growing_without_bound_is_an_error_naming_the_chips():
 
 def test_chips_leaving_the_domain_are_frozen_and_reported(small_scenario):
 
-    from chipstack.packing.deposition import settle
+    from chipstack.packing.settling import settle
     from chipstack.pipeline.scenario_files import load_scenario
 
     scenario = load_scenario(small_scenario)

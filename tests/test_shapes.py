@@ -13,7 +13,6 @@ from conftest import run_cli
 
 from chipstack.core.schema import ChipSpec
 from chipstack.packing import InputError, deposit, scenario_from_dict
-from chipstack.packing.deposition import draw_shapes
 from chipstack.packing.polygons import (
     check_simple,
     convex_partition,
@@ -21,6 +20,7 @@ from chipstack.packing.polygons import (
     signed_area,
     star_polygon,
 )
+from chipstack.packing.release import draw_shapes
 from chipstack.packing.shapes import SHAPES, make_shape, shape_from_record, shape_record
 from chipstack.pipeline.scenario_files import dumps_toml
 
