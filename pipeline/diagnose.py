@@ -15,8 +15,9 @@ from chipstack.core.keys import MAX_DROPS
 from chipstack.core.schema import printable
 from chipstack.diagnosis.spec import EXPERIMENT_KINDS, Experiment, load_experiment
 from chipstack.packing.effects import EFFECTS, check_effects
+from chipstack.pipeline.atomic import write_atomically
 from chipstack.pipeline.execution import Executor
-from chipstack.pipeline.rundir import RunDirectory, check_output_file, write_atomically
+from chipstack.pipeline.rundir import RunDirectory, check_output_file
 from chipstack.pipeline.scenario_files import load_scenario
 from chipstack.pipeline.tables import DirectoryStore, default_tables_dir
 

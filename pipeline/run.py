@@ -26,8 +26,8 @@ from chipstack.core.stages import (
     check_stage_name,
     load_stages,
 )
-from chipstack.pipeline.rundir import StagedRun
 from chipstack.pipeline.scenario_files import dumps_toml
+from chipstack.pipeline.staged_run import StagedRun
 
 __all__ = [
     "run_pipeline",
@@ -106,7 +106,7 @@ def run_pipeline(
 ) -> tuple[Path, Any, dict[str, Any]]:
     """Run the stages up to ``to`` into the run directory ``out``.
 
-    Resumable and cached (see :class:`pipeline.rundir.StagedRun`): after a crash the same
+    Resumable and cached (see :class:`pipeline.staged_run.StagedRun`): after a crash the same
     call resumes from the last completed batch or stage, and on a finished run it redoes
     only the stages whose inputs changed (``overwrite``: all of them). A stage always
     reads its upstream results back from their folders, so a fresh, a resumed and a

@@ -26,9 +26,9 @@ from chipstack.core.errors import InputError, brief, printable
 from chipstack.core.scenario_data import scenario_from_dict
 from chipstack.core.scenario_edits import changed_data
 from chipstack.core.schema import Scenario
+from chipstack.pipeline.atomic import write_atomically
 from chipstack.pipeline.ensemble import run_ensemble
 from chipstack.pipeline.run import stages_to
-from chipstack.pipeline.rundir import write_atomically
 from chipstack.pipeline.scenario_files import dumps_toml
 
 __all__ = ["parse_vary", "sweep_points", "run_sweep", "SWEEP_SCHEMA"]

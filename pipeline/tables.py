@@ -10,7 +10,7 @@ import re
 from pathlib import Path
 
 from chipstack.core.errors import InputError, printable
-from chipstack.pipeline.rundir import write_atomically
+from chipstack.pipeline.atomic import write_atomically
 
 __all__ = ["DirectoryStore", "default_tables_dir"]
 
