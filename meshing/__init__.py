@@ -11,8 +11,9 @@ from chipstack.core.lazy import lazy_package
 
 if TYPE_CHECKING:
     from chipstack.meshing.checks import assert_valid, check_mesh
-    from chipstack.meshing.conformal import GmshSession, MeshingError, conformal_mesh
-    from chipstack.meshing.mesh import PORE, VolumeMesh
+    from chipstack.meshing.conformal import conformal_mesh
+    from chipstack.meshing.gmsh_session import GmshSession
+    from chipstack.meshing.mesh import PORE, MeshingError, VolumeMesh
     from chipstack.meshing.voxel import voxel_mesh
 
 __all__ = [
@@ -31,8 +32,8 @@ __all__ = [
 lazy_package(
     __name__,
     {
-        "GmshSession": "chipstack.meshing.conformal",
-        "MeshingError": "chipstack.meshing.conformal",
+        "GmshSession": "chipstack.meshing.gmsh_session",
+        "MeshingError": "chipstack.meshing.mesh",
         "PORE": "chipstack.meshing.mesh",
         "VolumeMesh": "chipstack.meshing.mesh",
         "assert_valid": "chipstack.meshing.checks",

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = [
+    "ON_PLANE_MM",
     "SIDES",
     "FACET_TAGS",
     "ELEMENT_FACES",
@@ -26,6 +27,9 @@ __all__ = [
     "Surface",
     "platen_surfaces",
 ]
+
+# Nodes this close to a plane lie on it, mm (float noise on coordinates of order 100 mm).
+ON_PLANE_MM = 1e-6
 
 # Side name -> (axis, which end); the facet tags FEniCS reads are 1-based in this order.
 SIDES = {

@@ -28,8 +28,7 @@ from chipstack.core.arrangement import Arrangement
 from chipstack.geometry.contacts import candidate_pairs
 from chipstack.geometry.solids import chip_solids, union_solid
 from chipstack.meshing.boundaries import ELEMENT_FACES
-from chipstack.meshing.conformal import MeshingError
-from chipstack.meshing.mesh import VolumeMesh
+from chipstack.meshing.mesh import MeshingError, VolumeMesh
 
 __all__ = [
     "check_mesh",

@@ -54,8 +54,13 @@ from chipstack.geometry.contacts import candidate_pairs
 from chipstack.geometry.voxels import voxelize
 from chipstack.meshing.boundaries import side_node_sets
 from chipstack.meshing.checks import face_neighbours
-from chipstack.meshing.conformal import MeshingError
-from chipstack.meshing.mesh import PORE, VolumeMesh, check_voxel_below_thinnest, element_attributes
+from chipstack.meshing.mesh import (
+    PORE,
+    MeshingError,
+    VolumeMesh,
+    check_voxel_below_thinnest,
+    element_attributes,
+)
 from chipstack.meshing.slivers import improve_tetrahedra, tetra_sicn
 from chipstack.meshing.voxel import _crop
 

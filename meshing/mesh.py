@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from chipstack.core.errors import InputError
+from chipstack.core.errors import ChipstackError, InputError
 from chipstack.geometry.orientation import fibre_directions_world
 from chipstack.meshing.boundaries import PeriodicPairs, Surface, platen_surfaces
 
@@ -16,6 +16,7 @@ if TYPE_CHECKING:
     from chipstack.core.arrangement import Arrangement
 
 __all__ = [
+    "MeshingError",
     "VolumeMesh",
     "PORE",
     "region_name",
@@ -23,6 +24,11 @@ __all__ = [
     "chip_attributes",
     "element_attributes",
 ]
+
+
+class MeshingError(ChipstackError):
+    """The stack cannot be meshed as asked (the message names the chips involved)."""
+
 
 PORE = -1  # chip id of elements in the pore space (void or matrix-rich region)
 

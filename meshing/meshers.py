@@ -27,13 +27,18 @@ from chipstack.geometry.contacts import KINDS, find_contacts
 from chipstack.meshing.boundaries import side_node_sets
 from chipstack.meshing.calculix_deck import write_contact_mesh
 from chipstack.meshing.checks import check_volume, surface_report
-from chipstack.meshing.conformal import MeshingError, chips_near, conformal_mesh
+from chipstack.meshing.conformal import chips_near, conformal_mesh
 from chipstack.meshing.contact_model import ContactModel, contact_model, save_contact_model
 from chipstack.meshing.files import write_mesh
 from chipstack.meshing.image import image_mesh
 from chipstack.meshing.interfaces import find_interfaces, write_interface_table
 from chipstack.meshing.kinds import Built, crop_region, pore_gap_mm
-from chipstack.meshing.mesh import VolumeMesh, check_voxel_below_thinnest, element_attributes
+from chipstack.meshing.mesh import (
+    MeshingError,
+    VolumeMesh,
+    check_voxel_below_thinnest,
+    element_attributes,
+)
 from chipstack.meshing.resolution import (
     UnresolvedError,
     check_settings,

@@ -135,7 +135,7 @@ def test_slivers_are_removed_keeping_regions_shared_faces_and_volumes():
     interface, each region keeps its volume to 0.1 %, and the same input gives the same
     mesh."""
     from chipstack.meshing.checks import assert_valid
-    from chipstack.meshing.conformal import MeshingError
+    from chipstack.meshing.mesh import MeshingError
 
     a = arrange(PILE_AND_LONE_CHIP[:2])
     raw = image_mesh(a, 0.25, 1.5, "box", seed=0, improve=False)
@@ -298,8 +298,8 @@ def test_a_stray_tetrahedron_joins_its_neighbour_and_a_pore_pocket_stays_pore():
 
 
 def test_a_subdomain_over_the_void_is_refused_not_called_pore():
-    from chipstack.meshing.conformal import MeshingError
     from chipstack.meshing.image import _chips_of_subdomains, _Cluster
+    from chipstack.meshing.mesh import MeshingError
 
     labels = np.zeros((6, 6, 6), dtype=np.uint16)
     labels[1:3, 1:3, 1:3] = 1

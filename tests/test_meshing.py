@@ -1108,7 +1108,7 @@ def test_a_volume_meshed_again_keeps_its_faces_and_its_neighbour():
     """The sliver fallback meshes one volume again with Delaunay in a model of its own: the
     shared face's triangles stay as they were (the neighbour stays conformal), every new
     tetrahedron is positive and the two volumes still fill the two boxes exactly."""
-    from chipstack.meshing.conformal import _remesh_delaunay
+    from chipstack.meshing.conformal_quality import _remesh_delaunay
 
     with GmshSession() as gmsh:
         model = gmsh.model
@@ -1141,7 +1141,7 @@ def test_a_volume_with_a_hole_meshed_again_leaves_the_hole_empty():
     """The pore is a box with chips as holes in it: meshed again, its outer shell and each
     hole are separate surfaces of the new volume, so the holes stay empty (as one surface
     they were filled too, over the chip's own elements: mixed-shapes seed 4)."""
-    from chipstack.meshing.conformal import _remesh_delaunay
+    from chipstack.meshing.conformal_quality import _remesh_delaunay
 
     with GmshSession() as gmsh:
         model = gmsh.model
@@ -1219,7 +1219,7 @@ def test_a_crop_side_that_would_cut_a_concave_chip_in_two_moves_off():
     it moves into the base instead (the nearest place that keeps one piece and clears
     the corners by a quarter element), and the chip is meshed in one piece."""
     from chipstack.meshing.checks import chip_pieces
-    from chipstack.meshing.conformal import _splits
+    from chipstack.meshing.conformal_crop import _splits
 
     u, a = _u_chip()
     base_top = float(u.vertices[:, 1].min()) + 6.0
@@ -1238,7 +1238,7 @@ def test_pieces_joined_along_part_of_a_face_count_as_one_chip():
     through the arms two."""
     import dataclasses
 
-    from chipstack.meshing.conformal import _splits
+    from chipstack.meshing.conformal_crop import _splits
 
     u, _ = _u_chip()
     low = u.vertices.min(axis=0)
