@@ -217,7 +217,7 @@ def test_a_chip_may_rise_one_gap_more_per_chip_thickness_it_sits_above_the_conve
     contact cleared below a chip lifts it by a gap; with 1 mm for every chip the dense
     paper-rectangles stack could not be cleared)."""
     from chipstack.meshing.resolution import convex_pieces, place_chip
-    from chipstack.meshing.resolution.relax import _motion_caps
+    from chipstack.meshing.resolution.relax_qp import _motion_caps
 
     a = arrange([((0.0, 0.0, 1.0), 0.0), ((0.0, 0.0, 11.0), 0.0), ((0.0, 0.0, 21.0), 30.0)])
     worlds = [place_chip(convex_pieces(SQUARE), a.rotations[k], a.positions[k]) for k in range(3)]

@@ -45,7 +45,7 @@ from chipstack.core.arrangement import Arrangement
 from chipstack.core.errors import InputError
 from chipstack.geometry.contacts import GROUND, ContactTable, find_contacts
 from chipstack.meshing.resolution.bottom_up import resolve_bottom_up
-from chipstack.meshing.resolution.relax import resolve_globally
+from chipstack.meshing.resolution.global_route import resolve_globally
 from chipstack.meshing.resolution.result import Resolution, UnresolvedError, unresolved_error
 from chipstack.meshing.resolution.rigid import (
     LINE,
