@@ -12,15 +12,18 @@ import dataclasses
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from chipstack.core.arrangement import Arrangement
+from chipstack.core.arrangement import Arrangement, stack_history
 from chipstack.core.errors import InputError
 from chipstack.geometry.descriptor_kinds import DESCRIPTORS
 from chipstack.geometry.descriptors.base import Context
 from chipstack.geometry.sections import GeometrySpec
 
-__all__ = ["Description", "describe", "SCHEMA", "check_names", "in_output_order"]
+if TYPE_CHECKING:
+    from chipstack.core.stages import StageInputs
+
+__all__ = ["Description", "describe", "describe_stack", "SCHEMA", "check_names", "in_output_order"]
 
 SCHEMA = "chipstack.descriptors/1"
 
@@ -80,3 +83,15 @@ def describe(
         records[name], sections[name] = DESCRIPTORS.get(name).compute(ctx)
         timings[name] = time.perf_counter() - start
     return Description(records, sections, timings, spec)
+
+
+def describe_stack(inputs: StageInputs, stage_name: str) -> Description:
+    """The description of the packing's stack after each batch, reported as one step."""
+    history = stack_history(inputs.result("packing"))
+    report = inputs.options.progress
+    if report is not None:
+        report(stage_name, 0, 1, {})
+    description = describe(history, inputs.scenario.geometry, inputs.options.descriptors)
+    if report is not None:
+        report(stage_name, 1, 1, {})
+    return description

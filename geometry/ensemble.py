@@ -6,12 +6,15 @@ per repeat), so an ensemble can be summarised or compared long after its runs fi
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from chipstack.core.errors import InputError
+from chipstack.geometry.run_figures import ensemble_figures
 from chipstack.geometry.stats import compare, holm, summarize
 
 __all__ = ["ENSEMBLE_SCHEMA", "summarize_runs", "compare_ensembles", "ALPHA"]
@@ -198,3 +201,17 @@ def compare_ensembles(
             }
         out[name] = {"scalars": scalars, "profiles": profiles}
     return {"alpha": alpha, "test": "permutation of the difference of means", "descriptors": out}
+
+
+def summarize_repeats(folders: Sequence[Path], seeds: Sequence[int]) -> dict[str, Any]:
+    """Mean and 95 % confidence interval of every descriptor over the repeats."""
+    sections = [json.loads((f / "descriptors.json").read_text()) for f in folders]
+    summary = summarize_runs(sections, list(seeds))
+    summary["runs"] = [f.parent.name for f in folders]
+    return summary
+
+
+def write_repeats(summary: dict[str, Any], path) -> None:
+    """The ensemble's statistics (``ensemble.json``) and their figures."""
+    path("ensemble.json").write_text(json.dumps(summary, indent=2) + "\n")
+    ensemble_figures(path("figures/x").parent, summary)

@@ -4,13 +4,18 @@ from __future__ import annotations
 
 import csv
 import json
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from chipstack.core.arrangement import stack_history
+from chipstack.core.schema import Scenario
+from chipstack.core.stages import StageInputs, StageOutput
 from chipstack.geometry.describe import Description, in_output_order
 from chipstack.geometry.descriptor_kinds import DESCRIPTORS
+from chipstack.geometry.run_figures import single_run_figures
 
 __all__ = ["write_description"]
 
@@ -79,3 +84,36 @@ def _write_chips(folder: Path, description: Description, arrangement) -> str:
             columns[column] = values
     _write_csv(folder / "chips.csv", list(columns), zip(*columns.values(), strict=True))
     return "chips.csv"
+
+
+def write_description_files(result: Description, folder: Path, inputs: StageInputs) -> StageOutput:
+    """A computed description's files in ``folder`` and its manifest entry."""
+    history = stack_history(inputs.result("packing"))
+    summary = write_geometry(folder, result, history, inputs.scenario, inputs.options.figures)
+    return StageOutput(summary)
+
+
+def write_geometry(
+    folder: Path, description: Description, history, scenario: Scenario, figures: bool
+) -> dict[str, Any]:
+    """Write a computed description's files into ``folder``; returns the manifest entry."""
+    extra = {"scenario": scenario.name, "seed": scenario.seed, "chips": history[-1].n_chips}
+    files = write_description(folder, description, history[-1], extra)
+    if figures:
+        files += single_run_figures(folder / "figures", description, history[-1])
+    return {
+        "descriptors": list(description.records),
+        "files": sorted(files),
+        "descriptor_time_s": round(sum(description.timings_s.values()), 4),
+        "descriptor_times_s": {k: round(v, 4) for k, v in description.timings_s.items()},
+    }
+
+
+def report_lines(summary: Mapping[str, Any], folder: Path) -> list[str]:
+    """The command line's summary of the written ``descriptors.json``: each descriptor's
+    headline."""
+    d = json.loads((folder / "descriptors.json").read_text())["descriptors"]
+    known = in_output_order(d)
+    parts = [DESCRIPTORS.get(n).headline(d[n]) for n in known]
+    seconds = summary["descriptor_time_s"]
+    return [f"descriptors in {seconds:.2f} s: " + "; ".join(p for p in parts if p)]

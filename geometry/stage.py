@@ -2,17 +2,17 @@
 
 Every command-line start registers this stage and checks what it reads (its tables, its
 key, the descriptors asked for): the stage is declared here without the descriptors,
-which bring numpy, scipy and manifold3d (~1 s). What it does once it runs is
-:mod:`geometry.stage_work`'s, imported when the stage first works."""
+which bring numpy, scipy and manifold3d (~1 s). Each step names the function that does
+it (``"module:function"``, imported when the stage first works)."""
 
 from __future__ import annotations
 
 import json
 from collections.abc import Mapping
 from pathlib import Path
-from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
+from chipstack.core.lazy import named
 from chipstack.core.schema import Scenario
 from chipstack.core.stages import Stage, StageInputs, StageOptions, StageOutput
 from chipstack.geometry.sections import GeometrySpec
@@ -22,13 +22,6 @@ if TYPE_CHECKING:
     from chipstack.geometry.describe import Description
 
 __all__ = ["GeometryStage", "STAGE"]
-
-
-def _work() -> ModuleType:
-    """:mod:`geometry.stage_work`, imported the first time the stage works."""
-    from chipstack.geometry import stage_work
-
-    return stage_work
 
 
 class GeometryStage(Stage):
@@ -43,7 +36,7 @@ class GeometryStage(Stage):
     repeat_statistics = True
 
     def check_options(self, options: StageOptions) -> None:
-        _work().check_names(options.descriptors)
+        named("chipstack.geometry.describe:check_names")(options.descriptors)
 
     def key_extra(self, scenario: Scenario, options: StageOptions) -> dict[str, Any]:
         return {
@@ -52,24 +45,24 @@ class GeometryStage(Stage):
         }
 
     def compute(self, inputs: StageInputs) -> Description:
-        return _work().describe_stack(inputs, self.name)
+        return named("chipstack.geometry.describe:describe_stack")(inputs, self.name)
 
     def write(self, result: Description, folder: Path, inputs: StageInputs) -> StageOutput:
-        return _work().write_description_files(result, folder, inputs)
+        return named("chipstack.geometry.files:write_description_files")(result, folder, inputs)
 
     def load(self, folder: Path, scenario: Scenario) -> dict[str, Any]:
         """The written ``descriptors.json`` (downstream stages read numbers, not arrays)."""
         return json.loads((folder / "descriptors.json").read_text())
 
     def report(self, summary: Mapping[str, Any], folder: Path) -> list[str]:
-        return _work().report_lines(summary, folder)
+        return named("chipstack.geometry.files:report_lines")(summary, folder)
 
     def summarize_repeats(self, folders, seeds) -> dict[str, Any]:
         """Mean and 95 % confidence interval of every descriptor over the repeats."""
-        return _work().summarize_repeats(folders, seeds)
+        return named("chipstack.geometry.ensemble:summarize_repeats")(folders, seeds)
 
     def write_repeats(self, summary: dict[str, Any], path) -> None:
-        _work().write_repeats(summary, path)
+        named("chipstack.geometry.ensemble:write_repeats")(summary, path)
 
 
 STAGE = GeometryStage()

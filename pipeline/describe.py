@@ -10,7 +10,7 @@ from typing import Any
 
 from chipstack.core.errors import InputError, printable
 from chipstack.geometry.describe import check_names, describe
-from chipstack.geometry.stage_work import write_geometry
+from chipstack.geometry.files import write_geometry
 from chipstack.pipeline.atomic import write_atomically
 from chipstack.pipeline.rundir import StageWriter
 from chipstack.pipeline.stackfiles import load_run
