@@ -14,17 +14,20 @@ The arrays are a flat ``{name: ndarray}`` mapping, so they go into an ``.npz`` f
 from __future__ import annotations
 
 import json
+import zipfile
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from chipstack.core.errors import InputError
+from chipstack.core.errors import InputError, brief
 from chipstack.core.stack import BatchResult, Stack
 from chipstack.packing.shapes import ChipShape, shape_from_record, shape_record
 from chipstack.packing.world import ContactRecord
 
 __all__ = [
+    "load_stack",
     "DepositionState",
     "state_to_arrays",
     "state_from_arrays",
@@ -259,3 +262,13 @@ def stack_from_arrays(arrays, where: str = "stack") -> Stack:
     ):
         raise InputError(f"{where}: inconsistent stack record (chip counts or shape indices)")
     return stack
+
+
+def load_stack(folder: Path) -> Stack:
+    """The stack record (``stack.npz``) back from a written folder."""
+    path = folder / "stack.npz"
+    try:
+        with np.load(path, allow_pickle=False) as arrays:
+            return stack_from_arrays(dict(arrays), str(path))
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+        raise InputError(f"{path}: unreadable stack record ({brief(str(exc))})") from None

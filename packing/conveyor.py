@@ -40,13 +40,22 @@ from chipstack.core.chipshape import ChipShape
 from chipstack.core.errors import InputError
 from chipstack.core.schema import Scenario
 from chipstack.core.stack import Stack
+from chipstack.core.stages import StageInputs
 from chipstack.packing.deposition import _batch_result
 from chipstack.packing.presets import PRESETS
 from chipstack.packing.release import draw_shapes, release_poses, shape_table
 from chipstack.packing.settling import CHECK_INTERVAL_S, RestTracker, wake_near_movers
 from chipstack.packing.world import GRAVITY_MM_S2, ChipWorld
 
-__all__ = ["MatRecord", "ConveyorResult", "pour_mat", "steady_range_mm", "ON_BELT", "SPILLED"]
+__all__ = [
+    "pour",
+    "MatRecord",
+    "ConveyorResult",
+    "pour_mat",
+    "steady_range_mm",
+    "ON_BELT",
+    "SPILLED",
+]
 
 log = logging.getLogger(__name__)
 
@@ -416,3 +425,16 @@ def cut_panel(scenario: Scenario, mat: MatRecord) -> Stack:
         target_size_mm=scenario.deposition.target_size_mm,
         warnings=mat.warnings,
     )
+
+
+def pour(inputs: StageInputs, stage_name: str) -> ConveyorResult:
+    """The conveyor's mat poured for ``inputs.scenario``, reporting each pour."""
+    report = inputs.options.progress
+
+    def progress(done: int, pours: int) -> None:
+        if report is not None:
+            report(stage_name, done, pours, {})
+
+    if report is not None:
+        report(stage_name, 0, pour_timing(inputs.scenario)[0], {})
+    return pour_mat(inputs.scenario, progress)

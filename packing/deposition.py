@@ -30,7 +30,13 @@ from chipstack.core.errors import InputError
 from chipstack.core.overlap import floor_penetration_mm
 from chipstack.core.schema import Scenario
 from chipstack.core.stack import BatchResult, Stack
-from chipstack.packing.checkpoint import DepositionState, round_trip
+from chipstack.core.stages import StageInputs
+from chipstack.packing.checkpoint import (
+    DepositionState,
+    round_trip,
+    state_from_arrays,
+    state_to_arrays,
+)
 from chipstack.packing.effects import (
     apply_effect_loads,
     check_effects,
@@ -46,7 +52,7 @@ from chipstack.packing.settling import settle
 from chipstack.packing.shapes import ChipShape
 from chipstack.packing.world import ChipWorld
 
-__all__ = ["deposit"]
+__all__ = ["deposit_stack", "deposit"]
 
 log = logging.getLogger(__name__)
 
@@ -408,3 +414,30 @@ def _batch_result(
         max_chip_penetration_mm=chip_depth,
         outside_target=int(outside.sum()),
     )
+
+
+def deposit_stack(inputs: StageInputs, stage_name: str) -> Stack:
+    """The batch deposition of ``inputs.scenario``, resumed from its checkpoint and saving
+    one after every batch when the run keeps them, reporting each batch."""
+    scenario = inputs.scenario
+    n_batches = -(-scenario.deposition.chips // scenario.deposition.batch_size)
+    report = inputs.options.progress
+
+    def progress(batch: int, result: BatchResult | None) -> None:
+        if report is not None:
+            detail = {}
+            if result is not None:  # containers report only their last batch
+                detail = {"chips": len(result.positions), "sim_s": f"{result.sim_time_s:.2f}"}
+            report(stage_name, batch, n_batches, detail)
+
+    checkpoint = inputs.checkpoint
+    resume = checkpoint.resume(state_from_arrays) if checkpoint is not None else None
+    if resume is not None:
+        progress(resume.batches_done, resume.results[-1] if resume.results else None)
+    on_batch = None
+    if checkpoint is not None:
+
+        def on_batch(state) -> None:
+            checkpoint.save(state_to_arrays(state), state.batches_done)
+
+    return deposit(scenario, progress=progress, resume=resume, on_batch=on_batch)

@@ -10,8 +10,8 @@ scenario is made) and never tests its name; a package adds a kind through the
 what holds them is its deposition site (:mod:`packing.sites`, ``kind.site``).
 
 Every command-line start registers the kinds, so they are declared here without the
-numerical libraries: what they run, write and read back is :mod:`packing.kind_work`'s,
-imported when a kind first does one of these (a conveyor's check weighs its pour zone
+numerical libraries: each step names the function that does it (``"module:function"``,
+imported when a kind first does one of these; a conveyor's check weighs its pour zone
 with :mod:`packing.conveyor`'s numerics).
 """
 
@@ -21,7 +21,6 @@ import logging
 import math
 from collections.abc import Mapping
 from pathlib import Path
-from types import ModuleType
 from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple
 
 from chipstack.core.errors import InputError
@@ -42,13 +41,6 @@ __all__ = ["SCENARIO_KINDS", "ScenarioKind", "ChipExtent", "kind_of_summary", "s
 log = logging.getLogger(__name__)
 
 STEADY_DRIFT = 0.1  # a steady part whose thickness drifts more than this is flagged
-
-
-def _work() -> ModuleType:
-    """:mod:`packing.kind_work`, imported the first time a kind runs, writes or loads."""
-    from chipstack.packing import kind_work
-
-    return kind_work
 
 
 class ChipExtent(NamedTuple):
@@ -110,7 +102,7 @@ class ScenarioKind:
         """The stack back from a written folder (None for a kind that makes none)."""
         if not self.makes_stack:
             return None
-        return _work().load_stack(folder)
+        return named("chipstack.packing.checkpoint:load_stack")(folder)
 
     def report(self, summary: Mapping[str, Any], folder: Path) -> list[str]:
         """Lines for the command line's summary of a finished packing."""
@@ -176,11 +168,14 @@ class StackKind(ScenarioKind):
         _release_clears_the_floor(scenario, chips)
 
     def compute(self, inputs: StageInputs, stage_name: str) -> Stack:
-        return _work().deposit_stack(inputs, stage_name)
+        return named("chipstack.packing.deposition:deposit_stack")(inputs, stage_name)
 
     def write(self, result: Stack, folder: Path, inputs: StageInputs) -> StageOutput:
         write_stack_files(folder, result)
-        return StageOutput({"packing": _work().packing_summary(result)}, list(result.warnings))
+        return StageOutput(
+            {"packing": named("chipstack.packing.writers:packing_summary")(result)},
+            list(result.warnings),
+        )
 
     def report(self, summary: Mapping[str, Any], folder: Path) -> list[str]:
         packing = summary["packing"]
@@ -214,11 +209,13 @@ class DropKind(ScenarioKind):
         return {"figures": options.figures}  # the drop stage draws Fig. 15
 
     def compute(self, inputs: StageInputs, stage_name: str):
-        return _work().drop_chips(inputs.scenario)
+        return named("chipstack.packing.drop:drop_chips")(inputs.scenario)
 
     def write(self, result, folder: Path, inputs: StageInputs) -> StageOutput:
         figures = inputs.options.figures
-        statistics = _work().write_drop_files(folder, inputs.scenario, result, figures)
+        statistics = named("chipstack.packing.writers:write_drop_files")(
+            folder, inputs.scenario, result, figures
+        )
         return StageOutput({"drop": statistics}, list(result.warnings))
 
     def report(self, summary: Mapping[str, Any], folder: Path) -> list[str]:
@@ -248,7 +245,9 @@ class ContainerKind(StackKind):
 
     def write(self, result: Stack, folder: Path, inputs: StageInputs) -> StageOutput:
         output = super().write(result, folder, inputs)
-        output.summary["container"] = _work().container_summary(result, inputs.scenario)
+        output.summary["container"] = named("chipstack.packing.writers:container_summary")(
+            result, inputs.scenario
+        )
         return output
 
 
@@ -271,12 +270,14 @@ class ConveyorKind(StackKind):
         _release_clears_the_floor(scenario, chips)
 
     def compute(self, inputs: StageInputs, stage_name: str) -> ConveyorResult:
-        return _work().pour(inputs, stage_name)
+        return named("chipstack.packing.conveyor:pour")(inputs, stage_name)
 
     def write(self, result: ConveyorResult, folder: Path, inputs: StageInputs) -> StageOutput:
         scenario = inputs.scenario
         write_stack_files(folder, result.panel)
-        summary = _work().write_mat_files(folder, scenario, result.mat, inputs.options.figures)
+        summary = named("chipstack.packing.writers:write_mat_files")(
+            folder, scenario, result.mat, inputs.options.figures
+        )
         warnings = list(result.warnings)
         drift = (summary["thickness"] or {}).get("drift", 0.0)
         if math.isfinite(drift) and abs(drift) > STEADY_DRIFT:
@@ -288,7 +289,11 @@ class ConveyorKind(StackKind):
             log.warning(message)
             warnings.append(message)
         return StageOutput(
-            {"packing": _work().packing_summary(result.panel), "conveyor": summary}, warnings
+            {
+                "packing": named("chipstack.packing.writers:packing_summary")(result.panel),
+                "conveyor": summary,
+            },
+            warnings,
         )
 
     def handoff(self, result: ConveyorResult) -> Stack:

@@ -1,7 +1,7 @@
 """The packing stage's files and manifest entries, written: the stack writers that
 :mod:`packing.files` declares (the exact record, the poses, the contacts, the VTK series),
 and the files and summaries of the drops, the container and the conveyor's mat (each
-scenario kind writes with these, :mod:`packing.kind_work`). Imported when a stack is
+scenario kind names these, :mod:`packing.kinds`). Imported when a stack is
 first written: the declarations are read at every command-line start, these bring numpy,
 scipy and the packing's records."""
 
