@@ -50,6 +50,14 @@ def _force_travel(folder: Path, compaction) -> list[str]:
     return ["force_displacement.png"]
 
 
+def _loose_press(folder: Path, press) -> list[str]:
+    history = press.history  # columns: meshing.loose.press.HISTORY
+    process_figures.plot_loose_press(
+        folder / "loose_press.png", history[:, 0], history[:, 3], history[:, 4], history[:, 5]
+    )
+    return ["loose_press.png"]
+
+
 for _figure in (
     FigureKind(
         "stack_view",
@@ -79,6 +87,13 @@ for _figure in (
         "force_displacement.png",
         "the platen's force against the press's travel",
         _force_travel,
+    ),
+    FigureKind(
+        "loose_press",
+        "loose_press",
+        "loose_press.png",
+        "the loose press's nominal pressure, contact area and voids against its travel",
+        _loose_press,
     ),
 ):
     FIGURES.register(_figure.name, _figure)

@@ -39,6 +39,7 @@ SUBJECTS: dict[str, str] = {
     "mat": "a conveyor's mat: its areal weight and thickness along the belt",
     "mesh": "a volume mesh of the stack (``MeshPicture``)",
     "compaction": "the press's force against its travel",
+    "loose_press": "a loose press's steps: pressure, contact area and voids",
 }
 SUBJECT_FOLDERS: dict[str, str] = {
     "stack": "geometry/figures/",
@@ -46,6 +47,7 @@ SUBJECT_FOLDERS: dict[str, str] = {
     "mat": "packing/figures/",
     "mesh": "mesh/",
     "compaction": "solve/",
+    "loose_press": "solve/",
 }
 
 

@@ -16,7 +16,7 @@ from matplotlib.patches import Circle
 from chipstack.core.errors import InputError
 from chipstack.export.figures import DPI, _new_figure, _path, _save, _vector
 
-__all__ = ["plot_drops", "plot_force_displacement", "plot_mat", "plot_sweep"]
+__all__ = ["plot_drops", "plot_force_displacement", "plot_loose_press", "plot_mat", "plot_sweep"]
 
 
 def plot_drops(path: object, xy: np.ndarray, statistics: Mapping, yaw_deg: float = 0.0) -> Path:
@@ -86,6 +86,33 @@ def plot_force_displacement(path: str | os.PathLike, press_mm, force_n) -> None:
     ax.set_title("Compaction of the stack")
     ax.grid(alpha=0.3)
     _save(figure, path)
+
+
+def plot_loose_press(path: str | os.PathLike, travel_mm, pressure_mpa, area_mm2, voids) -> Path:
+    """A loose press against the platen's travel (mm): the nominal pressure (MPa), the
+    contact area between chips (mm^2) and the void fraction of the stack's box (%)."""
+    path = _path(path)
+    travel = _vector(travel_mm, "travel_mm")
+    series = [_vector(v, n) for v, n in ((pressure_mpa, "pressure_mpa"), (area_mm2, "area_mm2"))]
+    voids = _vector(voids, "voids")
+    if not len(travel) or any(len(v) != len(travel) for v in (*series, voids)):
+        raise InputError("travel_mm, pressure_mpa, area_mm2, voids: need the same, non-zero length")
+    figure = Figure(figsize=(11.0, 3.8), dpi=DPI, layout="constrained")
+    FigureCanvasAgg(figure)
+    axes = figure.subplots(1, 3)
+    for ax, values, label in zip(
+        axes,
+        (*series, 100 * voids),
+        ("nominal pressure (MPa)", "contact area between chips (mm$^2$)", "voids in the box (%)"),
+        strict=True,
+    ):
+        ax.plot(travel, values, "o-", markersize=3, linewidth=1.5)
+        ax.set_xlabel("platen travel (mm)")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    figure.suptitle("The loose stack pressed")
+    _save(figure, path)
+    return path
 
 
 def plot_mat(path: object, record: Mapping) -> Path:

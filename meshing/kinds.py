@@ -236,6 +236,24 @@ class ContactKind(MeshKind):
         ]
 
 
+class LooseKind(ContactKind):
+    """The contact model's chips (every chip its own block of bricks, overlaps cleared)
+    for the loose press, which needs no contact pairs: its files are ``stack_loose.*``."""
+
+    name = "loose"
+    doc = (
+        "every chip its own deformable body (the contact model's bricks) for the loose "
+        "press: frictional contact by Incremental Potential Contact, no pairs to declare"
+    )
+    solve_models = ("loose",)
+
+    def report(self, m):
+        return [
+            f"loose stack: {m['chips']} chips, {m['elements']:,} bricks, {m['nodes']:,} "
+            f"nodes; overlaps cleared by moving chips at most {m['max_move_mm']:.3f} mm"
+        ]
+
+
 def pore_gap_mm(spec, arrangement: Arrangement) -> float:
     """The contact resolution's clearance with the pore space (``mesh.pore_gap_mm``, or
     its default: a tenth of the thinnest chip dimension, the largest the resolution
@@ -264,7 +282,7 @@ def crop_region(scenario: Scenario) -> tuple[float, float, float, float] | None:
     return None
 
 
-for _kind in (VoxelKind(), ConformalKind(), ImageKind(), ContactKind()):
+for _kind in (VoxelKind(), ConformalKind(), ImageKind(), ContactKind(), LooseKind()):
     MESH_KINDS.register(_kind.name, _kind)
 
 

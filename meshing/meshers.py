@@ -352,7 +352,8 @@ class ContactMesher(Mesher):
         return check_contact_model(built.extra["model"], built.mesh, arrangement)
 
     def write(self, kind, folder, built, report, inputs):
-        return write_contact(folder, built.extra["model"], built.mesh, report, inputs)
+        stem = f"stack_{kind.name}"  # the contact press's model, or the loose press's
+        return write_contact(folder, built.extra["model"], built.mesh, report, inputs, stem)
 
 
 def write_volume_mesh(
@@ -455,22 +456,27 @@ def contact_volume_mesh(model: ContactModel, arrangement: Arrangement) -> Volume
 
 
 def write_contact(
-    folder: Path, model: ContactModel, chips: VolumeMesh, report: dict, inputs: StageInputs
+    folder: Path,
+    model: ContactModel,
+    chips: VolumeMesh,
+    report: dict,
+    inputs: StageInputs,
+    stem: str = "stack_contact",
 ) -> dict[str, Any]:
     """The model's mesh part for CalculiX (the solve stage includes it in the compaction
     deck it writes from ``[solve]``), the model's arrays, a VTU of the chips and the
     check report; the manifest entry."""
     spec = inputs.scenario.mesh
-    write_contact_mesh(folder / "stack_contact.inp", model, spec.element, chips.surfaces)
-    save_contact_model(folder / "stack_contact_model.npz", model)
-    files = ["stack_contact.inp", "stack_contact_model.npz"]
+    write_contact_mesh(folder / f"{stem}.inp", model, spec.element, chips.surfaces)
+    save_contact_model(folder / f"{stem}_model.npz", model)
+    files = [f"{stem}.inp", f"{stem}_model.npz"]
     # The .inp is the deck part above (chips and platens), the other formats the chips;
     # the .vtu always (the solve stage maps its result's nodes to chips through it).
     formats = ["vtu", *(name for name in spec.formats if name not in ("inp", "vtu"))]
-    files += [p.name for p in write_mesh(folder, "stack_contact", chips, formats)]
+    files += [p.name for p in write_mesh(folder, stem, chips, formats)]
     report = {**report, "surfaces": surface_report(chips)}
-    (folder / "stack_contact_checks.json").write_text(json.dumps(report, indent=2) + "\n")
-    files.append("stack_contact_checks.json")
+    (folder / f"{stem}_checks.json").write_text(json.dumps(report, indent=2) + "\n")
+    files.append(f"{stem}_checks.json")
     if not report["valid"]:
         raise MeshingError(f"contact model: {'; '.join(report['problems'])}")
     return {

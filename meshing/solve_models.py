@@ -1,10 +1,13 @@
-"""Solve models, registered by name: what the solve stage can press in CalculiX.
+"""Solve models, registered by name: what the solve stage can press, and how.
 
 A solve model takes the files one mesh kind wrote (:mod:`meshing.kinds`, whose
-``solve_models`` name it), writes the compaction deck in the solver's folder, and reads
-the platen forces back from the solver's node prints. The solve stage picks the first
-model of the scenario's mesh kinds that accepts the scenario and knows none by name; a
-new model is a subclass of :class:`SolveModel` and one ``SOLVE_MODELS.register`` call.
+``solve_models`` name it) and presses them. The CalculiX models (``contact``,
+``volume``) write the compaction deck in the solver's folder and read the platen forces
+back from the solver's node prints; the loose press (``loose``,
+:mod:`meshing.loose.model`) runs its own Incremental Potential Contact solver. The solve
+stage picks the first model of the scenario's mesh kinds that accepts the scenario and
+knows none by name; a new model is a subclass of :class:`SolveModel` and one
+``SOLVE_MODELS.register`` call.
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ if TYPE_CHECKING:
     import numpy as np
 
     from chipstack.core.schema import Scenario
-    from chipstack.core.stages import StageInputs
+    from chipstack.core.stages import StageInputs, StageOutput
 
 __all__ = ["SolveModel", "SOLVE_MODELS", "SOLVE_CHOICE", "pressing_model", "solve_model"]
 
@@ -33,6 +36,7 @@ class SolveModel:
 
     name: str = ""
     needs: str = ""  # what it needs, for the message when nothing accepts a scenario
+    solver: str = "CalculiX"  # what presses, for the stage's report
     # Its own keys in [solve] (a core.schema.Parameters dataclass), beside the press's.
     parameters: type[Parameters] = Parameters
 
@@ -42,6 +46,19 @@ class SolveModel:
 
     def check(self, scenario: Scenario) -> None:
         """Refuse, in one line, a scenario it accepts but cannot run (before any work)."""
+
+    def check_run(self, scenario: Scenario) -> None:
+        """Refuse, in one line, to start when its solver is missing (CalculiX's ``ccx``)."""
+        named("chipstack.meshing.calculix:ccx_path")()
+
+    def compute(self, inputs: StageInputs, stage: str) -> Any:
+        """Press the mesh stage's files (CalculiX on the deck :meth:`prepare` writes);
+        ``stage``: the name progress is reported under."""
+        return named("chipstack.meshing.compaction:compact")(inputs, stage)
+
+    def write(self, result: Any, folder: Path, inputs: StageInputs) -> StageOutput:
+        """The press's files in ``folder`` and the stage's summary."""
+        return named("chipstack.meshing.compaction:write_compaction")(result, folder, inputs)
 
     def prepare(self, mesh_folder: Path, scratch: Path, job: str, scenario: Scenario):
         """Write ``job.inp`` (and what it includes) in ``scratch``; returns what
@@ -96,7 +113,8 @@ def solve_model(scenario: Scenario) -> SolveModel:
     scenario was made); refused in one line when none can."""
     if scenario.solve.chosen is not None:
         return scenario.solve.chosen
-    needs = " or ".join(SOLVE_MODELS.get(n).needs for n in SOLVE_MODELS.in_order())
+    each = [SOLVE_MODELS.get(n).needs for n in SOLVE_MODELS.in_order()]
+    needs = each[0] if len(each) == 1 else f"{', '.join(each[:-1])} or {each[-1]}"
     raise InputError(
         f"--to solve: needs {needs}; mesh.kind is {scenario.mesh.kind!r}, "
         f"mesh.pore_space {getattr(scenario.mesh, 'pore_space', 'none')!r}"
@@ -164,3 +182,4 @@ class VolumePress(SolveModel):
 
 for _model in (ContactPress(), VolumePress()):
     SOLVE_MODELS.register(_model.name, _model)
+SOLVE_MODELS.register_named("loose", "chipstack.meshing.loose.model:LOOSE_PRESS")

@@ -1,6 +1,8 @@
-"""The solve stage: CalculiX runs the compaction of the contact model, or of a cropped voxel
-volume between whole-face platens; the results come back as VTU for ParaView, the platen
-force against the press as CSV and a figure."""
+"""The solve stage: the scenario's solve model presses the mesh stage's model. CalculiX
+runs the compaction of the contact model, or of a cropped volume between whole-face
+platens; the loose press (Incremental Potential Contact) presses separate chips. The
+results come back as VTU for ParaView, the platen force against the press as CSV and a
+figure."""
 
 from __future__ import annotations
 
@@ -8,7 +10,6 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from chipstack.core.lazy import named
 from chipstack.core.schema import Scenario
 from chipstack.core.stages import Stage, StageInputs, StageOutput
 from chipstack.meshing.sections import SolveSpec
@@ -37,16 +38,18 @@ class SolveStage(Stage):
     kind_choices = {"solve": SOLVE_CHOICE}  # [solve]: the pressing model's own keys
     kinds = property(lambda self: stack_kinds())  # the kinds whose stack goes on
     in_ensembles = False
+    checkpointed = True  # the loose press saves every accepted step (CalculiX runs whole)
 
     def check_run(self, scenario: Scenario) -> None:
-        solve_model(scenario).check(scenario)
-        named("chipstack.meshing.calculix:ccx_path")()  # refused when ccx is not installed
+        model = solve_model(scenario)
+        model.check(scenario)
+        model.check_run(scenario)  # refused when its solver is not installed
 
     def compute(self, inputs: StageInputs) -> Compaction:
-        return named("chipstack.meshing.compaction:compact")(inputs, self.name)
+        return solve_model(inputs.scenario).compute(inputs, self.name)
 
     def write(self, result: Compaction, folder: Path, inputs: StageInputs) -> StageOutput:
-        return named("chipstack.meshing.compaction:write_compaction")(result, folder, inputs)
+        return solve_model(inputs.scenario).write(result, folder, inputs)
 
     def load(self, folder: Path, scenario: Scenario) -> Path:
         return folder
@@ -57,10 +60,18 @@ class SolveStage(Stage):
             if "chips_in_contact" in summary
             else ""
         )
+        pressure = (
+            f" ({summary['nominal_pressure_mpa']:.3g} MPa nominal; voids "
+            f"{100 * summary['void_fraction_start']:.1f} % to "
+            f"{100 * summary['void_fraction']:.1f} %)"
+            if "nominal_pressure_mpa" in summary
+            else ""
+        )
         return [
             f"compaction: {summary['press_mm']:.3f} mm press, platen force "
-            f"{summary['force_n']:,.1f} N over {summary['increments']} increments{contact}; "
-            f"CalculiX {summary['solver_wall_time_s']:.1f} s"
+            f"{summary['force_n']:,.1f} N{pressure} over {summary['increments']} "
+            f"increments{contact}; {summary.get('solver', 'CalculiX')} "
+            f"{summary['solver_wall_time_s']:.1f} s"
         ]
 
 

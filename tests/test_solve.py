@@ -216,9 +216,10 @@ def test_solve_refuses_a_model_it_cannot_run(tmp_path):
     result = run_cli("run", str(scenario), "--to", "solve", "--out", str(tmp_path / "run"))
     assert result.returncode == 2
     assert result.stderr.strip().splitlines() == [
-        "pipeline: error: --to solve: needs the contact model (mesh.kind = 'contact') or a "
+        "pipeline: error: --to solve: needs the contact model (mesh.kind = 'contact'), a "
         "box-shaped volume (mesh.kind = 'voxel', 'image' or 'conformal', "
-        "mesh.pore_space = 'box'); mesh.kind is 'voxel', mesh.pore_space 'none'"
+        "mesh.pore_space = 'box') or the loose stack (mesh.kind = 'loose'); mesh.kind is "
+        "'voxel', mesh.pore_space 'none'"
     ]
     assert not (tmp_path / "run").exists()
 
