@@ -9,6 +9,11 @@ class InputError(ChipstackError, ValueError):
     """Bad user input: a scenario key, a file, a flag. The message names it."""
 
 
+class StoppedEarly(ChipstackError, RuntimeError):
+    """Work stopped on purpose before its end (a time limit), its finished parts kept:
+    the same command resumes it. The message says where it stopped."""
+
+
 class SimulationError(ChipstackError, RuntimeError):
     """The physics went wrong (NaN poses, runaway energy, ...)."""
 

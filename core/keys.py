@@ -36,11 +36,14 @@ def key(
     check: Callable[[Any], str | None] | None = None,
     *,
     path: bool = False,
+    execution: bool = False,
 ):
     """A scenario key: its default, unit, one-line description and check (a function of
     the value returning the problem, or None when the value is good). ``path``: a file
-    name, made absolute from the scenario file's folder when the scenario loads."""
-    metadata = {"unit": unit, "doc": doc, "check": check, "path": path}
+    name, made absolute from the scenario file's folder when the scenario loads.
+    ``execution``: how the work runs, not what it computes (a time limit), so not part of
+    the stage cache's key: a run stopped by it resumes under another value."""
+    metadata = {"unit": unit, "doc": doc, "check": check, "path": path, "execution": execution}
     return field(default=default, metadata=metadata)
 
 

@@ -250,7 +250,12 @@ class SolveSpec(Section, KindKeys):
         20, "", "the press is applied in at least this many increments", between(1, 10000)
     )
     time_limit_s: float = key(
-        7200.0, "s", "stop the solver after this wall time", between(1.0, 1e6)
+        7200.0,
+        "s",
+        "stop the solver after this wall time (of one run: the loose press resumes from its "
+        "last step when run again)",
+        between(1.0, 1e6),
+        execution=True,
     )
     threads: int = key(0, "", "solver threads (0: one per core)", between(0, 256))
     # The solve model's own keys (its ``parameters``).

@@ -3,6 +3,7 @@ ensembles (on Dask). No stage is named here; each is an object from ``core.stage
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import logging
@@ -83,10 +84,24 @@ def stage_inputs(scenario: Scenario, options: StageOptions | None = None) -> dic
             continue
         key: dict[str, Any] = {name: hashes[name] for name in stage.upstream}
         # A table of another scenario kind is not in the scenario (nor in the key).
-        key.update({section: data[section] for section in stage.sections if section in data})
+        key.update(
+            {
+                section: _result_keys(getattr(scenario, section, None), data[section])
+                for section in stage.sections
+                if section in data
+            }
+        )
         key.update(stage.key_extra(scenario, options))
         hashes[stage.name] = _sha256(key)
     return hashes
+
+
+def _result_keys(section: Any, table: Any) -> Any:
+    """A scenario table without its execution keys (``key(..., execution=True)``)."""
+    if not (dataclasses.is_dataclass(section) and isinstance(table, dict)):
+        return table
+    skip = {f.name for f in dataclasses.fields(section) if f.metadata.get("execution")}
+    return {name: value for name, value in table.items() if name not in skip}
 
 
 def _sha256(data: Any) -> str:
@@ -212,6 +227,10 @@ def _staged_manifest(
     manifest["finished_utc"] = datetime.now(UTC).isoformat(timespec="seconds")
     manifest["wall_time_s"] = times
     manifest.update(_stage_entries({s: run.stages[s].get("summary", {}) for s in completed}))
+    for stage in completed[1:]:  # a later stage that went on from its own checkpoint
+        later = run.stages[stage].get("resumed_after_batch")
+        if later is not None and stage not in reused and isinstance(manifest.get(stage), dict):
+            manifest[stage]["resumed_after_batch"] = later
     manifest["warnings"] = [w for s in completed for w in run.stages[s].get("warnings", [])]
     return manifest
 

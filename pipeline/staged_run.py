@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from chipstack.core.errors import InputError
+from chipstack.core.errors import InputError, StoppedEarly
 from chipstack.core.files import file_sha256
 from chipstack.core.stages import Checkpoint, stage_names
 from chipstack.pipeline.atomic import (
@@ -268,7 +268,7 @@ class StagedRun:
         if exc_type is None:
             return
         out = f"--out {self.given!r}"
-        keep = isinstance(exc, OSError | KeyboardInterrupt) and self._kept()
+        keep = isinstance(exc, OSError | KeyboardInterrupt | StoppedEarly) and self._kept()
         if not keep:
             # Bad input or broken physics: the same command would fail the same way, so
             # what was done is of no use; nothing is left behind.
@@ -278,6 +278,10 @@ class StagedRun:
             raise Interrupted(
                 f"{where}: run the same command to resume" if keep else "nothing was written"
             ) from None
+        if isinstance(exc, StoppedEarly):
+            if keep:
+                raise StoppedEarly(f"{exc}; {where}") from None
+            raise StoppedEarly(f"{exc}; nothing was written") from None
         if isinstance(exc, OSError):
             reason = exc.strerror or str(exc)
             if keep:

@@ -98,7 +98,7 @@ class PressSettings:
     friction: float = 0.3
     friction_eps_mm: float = 1e-4  # slip (mm per step) below which friction is smoothed
     proximal: float = 1e-6  # eps relative to the stiffness diagonal's mean per volume
-    newton_tol_mm: float = 1e-6
+    newton_tol_mm: float = 1e-5
     max_newton: int = 80
     max_proximal_rounds: int = 30
     force_tol: float = 1e-3  # proximal force / platen force at an accepted step
@@ -109,6 +109,7 @@ class PressSettings:
     force_floor: float = 1e-7
     drive_stiffness: float = 1e3  # times the stiffness diagonal's largest value
     step_time_s: float = 1.0  # for the viscous term
+    weight_n_mm3: float = 0.0  # the chips' weight per volume (density times g)
 
 
 @dataclass
@@ -179,6 +180,10 @@ class IPCPress:
         )
         self.drive_stiffness = settings.drive_stiffness * diagonal.max()
         self.platen_proximal = float(self.proximal_weight.sum())
+        # Gravity: each node's share of its chips' weight, downwards (N).
+        self.gravity = np.zeros(3 * n)
+        self.gravity[2::3] = -settings.weight_n_mm3 * bodies.node_volume
+        self.weight_n = float(-self.gravity.sum())
         self.barrier = ipctk.BarrierPotential(settings.dhat_mm, 1.0)
         chip_faces = faces[: len(bodies.surface)]
         corners = self.rest[chip_faces]
@@ -223,8 +228,8 @@ class IPCPress:
         u = q[:-1]
         du = u - start[:-1]
         k = self.bodies.stiffness
-        grad = k @ u + self.proximal_weight * du
-        energy = 0.5 * u @ (k @ u) + 0.5 * du @ (self.proximal_weight * du)
+        grad = k @ u + self.proximal_weight * du - self.gravity
+        energy = 0.5 * u @ (k @ u) + 0.5 * du @ (self.proximal_weight * du) - self.gravity @ u
         if self.bodies.viscous is not None:
             rate = self.bodies.viscous @ du / self.settings.step_time_s
             grad = grad + rate
@@ -313,7 +318,7 @@ class IPCPress:
             proximal_force = np.abs(self.proximal_weight * (q[:-1] - centre[:-1])).sum()
             force = abs(self.platen_force(q, friction, v_start)[0])
             floor = s.force_floor * s.pressure_scale_mpa * self.platens.area_mm2
-            if proximal_force <= max(s.force_tol * force, floor):
+            if proximal_force <= max(s.force_tol * max(force, self.weight_n), floor):
                 break
             centre = q.copy()
         else:
@@ -394,7 +399,9 @@ class IPCPress:
                 self.kappa,
                 energy,
             )
-            if np.abs(alpha * direction).max() < s.newton_tol_mm:
+            # The full Newton step, not the one taken: a step the CCD cut short is no
+            # sign of convergence.
+            if np.abs(direction).max() < s.newton_tol_mm:
                 return q, iteration, previous_distance
         raise PressError(
             f"loose press: no convergence in {s.max_newton} Newton iterations at travel "

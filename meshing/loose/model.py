@@ -63,6 +63,13 @@ class LoosePressKeys(Parameters):
     press_speed_mm_s: float = key(
         1.0, "mm/s", "the platen's speed, for the viscosity", between(1e-6, 1e4)
     )
+    density_g_cm3: float = key(
+        1.7,
+        "g/cm^3",
+        "the chips' density, for their weight (PA6 with 60 wt % glass: 1.7; 0: no weight); "
+        "the weight settles chips that nothing else holds yet",
+        between(0.0, 20.0),
+    )
     friction: float = key(
         0.3, "", "Coulomb friction between chips and on the platens", between(0.0, 2.0)
     )
