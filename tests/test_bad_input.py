@@ -126,7 +126,7 @@ BAD_SCENARIOS = {
     ),
     "the contact press's key for a voxel volume": (
         '[mesh]\nkind = "voxel"\npore_space = "box"\n[solve]\nfriction = 0.2\n',
-        "solve.friction: a key of solve model 'contact', not of 'volume'",
+        "solve.friction: a key of solve model 'contact', 'loose', not of 'volume'",
     ),
     "a table of another scenario kind": (
         "[conveyor]\nbelt_speed_mm_s = 5.0\n",

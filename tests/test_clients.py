@@ -319,6 +319,10 @@ SCENARIOS = {
         "conveyor.cell_mm": 30.0,
         "conveyor.run_in_mm": 0.0,
     },
+    "loose-press": {  # every chip its own body of bricks, no pore space
+        "deposition.chips": 6,
+        "deposition.batch_size": 6,
+    },
 }
 
 

@@ -1064,7 +1064,7 @@ def test_an_unknown_mesh_kind_lists_the_registered_ones(tmp_path, small_scenario
     lines, out = _refused_mesh_run(tmp_path, small_scenario, '[mesh]\nkind = "tetra"\n')
     assert lines[0].endswith(
         "small.toml: mesh.kind: unknown mesh kind 'tetra'; "
-        "valid kinds: conformal, contact, image, voxel, both"
+        "valid kinds: conformal, contact, image, loose, voxel, both"
     )
     assert not out.exists()
 
