@@ -25,8 +25,9 @@ travel ``w`` (mm, downwards),
 
 Every Newton step is bounded by ipctk's continuous collision detection (additive CCD)
 before a backtracking line search on the total energy, so that no accepted state
-intersects. The linear systems are sparse symmetric and solved by SuperLU (fill-reducing
-ordering of A + A'), which fits two cores.
+intersects. The linear systems are sparse symmetric positive definite and solved by an
+LDL' factorisation that reuses its analysis while the contacts stay
+(:mod:`meshing.loose.linear`); one core per press, so two presses fit two cores.
 """
 
 from __future__ import annotations
@@ -38,7 +39,8 @@ from dataclasses import dataclass, field
 import ipctk
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
+
+from chipstack.meshing.loose.linear import PatternReusingLDL
 
 __all__ = ["Platens", "PressBodies", "PressSettings", "StepResult", "IPCPress", "PressError"]
 
@@ -98,7 +100,9 @@ class PressSettings:
     friction: float = 0.3
     friction_eps_mm: float = 1e-4  # slip (mm per step) below which friction is smoothed
     proximal: float = 1e-6  # eps relative to the stiffness diagonal's mean per volume
-    newton_tol_mm: float = 1e-5
+    # Measured on the 24-chip stack's first four steps: 1e-4 mm (a tenth of dhat) gives
+    # the platen force of 1e-5 mm to 4 digits in 16 % fewer iterations.
+    newton_tol_mm: float = 1e-4
     max_newton: int = 80
     max_proximal_rounds: int = 30
     force_tol: float = 1e-3  # proximal force / platen force at an accepted step
@@ -200,6 +204,7 @@ class IPCPress:
         self.broad_phase = ipctk.HashGrid()
         self.ccd = ipctk.AdditiveCCD()
         self.q = np.zeros(self.n_dof)
+        self.linear = PatternReusingLDL()
         self.check_start()
 
     # -- geometry ---------------------------------------------------------------
@@ -289,10 +294,15 @@ class IPCPress:
         self.kappa = s.pressure_scale_mpa * self.vertex_area / slope
         self.kappa_max = 1e3 * self.kappa
 
-    def step(self, target: float, load: float | None = None) -> StepResult:
+    def step(
+        self, target: float, load: float | None = None, guess: np.ndarray | None = None
+    ) -> StepResult:
         """Solve one step: the platen driven to travel ``target`` (mm), or under the
         force ``load`` (N) when given. Raises :class:`PressError` when it does not
-        converge (the state is then left at the step's start)."""
+        converge (the state is then left at the step's start).
+
+        guess: a predicted change of the state over the step (the last step's, scaled),
+        where Newton starts, as far along it as is collision-free."""
         started = time.perf_counter()
         s = self.settings
         q_begin = self.q.copy()
@@ -307,9 +317,17 @@ class IPCPress:
             if friction.empty():
                 friction = None
         q = q_begin.copy()
+        if guess is not None and np.abs(guess).max() > 0:
+            q = q + self._collision_free(q, guess) * guess
         centre = q_begin.copy()
         iterations = 0
         previous_distance = self.min_distance(collisions, v_start)
+        # Accelerated proximal point (Gueler's, with O'Donoghue and Candes's restart): the
+        # next centre is extrapolated along the rounds' motion, so a chip drifting to its
+        # support gets there in the square root of the rounds; the momentum restarts when
+        # the proximal force grows. Only the accepted round's force matters: it bounds how
+        # far the state is from a static equilibrium, wherever its centre was.
+        last_round, momentum, last_force = q_begin.copy(), 1.0, np.inf
         for _round in range(s.max_proximal_rounds):
             q, its, previous_distance = self._newton(
                 q, centre, target, load, friction, v_start, previous_distance
@@ -320,7 +338,18 @@ class IPCPress:
             floor = s.force_floor * s.pressure_scale_mpa * self.platens.area_mm2
             if proximal_force <= max(s.force_tol * max(force, self.weight_n), floor):
                 break
-            centre = q.copy()
+            log.debug(
+                "proximal round %d: %d iterations, force %.3g N, platen %.3g N",
+                _round + 1,
+                its,
+                proximal_force,
+                force,
+            )
+            if proximal_force > last_force:
+                momentum = 1.0
+            following = 0.5 * (1 + np.sqrt(1 + 4 * momentum**2))
+            centre = q + ((momentum - 1) / following) * (q - last_round)
+            last_round, momentum, last_force = q.copy(), following, proximal_force
         else:
             log.warning(
                 "loose press: the proximal term's force is still %.3g N after %d rounds",
@@ -354,13 +383,7 @@ class IPCPress:
             direction = -self._solve(hessian, gradient)
             # The largest collision-free fraction of the step (ipctk's CCD), then
             # backtracking on the energy.
-            v_next = self.vertices(q + direction)
-            alpha = min(
-                1.0,
-                ipctk.compute_collision_free_stepsize(
-                    self.mesh, v, v_next, broad_phase=self.broad_phase, narrow_phase_ccd=self.ccd
-                ),
-            )
+            alpha = self._collision_free(q, direction)
             energy = e_el + e_dr + e_ct
             slope = gradient @ direction
             while alpha > 1e-12:
@@ -408,6 +431,18 @@ class IPCPress:
             f"{q[-1]:.4f} mm (target {target:.4f} mm)"
         )
 
+    def _collision_free(self, q: np.ndarray, direction: np.ndarray) -> float:
+        """The largest fraction (at most 1) of ``direction`` from ``q`` along which no
+        two surfaces meet (ipctk's additive CCD)."""
+        stepsize = ipctk.compute_collision_free_stepsize(
+            self.mesh,
+            self.vertices(q),
+            self.vertices(q + direction),
+            broad_phase=self.broad_phase,
+            narrow_phase_ccd=self.ccd,
+        )
+        return min(1.0, stepsize)
+
     def _hessian(self, h_contact, load) -> sp.csc_matrix:
         n = self.n_dof
         k = self.bodies.stiffness
@@ -420,10 +455,8 @@ class IPCPress:
         assert total.shape == (n, n)
         return total.tocsc()
 
-    @staticmethod
-    def _solve(matrix, rhs) -> np.ndarray:
-        lu = spla.splu(matrix, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
-        return lu.solve(rhs)
+    def _solve(self, matrix, rhs) -> np.ndarray:
+        return self.linear.solve(matrix, rhs)
 
     # -- results --------------------------------------------------------------------
     def platen_force(self, q, friction=None, v_start=None) -> tuple[float, float]:

@@ -104,6 +104,7 @@ class _State:
 
     q: np.ndarray
     kappa: float
+    q_previous: np.ndarray | None = None  # the step before: the next step's predictor
     history: list[list[float]] = field(default_factory=list)
     pairs: list[list[float]] = field(default_factory=list)
     displacements: list[np.ndarray] = field(default_factory=list)
@@ -113,8 +114,10 @@ class _State:
         return len(self.history)
 
     def arrays(self) -> dict[str, np.ndarray]:
+        previous = self.q if self.q_previous is None else self.q_previous
         return {
             "q": self.q,
+            "q_previous": previous,
             "kappa": np.array(self.kappa),
             "history": np.array(self.history, dtype=float).reshape(-1, len(HISTORY)),
             "pairs": np.array(self.pairs, dtype=float).reshape(-1, 5),
@@ -129,6 +132,7 @@ class _State:
             raise InputError(f"{where}: a checkpoint of another model")
         return cls(
             q=arrays["q"],
+            q_previous=arrays["q_previous"] if "q_previous" in arrays else None,
             kappa=float(arrays["kappa"]),
             history=arrays["history"].tolist(),
             pairs=arrays["pairs"].tolist(),
@@ -326,6 +330,7 @@ def press_loose_stack(inputs: StageInputs, stage: str) -> LooseCompaction:
         for (i, j), a in sorted(contacts.items()):
             state.pairs.append([index, result.travel_mm, i, j, a])
         state.displacements.append(result.displacement.astype(np.float32))
+        state.q_previous = state.q
         state.q, state.kappa = press.q.copy(), press.kappa
 
     def finished() -> bool:
@@ -408,18 +413,30 @@ def _step(press, params, state, step_mm, total, target_force, increments, k):
 
     done = state.history[-1][0] if state.history else 0.0
     load_done = state.history[-1][1] if state.history else 0.0
+    before = state.history[-2] if len(state.history) > 1 else [0.0, 0.0]
     share = 1.0
     for _ in range(params.cutbacks + 1):
         try:
             if params.drive == "pressure":
                 load = min(target_force, load_done + share * target_force / increments)
-                return press.step(target=0.0, load=load)
-            return press.step(target=min(total, done + share * step_mm))
+                guess = _predictor(state, load - load_done, load_done - before[1])
+                return press.step(target=0.0, load=load, guess=guess)
+            target = min(total, done + share * step_mm)
+            guess = _predictor(state, target - done, done - before[0])
+            return press.step(target=target, guess=guess)
         except PressError as exc:
             log.info("loose press: step %d cut back (%s)", k, exc)
             press.q, press.kappa = state.q.copy(), state.kappa
             share /= 2
     return None
+
+
+def _predictor(state: _State, increment: float, last_increment: float) -> np.ndarray | None:
+    """The last step's change of state scaled to this step's ``increment`` of travel or
+    load (a secant predictor: Newton then starts near the answer); None at the first."""
+    if state.q_previous is None or last_increment <= 0 or increment <= 0:
+        return None
+    return (state.q - state.q_previous) * (increment / last_increment)
 
 
 def write_loose_press(result: LooseCompaction, folder: Path, inputs: StageInputs) -> StageOutput:
