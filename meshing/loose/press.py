@@ -343,9 +343,10 @@ def press_loose_stack(inputs: StageInputs, stage: str) -> LooseCompaction:
             return True
         if params.drive == "pressure":
             return False
-        # The drive's spring leaves the platen a hair short of its target (its force over
-        # the spring's stiffness, about 1e-8 mm).
-        return last[0] >= total - 1e-3 * step_mm or len(state.history) >= 4 * increments
+        # The drive's spring leaves the platen short of its target by its force over the
+        # spring's stiffness (measured 3e-4 mm at 444 N on the 24-chip stack, which made a
+        # 51st step of 0.3 um): within 5 % of a step the travel is reached.
+        return last[0] >= total - 0.05 * step_mm or len(state.history) >= 4 * increments
 
     while not finished():
         if time.perf_counter() - started > solve.time_limit_s:  # this run's own time
