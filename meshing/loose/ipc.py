@@ -99,6 +99,7 @@ class PressSettings:
     pressure_scale_mpa: float = 10.0  # local contact pressure held at a tenth of dhat
     friction: float = 0.3
     friction_eps_mm: float = 1e-4  # slip (mm per step) below which friction is smoothed
+    relag_friction: bool = True  # friction's normal forces from each proximal round
     proximal: float = 1e-6  # eps relative to the stiffness diagonal's mean per volume
     # Measured on the 24-chip stack's first four steps: 1e-4 mm (a tenth of dhat) gives
     # the platen force of 1e-5 mm to 4 digits in 16 % fewer iterations.
@@ -308,14 +309,7 @@ class IPCPress:
         q_begin = self.q.copy()
         v_start = self.vertices(q_begin)
         collisions = self._collisions(v_start)
-        friction = None
-        if s.friction > 0 and not collisions.empty() and self.kappa > 0:
-            friction = ipctk.TangentialCollisions()
-            normal = ipctk.BarrierPotential(s.dhat_mm, self.kappa)
-            friction.build(self.mesh, v_start, collisions, normal, s.friction)
-            self.friction_potential = ipctk.FrictionPotential(s.friction_eps_mm)
-            if friction.empty():
-                friction = None
+        friction = self._lagged_friction(v_start, collisions)
         q = q_begin.copy()
         if guess is not None and np.abs(guess).max() > 0:
             q = q + self._collision_free(q, guess) * guess
@@ -350,6 +344,13 @@ class IPCPress:
             following = 0.5 * (1 + np.sqrt(1 + 4 * momentum**2))
             centre = q + ((momentum - 1) / following) * (q - last_round)
             last_round, momentum, last_force = q.copy(), following, proximal_force
+            if s.relag_friction:
+                # The friction's normal forces and bases lagged at this round's answer,
+                # not at the step's start (whose barrier forces, where the start's gaps
+                # are a fraction of dhat, are thousands of times the stack's weight and
+                # would pin the chips): the slip is still measured from the start.
+                v = self.vertices(q)
+                friction = self._lagged_friction(v, self._collisions(v))
         else:
             log.warning(
                 "loose press: the proximal term's force is still %.3g N after %d rounds",
@@ -369,6 +370,17 @@ class IPCPress:
             seconds=time.perf_counter() - started,
             displacement=q[:-1].reshape(-1, 3).copy(),
         )
+
+    def _lagged_friction(self, v, collisions):
+        """ipctk's tangential collisions with their normal forces at ``v``, or None."""
+        s = self.settings
+        if s.friction <= 0 or collisions.empty() or self.kappa <= 0:
+            return None
+        friction = ipctk.TangentialCollisions()
+        normal = ipctk.BarrierPotential(s.dhat_mm, self.kappa)
+        friction.build(self.mesh, v, collisions, normal, s.friction)
+        self.friction_potential = ipctk.FrictionPotential(s.friction_eps_mm)
+        return None if friction.empty() else friction
 
     def _newton(self, q, centre, target, load, friction, v_start, previous_distance):
         s = self.settings
