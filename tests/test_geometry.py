@@ -52,34 +52,6 @@ def pair_kind(arrangement, a, b, **kwargs):
     return table, (KINDS[table.kind[rows[0]]] if len(rows) else None), rows
 
 
-# -- coverage --------------------------------------------------------------------------------
-def test_coverage_counts_the_chips_over_each_part_of_the_footprint():
-    """20 x 20 mm squares: A over x 0 to 20, B and C on it over x 10 to 30, D alone over
-    x 60 to 80 (all y 0 to 20); 1 mm pixels on the squares' edges count exactly. By
-    hand: covered by 1 chip 600 mm2 (A's free half, D), by 2 200 (B and C past A), by 3
-    200, of a 1,000 mm2 footprint; the table says the same."""
-    a = arrange(
-        [((10, 10, 1), None), ((20, 10, 3), None), ((20, 10, 5), None), ((70, 10, 1), None)]
-    )
-    spec = GeometrySpec(pixel_mm=1.0)
-    description = describe([a], spec, ["coverage"])
-    section = description.sections["coverage"]
-    s = section["scalars"]
-    assert s["footprint_mm2"]["value"] == pytest.approx(1000.0)
-    assert section["profiles"]["cover_fraction"]["index"] == [1, 2, 3]
-    assert section["profiles"]["cover_fraction"]["values"] == pytest.approx([0.6, 0.2, 0.2])
-    assert s["single_cover_fraction"]["value"] == pytest.approx(0.6)
-    assert s["mean_cover"]["value"] == pytest.approx((600 + 2 * 200 + 3 * 200) / 1000)
-    tables = DESCRIPTORS.get("coverage").tables(description.records["coverage"])
-    header, rows = tables["coverage.csv"]
-    rows = list(rows)
-    assert header[:3] == ["chips", "pixels", "area_mm2"]
-    assert [r[:2] for r in rows] == [[1, 600], [2, 200], [3, 200]]
-    assert [float(r[4]) for r in rows] == pytest.approx([1.0, 0.4, 0.2])
-    bare = describe([arrange([])], spec, ["coverage"]).sections["coverage"]["scalars"]
-    assert bare["footprint_mm2"]["value"] == 0.0 and bare["mean_cover"]["value"] == 0.0
-
-
 # -- contact types ---------------------------------------------------------------------------
 def test_face_on_face_is_a_surface_and_the_partner_is_below():
     a = arrange([((0, 0, 1), None), ((5, 5, 3), None)])

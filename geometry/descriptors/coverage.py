@@ -1,7 +1,15 @@
-"""How many chips cover each part of the stack's footprint: the share of the area under
-the stack covered by exactly 1, 2, 3, ... chips, from the same vertical rays as the NEH
-map (over the whole footprint, the target's surroundings included, and with no cap on
-the count). A panel pressed from the stack is thin where one chip lies alone."""
+"""How many chips cover each part of the stack's footprint.
+
+The chips' outlines are projected on the conveyor plane (z = 0) by the vertical rays of
+the NEH map (:func:`geometry.rays.ray_maps`): a ray at the centre of every pixel of a
+square grid over the target and every chip counts the chips it passes through, exactly
+where each chip's (possibly tilted) footprint is. The footprint is the area under at
+least one chip, the target's surroundings included; the cover fraction of k chips is the
+share of the footprint under exactly k of them, k = 1 ... the largest count (no cap), so
+the fractions sum to 1. Areas are in mm2, the pixel's side in mm set by the geometry
+section (``pixel_mm``); a pixel counts whole where its centre is covered. A panel pressed
+from the stack is thin where one chip lies alone.
+"""
 
 from __future__ import annotations
 
@@ -15,11 +23,36 @@ from chipstack.geometry.rays import RayMaps
 
 
 def _coverage_counts(maps: RayMaps) -> np.ndarray:
-    """(k_max + 1,) pixels covered by exactly k chips, k = 0 ... the largest NEH."""
+    """Pixels of the ray grid covered by exactly k chips.
+
+    Parameters
+    ----------
+    maps : RayMaps
+        The vertical rays of the stack (``maps.neh``: (nx, ny) int, chips per pixel).
+
+    Returns
+    -------
+    (k_max + 1,) int
+        Pixels under exactly k chips, k = 0 ... the largest NEH (at least 2 entries).
+    """
     return np.bincount(maps.neh.ravel(), minlength=2)
 
 
 def _coverage_tables(maps: RayMaps) -> dict[str, Table]:
+    """The table ``coverage.csv``: one row per cover k = 1 ... the largest.
+
+    Parameters
+    ----------
+    maps : RayMaps
+        The vertical rays of the stack, as :func:`_coverage` returned them.
+
+    Returns
+    -------
+    dict of str to (header, rows)
+        ``{"coverage.csv": (header, rows)}``; columns ``chips`` (k), ``pixels``,
+        ``area_mm2`` (mm2), ``fraction_of_footprint`` (under exactly k chips) and
+        ``fraction_at_least`` (under k chips or more), fractions of the footprint.
+    """
     counts = _coverage_counts(maps)
     pixel_area = maps.grid.pixel_mm**2
     footprint = max(int(counts[1:].sum()), 1)
@@ -34,6 +67,25 @@ def _coverage_tables(maps: RayMaps) -> dict[str, Table]:
 
 
 def _coverage(ctx: Context) -> tuple[RayMaps, dict[str, Any]]:
+    """The coverage section of a stack's description.
+
+    Parameters
+    ----------
+    ctx : Context
+        The stack's shared intermediate results (its ray maps: ``ctx.rays``).
+
+    Returns
+    -------
+    RayMaps
+        The record the tables are written from.
+    dict
+        ``scalars``: ``footprint_mm2`` (mm2, the area under at least one chip),
+        ``single_cover_fraction`` (share of the footprint under exactly one chip) and
+        ``mean_cover`` (chips, the mean count over the footprint); ``profiles``:
+        ``cover_fraction`` (index k = 1 ... the largest count, the share of the footprint
+        under exactly k chips). A stack with no chip has a footprint of 0 and every
+        fraction 0.
+    """
     maps = ctx.rays
     counts = _coverage_counts(maps)
     pixel_area = maps.grid.pixel_mm**2
