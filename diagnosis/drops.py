@@ -28,7 +28,7 @@ the caller decides where they run (a Dask cluster in the CLI, a loop in tests).
 
 This module runs the three questions in order and assembles the report; the samples
 compared live in ``diagnosis.drop_simulations``, question 1 in ``diagnosis.drop_where``,
-questions 2 and 3 in ``diagnosis.drop_effects``.
+questions 2 and 3 in ``diagnosis.drop_effects`` and ``diagnosis.drop_adequacy``.
 """
 
 from __future__ import annotations
@@ -40,13 +40,14 @@ from collections.abc import Callable
 import numpy as np
 
 from chipstack.core.schema import Scenario
+from chipstack.diagnosis.drop_adequacy import how_far_best
 from chipstack.diagnosis.drop_choice import (
     choose_effect,
     design_model_choice,
     learned_detection,
 )
-from chipstack.diagnosis.drop_effects import TILT_GRID_DEG, EffectRanking, Fold, how_far_best
-from chipstack.diagnosis.drop_simulations import Dataset, DropSimulations
+from chipstack.diagnosis.drop_effects import EffectRanking, Fold
+from chipstack.diagnosis.drop_simulations import TILT_GRID_DEG, Dataset, DropSimulations
 from chipstack.diagnosis.drop_where import locate_gap
 from chipstack.diagnosis.model import DropData, Experiment
 from chipstack.diagnosis.observables import DROP_OBSERVABLES, observable_names

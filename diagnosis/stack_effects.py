@@ -11,9 +11,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from chipstack.diagnosis.drop_effects import STRENGTH_RESOLUTION, vertex, within
 from chipstack.diagnosis.ranking import effect_entry, held_out_reduction
 from chipstack.diagnosis.statistics import bootstrap_p, holm, interval
+from chipstack.diagnosis.strength_fit import STRENGTH_RESOLUTION, vertex, within
 from chipstack.diagnosis.verdicts import how_far
 from chipstack.packing.effects import EFFECTS
 

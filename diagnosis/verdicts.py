@@ -162,7 +162,7 @@ def _still_off(conditions: list[dict], alpha: float, overall_p: float | None = N
     evidence is spread over them). Splitting the held-out drops into small tests and
     adjusting for their number would hide a gap that every one of them sees a little of.
     ``overall_p``: the overall combination calibrated by simulation (drops:
-    ``drop_effects.calibrated_adequacy``), which decides in place of Fisher's."""
+    ``drop_adequacy.calibrated_adequacy``), which decides in place of Fisher's."""
     if overall_p is None:
         overall_p = combined_p([row["p_after"] for row in conditions]) if conditions else 1.0
     if not conditions or overall_p >= alpha:

@@ -141,7 +141,7 @@ def test_strength_fit_finds_the_minimum_between_grid_points():
     """The vertex of a parabola sampled on a coarse grid is found exactly, off the grid;
     at the grid's end it stays between the end and its neighbour; a curve with no
     bend keeps the grid's minimum; every column (resample) is fitted."""
-    from chipstack.diagnosis.drop_effects import vertex
+    from chipstack.diagnosis.strength_fit import vertex
 
     grid = [0.0, 0.2, 0.4, 0.6, 0.8]
     x = np.array(grid)
@@ -161,7 +161,7 @@ def test_a_noisy_strength_curve_is_fitted_on_its_smoothed_shape_not_its_lowest_p
     through the lowest point and its two neighbours does; on flat noise it does not pile
     up at the ends of the prior; a single low outlier beside the truth does not drag it
     most of a grid step away."""
-    from chipstack.diagnosis.drop_effects import smoothed_minimum, vertex
+    from chipstack.diagnosis.strength_fit import smoothed_minimum, vertex
 
     grid = [0.0, 0.4, 0.8, 1.2, 1.6, 2.0, 2.4, 2.8, 3.2, 3.6, 4.0]
     x = np.array(grid)
@@ -193,7 +193,7 @@ def test_the_discrepancy_left_is_read_off_the_smoothed_curve_at_its_minimum():
     the fitted strength, end guard and all. Its price: a V-shaped valley (slope 3) is
     read 0.62 high on the coarse grid, 0.24 with the strengths refined near it, so a
     steep right model is handicapped against a gentle imitator."""
-    from chipstack.diagnosis.drop_effects import (
+    from chipstack.diagnosis.strength_fit import (
         SMOOTHING_POINTS,
         _loess_matrix,
         refined_strengths,
@@ -236,7 +236,7 @@ def test_a_narrow_valley_is_refined_and_fitted_on_its_own_points():
     and smoothed minimum are added; with the valley's values there, the fit lands in it.
     A curve nowhere below its neutral strength adds nothing; no added strength is within
     a sixth of a step of another; all are on the fits' rounding lattice."""
-    from chipstack.diagnosis.drop_effects import refined_strengths, smoothed_minimum
+    from chipstack.diagnosis.strength_fit import refined_strengths, smoothed_minimum
 
     grid = [0.0, 0.2, 0.4, 0.6, 0.8, 1.0, 1.2, 1.4, 1.6, 1.8, 2.0]
     coarse = np.array([0.66, 0.36, 0.31, 0.43, 0.41, 0.45, 1.0, 0.88, 0.05, 0.51, 0.48])
@@ -312,7 +312,7 @@ def test_joint_fit_finds_the_minimum_of_a_tilted_bowl_between_grid_points():
     part of the strength) sampled on the 3 x 3 stencil has its minimum found off both
     grids, where fitting the strength at the middle tilt alone misses it; a minimum
     beyond the box stays on its edge; every column is fitted."""
-    from chipstack.diagnosis.drop_effects import quadratic_minimum, vertex
+    from chipstack.diagnosis.strength_fit import quadratic_minimum, vertex
 
     xs, ys = [0.4, 0.5, 0.6], [3.23, 5.73, 8.23]
     u, v = np.meshgrid(xs, ys, indexing="ij")
@@ -334,7 +334,7 @@ def test_joint_fit_finds_the_minimum_of_a_tilted_bowl_between_grid_points():
 def test_plausible_strengths_are_the_grid_points_within_the_fits_interval():
     """The adequacy test also tries the grid's strengths inside the 95 % interval of the
     fit's resamples: none outside it, all inside (its ends included)."""
-    from chipstack.diagnosis.drop_effects import within
+    from chipstack.diagnosis.strength_fit import within
 
     resamples = np.linspace(0.9, 2.1, 401)  # 95 % interval 0.93 to 2.07
     fitted = np.concatenate([[1.5], resamples])
