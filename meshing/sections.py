@@ -244,7 +244,7 @@ class SolveSpec(Section, KindKeys):
         0.05,
         "",
         "the top platen moves down this fraction of the stack's height",
-        between(1e-4, 0.5),
+        between(1e-4, 0.95),
     )
     increments: int = key(
         20, "", "the press is applied in at least this many increments", between(1, 10000)

@@ -35,20 +35,21 @@ class PatternReusingLDL:
         upper = sp.triu(matrix, format="csc")
         upper.sort_indices()
         columns = np.repeat(np.arange(n, dtype=np.int64), np.diff(upper.indptr))
-        keys = columns * n + upper.indices
+        entries = columns * n + upper.indices
+        keys = entries
         if self._keys is not None:
-            position = np.searchsorted(self._keys, keys)
+            position = np.searchsorted(self._keys, entries)
             inside = position < len(self._keys)
-            inside[inside] = self._keys[position[inside]] == keys[inside]
+            inside[inside] = self._keys[position[inside]] == entries[inside]
             if inside.all():
                 self._solver.update(self._matrix(position, upper.data, n), upper=True)
                 self.updates += 1
                 return self._solver.solve(rhs)
-            keys = np.union1d(self._keys, keys)
+            keys = np.union1d(self._keys, entries)
         self._keys = keys
         self._rows = (keys % n).astype(np.int32)
         self._indptr = np.searchsorted(keys // n, np.arange(n + 1)).astype(np.int32)
-        position = np.searchsorted(keys, columns * n + upper.indices)
+        position = np.searchsorted(keys, entries)
         self._solver = qdldl.Solver(self._matrix(position, upper.data, n), upper=True)
         self.analyses += 1
         return self._solver.solve(rhs)
