@@ -22,9 +22,8 @@ from chipstack.diagnosis.model_choice import (
     ModelChoice,
     _quiet_parallel,
     build_model_choice,
-    design_summaries,
-    next_experiment,
 )
+from chipstack.diagnosis.next_experiment import next_experiment
 from chipstack.diagnosis.reference_table import (
     NO_EFFECT,
     ReferenceTable,
@@ -32,6 +31,7 @@ from chipstack.diagnosis.reference_table import (
     pool_drops_for,
 )
 from chipstack.diagnosis.statistics import interval
+from chipstack.diagnosis.summaries import design_summaries
 from chipstack.diagnosis.verdicts import off_text, percent
 from chipstack.packing.effects import EFFECTS
 

@@ -33,41 +33,32 @@ import math
 import pickle
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 import sklearn
 from scipy.optimize import minimize
-from scipy.stats import binomtest
 from sklearn.decomposition import PCA
 from sklearn.ensemble import RandomForestClassifier, RandomForestRegressor
 from sklearn.model_selection import StratifiedGroupKFold
 from sklearn.neighbors import NearestNeighbors
 from sklearn.preprocessing import StandardScaler
 
+from chipstack.diagnosis.choice_checks import CREDIBLE, design_checks, smallest_credible_set
 from chipstack.diagnosis.learned_summary import LearnedSummary
-from chipstack.diagnosis.model import Condition, DropData, Experiment
+from chipstack.diagnosis.model import Experiment
 from chipstack.diagnosis.reference_table import (
-    DEFAULT_POOL_DROPS,
     NO_EFFECT,
     NUISANCE_TILT_DEG,
     ReferenceTable,
     TableDataset,
     TableStore,
     pool_drops_for,
-    simulation_key,
 )
-from chipstack.diagnosis.summaries import condition_summaries, summary_names
-from chipstack.packing.drop import DropProtocol
+from chipstack.diagnosis.summaries import design_summaries, summary_names
 from chipstack.packing.effects import EFFECTS
 
-__all__ = [
-    "ModelChoice",
-    "build_model_choice",
-    "design_summaries",
-    "expected_calibration_error",
-    "smallest_credible_set",
-]
+__all__ = ["MODEL_CHOICE_VERSION", "ModelChoice", "build_model_choice"]
 
 log = logging.getLogger(__name__)
 
@@ -75,7 +66,6 @@ MODEL_CHOICE_VERSION = 5
 TREES = 300
 CURVE_TREES = 60  # the size curve's forests (a comparison between sizes, not the figure)
 FOLDS = 5
-CREDIBLE = 0.95
 # The table grows in rounds of pools per effect until the cross-validated accuracy levels
 # off (a gain under LEVEL_OFF from one round to the next), within these bounds.
 POOL_ROUNDS = (8, 16, 24, 32, 40, 48)
@@ -103,69 +93,6 @@ def _quiet_parallel(function):
             return function(*args, **kwargs)
 
     return quiet
-
-
-def design_summaries(
-    drops: dict[str, np.ndarray] | dict[str, DropData],
-    experiment: Experiment,
-    order: int,
-    has_yaw: bool,
-    has_tilt: bool,
-) -> np.ndarray:
-    """One dataset's summary vector: every condition's :func:`condition_summaries`, in
-    the spec's order. ``drops`` per condition: (n, 4) arrays (x, y mm, yaw, tilt deg) or
-    :class:`DropData`."""
-    parts = []
-    for c in experiment.conditions:
-        d = drops[c.name]
-        if isinstance(d, DropData):
-            positions, yaw, tilt = d.positions, d.yaw_deg, d.tilt_deg
-        else:
-            positions, yaw, tilt = d[:, :2], d[:, 2], d[:, 3]
-        parts.append(
-            condition_summaries(
-                positions,
-                yaw if has_yaw else None,
-                tilt if has_tilt else None,
-                c.protocol.yaw_deg,
-                order,
-            )
-        )
-    return np.concatenate(parts)
-
-
-def expected_calibration_error(probabilities: np.ndarray, truth: np.ndarray, bins: int = 15):
-    """Top-label expected calibration error: the mean, weighted by bin size, of
-    |accuracy - confidence| over equal-width bins of the highest probability (0 for
-    perfectly calibrated probabilities)."""
-    confidence = probabilities.max(axis=1)
-    correct = probabilities.argmax(axis=1) == truth
-    edges = np.linspace(0.0, 1.0, bins + 1)
-    which = np.clip(np.digitize(confidence, edges[1:-1]), 0, bins - 1)
-    total = 0.0
-    for b in range(bins):
-        mine = which == b
-        if mine.any():
-            total += mine.mean() * abs(correct[mine].mean() - confidence[mine].mean())
-    return float(total)
-
-
-def smallest_credible_set(probabilities: dict[str, float], level: float = CREDIBLE) -> list[str]:
-    """The fewest models whose probabilities add up to ``level``, most probable first."""
-    chosen, total = [], 0.0
-    for name, p in sorted(probabilities.items(), key=lambda item: -item[1]):
-        chosen.append(name)
-        total += p
-        if total >= level - 1e-12:
-            break
-    return chosen
-
-
-def _clopper_pearson(successes: int, trials: int) -> list[float]:
-    if trials == 0:
-        return [math.nan, math.nan]
-    ci = binomtest(successes, trials).proportion_ci(0.95, method="exact")
-    return [float(ci.low), float(ci.high)]
 
 
 # The calibration map's bounds. A large smoothing s with a power a is a softmax of the votes
@@ -370,7 +297,7 @@ class ModelChoice:
     def choose(self, x: np.ndarray, drops: dict) -> dict:
         """Posterior probabilities, the best effect, the 95 % set, strengths with
         intervals, and the out-of-distribution p-value of one dataset: its summary
-        vector ``x`` (:func:`design_summaries`) and its drops per condition (DropData or
+        vector ``x`` (:func:`summaries.design_summaries`) and its drops per condition (DropData or
         (n, 4) arrays), which the learned summary reads."""
         if not np.isfinite(x).all():
             raise ValueError("a summary of the observations is not finite")
@@ -645,7 +572,7 @@ def _train(design: _Design, counts, models, seed, curve, progress) -> ModelChoic
             tilts[m] = _fit_interval(hand[mine], tilt[mine], groups[mine], NUISANCE_TILT_DEG, seed)
     ood = _OutOfDistribution.fit(hand, groups, seed)
     no_effect_null = oof.no_effect_null(models)
-    checks = _checks(models, y, groups, strength, votes, calibrated, curve, strengths)
+    checks = design_checks(models, y, groups, strength, votes, calibrated, curve, strengths)
     checks["datasets"] = len(y)
     checks["seed"] = seed
     checks["pools"] = {m: int(c) for m, c in counts.items()}
@@ -653,253 +580,4 @@ def _train(design: _Design, counts, models, seed, curve, progress) -> ModelChoic
     names = design.feature_names + learned.names(models)
     return ModelChoice(
         models, names, forest, calibrator, strengths, tilts, ood, learned, no_effect_null, checks
-    )
-
-
-def _checks(models, y, groups, strength, votes, calibrated, curve, strengths) -> dict:
-    """The design's ceiling and calibration, from the out-of-fold predictions."""
-    classes = len(models)
-    predicted = calibrated.argmax(axis=1)
-    correct = predicted == y
-    pools = len(np.unique(groups))
-    confusion = np.zeros((classes, classes), dtype=int)
-    np.add.at(confusion, (y, predicted), 1)
-    upper = np.array(
-        [
-            m == NO_EFFECT or s >= np.mean(EFFECTS.get(m).prior)
-            for m, s in zip((models[k] for k in y), strength, strict=True)
-        ]
-    )
-    in_set = np.array(
-        [
-            k in _set_indices(p) and len(_set_indices(p)) <= 2
-            for k, p in zip(y, calibrated, strict=True)
-        ]
-    )
-    effects_upper = upper & (y != models.index(NO_EFFECT)) if NO_EFFECT in models else upper
-    separations = []
-    for a in range(classes):
-        for b in range(a + 1, classes):
-            both = (y == a) | (y == b)
-            mixed = confusion[a, b] + confusion[b, a]
-            separations.append(
-                dict(
-                    pair=[models[a], models[b]],
-                    told_apart=float(1 - mixed / max(both.sum(), 1)),
-                )
-            )
-    separations.sort(key=lambda s: s["told_apart"])
-    return dict(
-        accuracy=float(correct.mean()),
-        accuracy_ci95_pools=_clopper_pearson(round(correct.mean() * pools), pools),
-        accuracy_upper_half=float(correct[upper].mean()) if upper.any() else math.nan,
-        identified_upper_half=float(in_set[effects_upper].mean())
-        if effects_upper.any()
-        else math.nan,
-        identified_upper_half_ci95_pools=_clopper_pearson(
-            round(in_set[effects_upper].mean() * pools * effects_upper.mean()),
-            round(pools * effects_upper.mean()),
-        )
-        if effects_upper.any()
-        else [math.nan, math.nan],
-        confusion=dict(models=models, counts=confusion.tolist()),
-        hardest_pairs=separations[:5],
-        expected_calibration_error=expected_calibration_error(calibrated, y),
-        expected_calibration_error_votes=expected_calibration_error(votes, y),
-        log_loss=float(-np.mean(np.log(np.clip(calibrated[np.arange(len(y)), y], 1e-12, 1)))),
-        credible_set_coverage=float(
-            np.mean([k in _set_indices(p) for k, p in zip(y, calibrated, strict=True)])
-        ),
-        strength_interval_coverage={m: s.coverage_out_of_fold for m, s in strengths.items()},
-        size_curve=curve,
-    )
-
-
-def _set_indices(p: np.ndarray) -> list[int]:
-    order = np.argsort(-p)
-    total, out = 0.0, []
-    for k in order:
-        out.append(int(k))
-        total += p[k]
-        if total >= CREDIBLE - 1e-12:
-            break
-    return out
-
-
-# -- the next experiment ---------------------------------------------------------------------
-# Releases a next experiment may add (height mm, yaw deg), tried in this order; the design's
-# own releases are skipped. Three are scored (each costs the tied models' pools there).
-NEXT_RELEASES = ((1000.0, 0.0), (150.0, 0.0), (700.0, 45.0), (300.0, 15.0), (500.0, 30.0))
-NEXT_CANDIDATES = 3
-NEXT_TREES = 100
-NEXT_MIN_GAIN = 0.03  # below this gain in accuracy no next experiment is named
-
-
-@_quiet_parallel
-def next_experiment(
-    experiment: Experiment,
-    drops: dict[str, int],
-    tied: list[str],
-    counts: dict[str, int],
-    order: int,
-    has_yaw: bool,
-    has_tilt: bool,
-    store: TableStore,
-    run_many: Callable[[Callable, list[dict]], list],
-    progress: Callable[[str], None],
-    seed: int = 0,
-) -> dict:
-    """Which extra condition would tell the ``tied`` models apart best
-    (:func:`_score_next_experiment`), kept in ``store`` by a key of the design, the tied
-    models and their pools, so that a second diagnosis of the design scores nothing."""
-    text = json.dumps(
-        dict(
-            version=MODEL_CHOICE_VERSION,
-            sklearn=sklearn.__version__,
-            simulation=simulation_key(experiment.scenario),
-            conditions=[
-                [c.protocol.height_mm, c.protocol.yaw_deg, c.protocol.tilt_deg]
-                for c in experiment.conditions
-            ],
-            release_tilt=experiment.settings.release_tilt,
-            drops=[drops[c.name] for c in experiment.conditions],
-            noise=[experiment.position_sd_mm, experiment.angle_sd_deg],
-            angles=[has_yaw, has_tilt],
-            tied=list(tied),
-            pools=[counts[m] for m in tied],
-            seed=seed,
-            scored=[NEXT_RELEASES, NEXT_CANDIDATES, NEXT_TREES, NEXT_MIN_GAIN, DEFAULT_POOL_DROPS],
-        ),
-        sort_keys=True,
-    )
-    name = f"next-{hashlib.sha256(text.encode()).hexdigest()[:20]}.json"
-    blob = store.load(name)
-    if blob is not None:
-        progress("model choice: next experiment scored before")
-        return json.loads(blob)
-    result = _score_next_experiment(
-        experiment, drops, tied, counts, order, has_yaw, has_tilt, store, run_many, progress, seed
-    )
-    store.save(name, json.dumps(result).encode())
-    return result
-
-
-def _score_next_experiment(
-    experiment: Experiment,
-    drops: dict[str, int],
-    tied: list[str],
-    counts: dict[str, int],
-    order: int,
-    has_yaw: bool,
-    has_tilt: bool,
-    store: TableStore,
-    run_many: Callable[[Callable, list[dict]], list],
-    progress: Callable[[str], None],
-    seed: int = 0,
-) -> dict:
-    """Which extra condition would tell the ``tied`` models apart best: for each candidate
-    release (and for twice the drops in every condition) the cross-validated accuracy
-    among the tied models on simulated datasets of the design with it, against the
-    design as it is. The candidates' pools share the tied models' strengths pool by pool
-    (the same Halton draws), so a dataset of the design and one of the extra condition
-    come from one setting."""
-    n = int(np.median(list(drops.values())))
-    pool_drops = pool_drops_for(drops)
-    tied_counts = {m: counts[m] for m in tied}
-    base = ReferenceTable(experiment, tied, store, pool_drops)
-    base.load()
-    base.ensure(tied_counts, run_many, progress)
-    rng = np.random.default_rng([seed, 61])
-
-    def features(table, x, want) -> dict[tuple, np.ndarray]:
-        out = {}
-        for d in table.datasets(tied_counts, want, rng):
-            if d.part >= 0:
-                key = (d.setting.model, d.setting.index, d.part)
-                out[key] = design_summaries(d.drops, x, order, has_yaw, has_tilt)
-        return out
-
-    def accuracy(keys: list[tuple], blocks: list[dict]) -> float:
-        X = np.array([np.concatenate([b[k] for b in blocks]) for k in keys])
-        y = np.array([tied.index(k[0]) for k in keys])
-        groups = np.array([tied.index(k[0]) * 10_000 + k[1] for k in keys])
-        votes = _cross_validated(X, y, groups, len(tied), seed, trees=NEXT_TREES)
-        return float(np.mean(votes.argmax(axis=1) == y))
-
-    now = features(base, experiment, drops)
-    options = []
-    # Twice the drops in every condition, from the same pools.
-    if 2 * max(drops.values()) <= pool_drops:
-        doubled = features(base, experiment, {c: 2 * d for c, d in drops.items()})
-        keys = sorted(set(doubled))
-        options.append(
-            dict(
-                kind="more drops",
-                drops_per_condition=2 * n,
-                accuracy_after=accuracy(keys, [doubled]),
-                accuracy_now=accuracy(keys, [{k: now[k] for k in keys}]),
-            )
-        )
-    have = {(c.protocol.height_mm, c.protocol.yaw_deg) for c in experiment.conditions}
-    releases = [r for r in NEXT_RELEASES if r not in have][:NEXT_CANDIDATES]
-    tilt = experiment.conditions[0].protocol.tilt_deg
-    for height, yaw in releases:
-        name = f"next-h{height:g}-yaw{yaw:g}"
-        condition = Condition(name, DropProtocol(height_mm=height, yaw_deg=yaw, tilt_deg=tilt))
-        extra_x = replace(experiment, conditions=(condition,))
-        extra = ReferenceTable(extra_x, tied, store, max(DEFAULT_POOL_DROPS // 2, 2 * n))
-        extra.load()
-        progress(f"model choice: scoring a next experiment at {height:g} mm, yaw {yaw:g} deg")
-        extra.ensure(tied_counts, run_many, progress)
-        added = features(extra, extra_x, {name: n})
-        keys = sorted(set(added) & set(now))
-        options.append(
-            dict(
-                kind="extra condition",
-                height_mm=height,
-                yaw_deg=yaw,
-                drops_per_condition=n,
-                accuracy_after=accuracy(keys, [{k: now[k] for k in keys}, added]),
-                accuracy_now=accuracy(keys, [{k: now[k] for k in keys}]),
-            )
-        )
-    best = max(options, key=lambda o: o["accuracy_after"] - o["accuracy_now"])
-    gain = best["accuracy_after"] - best["accuracy_now"]
-    release = dict(height_mm=None, yaw_deg=None)
-    if gain < NEXT_MIN_GAIN:
-        heights = ", ".join(f"{o['height_mm']:g} mm" for o in options if "height_mm" in o)
-        text = (
-            f"Next experiment: none of the {len(options)} scored (twice the drops, or a "
-            f"condition at {heights}) "
-            f"tells {', '.join(tied)} apart better than the design does now "
-            f"({100 * best['accuracy_now']:.0f} % on simulated datasets)."
-        )
-        return dict(
-            separates=list(tied),
-            options=options,
-            chosen=None,
-            drops_needed_per_condition=None,
-            text=text,
-            **release,
-        )
-    if best["kind"] == "more drops":
-        what = f"{best['drops_per_condition']} drops in every condition instead of {n}"
-    else:
-        what = (
-            f"a condition released at {best['height_mm']:g} mm, yaw {best['yaw_deg']:g} deg, "
-            f"with {n} drops"
-        )
-        release = dict(height_mm=best["height_mm"], yaw_deg=best["yaw_deg"])
-    text = (
-        f"Next experiment: {what}. Among {', '.join(tied)}, simulated datasets of the design "
-        f"are then given the right model {100 * best['accuracy_after']:.0f} % of the time, "
-        f"against {100 * best['accuracy_now']:.0f} % now."
-    )
-    return dict(
-        separates=list(tied),
-        options=options,
-        chosen=best,
-        drops_needed_per_condition=best["drops_per_condition"],
-        text=text,
-        **release,
     )

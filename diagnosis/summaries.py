@@ -13,9 +13,16 @@ not record are left out.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
-__all__ = ["condition_summaries", "summary_names"]
+from chipstack.diagnosis.model import DropData
+
+if TYPE_CHECKING:
+    from chipstack.diagnosis.model import Experiment
+
+__all__ = ["condition_summaries", "design_summaries", "summary_names"]
 
 _R_QUANTILES = (0.05, 0.1, 0.25, 0.5, 0.75, 0.9, 0.95)
 _TILT_QUANTILES = (0.1, 0.25, 0.5, 0.75, 0.9, 0.95)
@@ -132,3 +139,32 @@ def condition_summaries(
         values += [float(np.mean(tilt > t)) for t in _TILT_THRESHOLDS_DEG]
         values += [_corr(log_r, np.log(tilt + 0.1))]
     return np.asarray(values, dtype=float)
+
+
+def design_summaries(
+    drops: dict[str, np.ndarray] | dict[str, DropData],
+    experiment: Experiment,
+    order: int,
+    has_yaw: bool,
+    has_tilt: bool,
+) -> np.ndarray:
+    """One dataset's summary vector: every condition's :func:`condition_summaries`, in
+    the spec's order. ``drops`` per condition: (n, 4) arrays (x, y mm, yaw, tilt deg) or
+    :class:`DropData`."""
+    parts = []
+    for c in experiment.conditions:
+        d = drops[c.name]
+        if isinstance(d, DropData):
+            positions, yaw, tilt = d.positions, d.yaw_deg, d.tilt_deg
+        else:
+            positions, yaw, tilt = d[:, :2], d[:, 2], d[:, 3]
+        parts.append(
+            condition_summaries(
+                positions,
+                yaw if has_yaw else None,
+                tilt if has_tilt else None,
+                c.protocol.yaw_deg,
+                order,
+            )
+        )
+    return np.concatenate(parts)

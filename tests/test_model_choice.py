@@ -11,15 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from chipstack.diagnosis.choice_checks import expected_calibration_error, smallest_credible_set
 from chipstack.diagnosis.model import Condition, DiagnosisSettings, DropData, Experiment
-from chipstack.diagnosis.model_choice import (
-    build_model_choice,
-    design_summaries,
-    expected_calibration_error,
-    smallest_credible_set,
-)
+from chipstack.diagnosis.model_choice import build_model_choice
 from chipstack.diagnosis.reference_table import NO_EFFECT, MemoryStore, ReferenceTable
-from chipstack.diagnosis.summaries import condition_summaries, summary_names
+from chipstack.diagnosis.summaries import condition_summaries, design_summaries, summary_names
 from chipstack.diagnosis.synth import synthesize_drops
 from chipstack.packing.drop import DropProtocol
 from chipstack.pipeline.scenario_files import load_scenario
@@ -348,7 +344,7 @@ def test_bad_table_settings_are_refused_in_one_line(tmp_path):
 def _section_and_check(probabilities: dict[str, float]) -> tuple[dict, dict]:
     """A model-choice section and predictive check in which everything fits: the check
     passes, the data are in distribution, the effect closes the whole gap."""
-    from chipstack.diagnosis.model_choice import smallest_credible_set
+    from chipstack.diagnosis.choice_checks import smallest_credible_set
 
     section = dict(
         probabilities=probabilities,
